@@ -1,0 +1,449 @@
+"""The public entry point: ``calibrate(network, model, options) -> CalibrationResult``.
+
+Host side: validate the configuration, build the index plan and the approximate values, call
+the compiled adjustment (:mod:`._solver`) and quality (:mod:`._quality`) once, and turn the
+arrays into a result with names, units and result codes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Mapping
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._aps import get_ap
+from ._approx import approximate_values
+from ._models import Scanner
+from ._network import Network
+from ._quality import quality
+from ._solver import (
+    MAX_ITERATIONS, NONFINITE, NOT_ESTIMABLE, RANK_DEFICIENT, RESULT_MESSAGES, SUCCESS,
+    Family, Options, Params, Problem, Spec, adjust,
+)
+
+DATUMS = ("auto", "inner", "fixed-scan", "control")
+GROUP_NAMES = ("range", "hz", "el")
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibrationModel:
+    """Configuration of a self-calibration (SPEC sections 3, 6).
+
+    ``scanner``: one :class:`Scanner` for every instrument, or a mapping instrument name ->
+    Scanner (each instrument gets its own AP block). ``datum``: "inner" (inner constraints on
+    the targets; free network), "fixed-scan" (the pose of ``fixed_scan`` is held; only its
+    parameters the datum leaves free: all six, or X, Y, Z, kappa with levelling), "control"
+    (control points with their sigmas), or "auto" (control if the network has control points,
+    otherwise inner). ``correlation_threshold``: an AP whose largest absolute correlation
+    exceeds it is flagged as weakly determined.
+    """
+
+    scanner: Scanner | Mapping[str, Scanner] = dataclasses.field(default_factory=Scanner)
+    datum: str = "auto"
+    fixed_scan: str | None = None
+    correlation_threshold: float = 0.99
+
+    def __post_init__(self):
+        if self.datum not in DATUMS:
+            raise ValueError(f"datum {self.datum!r} is not one of {DATUMS}")
+        if self.datum == "fixed-scan" and self.fixed_scan is None:
+            raise ValueError("datum 'fixed-scan' needs fixed_scan=<scan name>")
+        if not 0 < self.correlation_threshold <= 1:
+            raise ValueError(f"correlation_threshold must be in (0, 1], got {self.correlation_threshold}")
+
+
+@dataclasses.dataclass(frozen=True)
+class SolverOptions:
+    """Numerical settings. ``tolerance``: largest update in units of the parameter's
+    stand-alone precision ``1/sqrt(N_ii)``; ``rank_tolerance``: smallest accepted Cholesky
+    pivot ``1 - R^2`` of the unit-diagonal reduced normal matrix (below it a parameter is not
+    estimable); ``full_covariance``: also form the inner-constraint cofactor matrix of all
+    unknowns (needed for correlations with targets)."""
+
+    max_iterations: int = 30
+    tolerance: float = 1e-8
+    rank_tolerance: float = 1e-9
+    full_covariance: bool = True
+
+    def arrays(self) -> Options:
+        return Options(jnp.asarray(self.max_iterations), jnp.asarray(self.tolerance), jnp.asarray(self.rank_tolerance))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Plan:
+    """Host-built index plan and static spec of one (network, model) pair."""
+
+    spec: Spec
+    problem: Problem
+    family_targets: tuple  # per family: (n, k) target indices
+    ap_labels: tuple
+    ap_units: tuple
+    parameter_names: tuple
+    fixed_scan_index: int | None
+
+
+def _scanner_for(model: CalibrationModel, instrument: str) -> Scanner:
+    if isinstance(model.scanner, Scanner):
+        return model.scanner
+    try:
+        return model.scanner[instrument]
+    except KeyError:
+        raise ValueError(f"no Scanner configured for instrument {instrument!r}; configured: {sorted(model.scanner)}") from None
+
+
+def build_plan(net: Network, model: CalibrationModel) -> Plan:
+    """Index plan (which observations share a target, which (target, scan) pairs exist)."""
+    scanners = tuple(_scanner_for(model, ins) for ins in net.instruments)
+    ap_names, ap_slices, labels, units = [], [], [], []
+    off = 0
+    for ins, sc in zip(net.instruments, scanners):
+        ap_names.append(sc.aps)
+        ap_slices.append((off, off + len(sc.aps)))
+        off += len(sc.aps)
+        for a in sc.aps:
+            labels.append(a if len(net.instruments) == 1 else f"{a}[{ins}]")
+            units.append(get_ap(a).unit)
+    n_s = len(net.scans)
+    levelled = net.is_levelled.any()
+
+    datum = model.datum
+    if datum == "auto":
+        datum = "control" if len(net.control_index) else "inner"
+    if datum == "control" and len(net.control_index) == 0:
+        raise ValueError(f"{net.source}: datum 'control' needs control points")
+    fixed = np.zeros(6 * n_s + off, dtype=bool)
+    fixed_idx = None
+    if datum == "fixed-scan":
+        if model.fixed_scan not in net.scans:
+            raise ValueError(f"fixed scan {model.fixed_scan!r} is not a scan of {net.source}; scans: {', '.join(net.scans)}")
+        fixed_idx = net.scans.index(model.fixed_scan)
+        cols = (0, 1, 2, 5) if levelled else tuple(range(6))
+        fixed[[6 * fixed_idx + c for c in cols]] = True
+    datum_columns = ((0, 1, 2, 5) if levelled else tuple(range(6))) if datum == "inner" else ()
+    spec = Spec(scanners, tuple(ap_names), tuple(ap_slices), n_s, datum_columns, datum == "inner")
+
+    # Families: free targets (k=1) and scale bars (k=2: both end targets in one block).
+    n_t = len(net.targets)
+    bars = net.scale_bar_targets
+    in_bar = np.zeros(n_t, dtype=bool)
+    if len(bars):
+        flat = bars.reshape(-1)
+        if len(set(flat.tolist())) != len(flat):
+            raise ValueError(f"{net.source}: a target may end at most one scale bar")
+        in_bar[flat] = True
+    fam_of = np.zeros(n_t, dtype=np.int32)
+    prim_of = np.zeros(n_t, dtype=np.int32)
+    point_of = np.zeros(n_t, dtype=np.int32)
+    free = np.flatnonzero(~in_bar)
+    prim_of[free] = np.arange(len(free))
+    fam_targets = [free[:, None]]
+    if len(bars):
+        fam_of[bars.reshape(-1)] = 1
+        prim_of[bars[:, 0]] = prim_of[bars[:, 1]] = np.arange(len(bars))
+        point_of[bars[:, 1]] = 1
+        fam_targets.append(bars)
+    ctrl_w_t = np.zeros((n_t, 3))
+    ctrl_x_t = np.zeros((n_t, 3))
+    if datum != "inner" or len(net.control_index):
+        ctrl_w_t[net.control_index] = 1.0 / net.control_sigma
+        ctrl_x_t[net.control_index] = net.control_xyz
+    families = []
+    for fi, tg in enumerate(fam_targets):
+        m = fam_of[net.target_index] == fi
+        prim = prim_of[net.target_index[m]]
+        scan = net.scan_index[m]
+        pairs, pair = np.unique(np.stack([prim, scan], axis=1), axis=0, return_inverse=True)
+        k = tg.shape[1]
+        blen = np.zeros(len(tg))
+        bw = np.zeros(len(tg))
+        if k == 2:
+            blen[:] = net.scale_bar_length
+            bw[:] = 1.0 / net.scale_bar_sigma
+        families.append(Family(
+            obs=jnp.asarray(net.observations[m]), weight=jnp.asarray(1.0 / net.sigmas[m]),
+            prim=jnp.asarray(prim), point=jnp.asarray(point_of[net.target_index[m]]),
+            scan=jnp.asarray(scan), pair=jnp.asarray(pair.reshape(-1).astype(np.int32)),
+            pair_prim=jnp.asarray(pairs[:, 0]), pair_scan=jnp.asarray(pairs[:, 1]),
+            ctrl_xyz=jnp.asarray(ctrl_x_t[tg]), ctrl_weight=jnp.asarray(ctrl_w_t[tg]),
+            bar_length=jnp.asarray(blen), bar_weight=jnp.asarray(bw), k=k,
+        ))
+    lw = np.where(np.isfinite(net.levelling_sigma), 1.0 / net.levelling_sigma, 0.0)
+    problem = Problem(tuple(families), jnp.asarray(net.instrument_of_scan), jnp.asarray(net.levelling), jnp.asarray(lw), jnp.asarray(fixed))
+
+    names = []
+    for tg in fam_targets:
+        for row in tg:
+            for t in row:
+                names += [f"{c}[{net.targets[t]}]" for c in "XYZ"]
+    for s in net.scans:
+        names += [f"{c}[{s}]" for c in ("Xs", "Ys", "Zs", "omega", "phi", "kappa")]
+    names += labels
+    return Plan(spec, problem, tuple(fam_targets), tuple(labels), tuple(units), tuple(names), fixed_idx)
+
+
+def initial_params(net: Network, plan: Plan, targets=None, eops=None) -> Params:
+    if targets is None or eops is None:
+        targets, eops = approximate_values(net)
+    prims = tuple(jnp.asarray(targets[tg].reshape(len(tg), -1)) for tg in plan.family_targets)
+    return Params(prims, jnp.asarray(eops), jnp.zeros(plan.spec.n_aps))
+
+
+@functools.partial(jax.jit, static_argnums=(0, 5))
+def _run(spec, problem, params0, options, rank_tolerance, full_covariance):
+    state = adjust(spec, problem, params0, options)
+    q = quality(spec, problem, state.params, rank_tolerance, full_covariance)
+    return state, q
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class CalibrationResult:
+    """Result of :func:`calibrate`. Angles in radians and lengths in metres (SI) throughout.
+
+    ``result`` is a code (0 success, 1 max iterations, 2 some APs not estimable, 3 rank
+    defect, 4 non-finite) with ``message``. AP sigmas are a posteriori (scaled by sigma0^2).
+    Non-estimable APs have NaN value and sigma and are listed in ``not_estimable`` with the
+    parameter they are confounded with; they are never reported as numbers.
+    """
+
+    result: int
+    message: str
+    converged: bool
+    iterations: int
+    sigma0: float
+    dof: float
+    n_observations: int
+    n_unknowns: int
+    datum: str
+    ap_names: tuple
+    ap_units: tuple
+    ap_values: np.ndarray
+    ap_sigmas: np.ndarray
+    ap_t: np.ndarray
+    ap_max_abs_corr: np.ndarray
+    ap_max_corr_with: tuple
+    not_estimable: tuple  # ((name, confounded_with, reason), ...)
+    weakly_determined: tuple  # ((name, partner, |corr|), ...)
+    rank_deficient: tuple  # parameters other than APs that the network does not determine
+    scans: tuple
+    eops: np.ndarray  # (s, 6)
+    eop_sigmas: np.ndarray
+    targets: tuple
+    target_xyz: np.ndarray  # (t, 3)
+    target_sigmas: np.ndarray
+    residuals: np.ndarray  # (n, 3) v = F + Delta - l, in network row order
+    redundancy: np.ndarray  # (n, 3)
+    redundancy_levelling: np.ndarray  # (s, 2)
+    redundancy_prior_sum: float
+    parameter_names: tuple
+    covariance: np.ndarray | None  # a posteriori, inner-constraint datum, all unknowns
+    network: Network = dataclasses.field(repr=False, default=None)
+
+    @property
+    def ok(self) -> bool:
+        return self.result in (SUCCESS, NOT_ESTIMABLE)
+
+    def correlation(self) -> np.ndarray:
+        if self.covariance is None:
+            raise ValueError("no full covariance: run calibrate with SolverOptions(full_covariance=True)")
+        s = np.sqrt(np.clip(np.diag(self.covariance), 0, None))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            c = self.covariance / np.outer(s, s)
+        return np.where(np.outer(s, s) > 0, c, 0.0)
+
+    def redundancy_summary(self) -> dict:
+        """Mean and sum of redundancy numbers per group, per scan and in total."""
+        r = self.redundancy
+        out = {}
+        for g, name in enumerate(GROUP_NAMES):
+            out[name] = {"mean": float(r[:, g].mean()), "sum": float(r[:, g].sum())}
+        lev = self.redundancy_levelling
+        active = self.network.is_levelled
+        if active.any():
+            out["levelling"] = {"mean": float(lev[active].mean()), "sum": float(lev[active].sum())}
+        out["per_scan"] = {
+            s: {"mean": float(r[self.network.scan_index == j].mean())} for j, s in enumerate(self.scans)
+        }
+        total = float(r.sum() + lev.sum() + self.redundancy_prior_sum)
+        out["total"] = {"mean": total / max(self.n_observations, 1), "sum": total}
+        return out
+
+    def ap(self, name: str) -> dict:
+        i = self.ap_names.index(name)
+        return {"value": self.ap_values[i], "sigma": self.ap_sigmas[i], "unit": self.ap_units[i], "t": self.ap_t[i],
+                "max_abs_corr": self.ap_max_abs_corr[i], "max_corr_with": self.ap_max_corr_with[i]}
+
+
+def calibrate(network: Network, model: CalibrationModel | None = None, options: SolverOptions | None = None, *,
+              throw: bool = False, initial=None) -> CalibrationResult:
+    """Self-calibrate a TLS network: one free-network adjustment of targets, scan poses and APs.
+
+    Gauss-Markov model of Chow et al. 2013 (eqs. 1-6), structured Gauss-Newton with LM damping,
+    datum by inner constraints on the targets (or a fixed scan, or control points), quality
+    from the compiled normal matrix. With ``throw=True`` a failed result raises ``RuntimeError``.
+    ``initial`` optionally gives (targets (t, 3), eops (s, 6)) instead of the computed
+    approximate values.
+    """
+    model = model or CalibrationModel()
+    options = options or SolverOptions()
+    plan = build_plan(network, model)
+    p0 = initial_params(network, plan, *(initial or (None, None)))
+    state, q = _run(plan.spec, plan.problem, p0, options.arrays(), jnp.asarray(options.rank_tolerance), options.full_covariance)
+    res = _assemble(network, model, plan, state, q)
+    if throw and not res.ok:
+        raise RuntimeError(res.message)
+    return res
+
+
+def _assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
+    spec = plan.spec
+    ns, na = spec.n_scans, spec.n_aps
+    dep = np.asarray(q.dependent)
+    fixed = np.asarray(plan.problem.fixed)
+    dof = float(q.dof)
+    vtpv = float(q.vtpv)
+    s0sq = vtpv / dof if dof > 0 else np.nan
+    finite = bool(state.finite) and np.isfinite(vtpv)
+    n_p = sum(int(np.prod(P.shape)) for P in state.params.prims)
+
+    names = plan.parameter_names
+    Qzz = np.asarray(q.Qzz)
+    cov = None if q.Qfull is None else np.asarray(q.Qfull) * (s0sq if np.isfinite(s0sq) else 1.0)
+    zdiag = np.diag(Qzz) * s0sq
+    ap_idx = 6 * ns + np.arange(na)
+    ap_dep = dep[ap_idx] & ~fixed[ap_idx]
+    eop_dep = dep[: 6 * ns] & ~fixed[: 6 * ns]
+    values = np.asarray(state.params.aps).copy()
+    sig = np.sqrt(np.clip(zdiag[ap_idx], 0, None))
+    values[ap_dep] = np.nan
+    sig[ap_dep] = np.nan
+    with np.errstate(invalid="ignore", divide="ignore"):
+        tstat = values / sig
+
+    # Largest absolute correlation of each AP with any other unknown (inner-constraint datum).
+    if cov is not None:
+        full_dep = np.concatenate([np.zeros(n_p, dtype=bool), dep])
+        s = np.sqrt(np.clip(np.diag(cov), 0, None))
+        rows = n_p + ap_idx
+        with np.errstate(invalid="ignore", divide="ignore"):
+            C = cov[rows] / np.outer(s[rows], s)
+        C[:, full_dep | (s == 0)] = 0.0
+    else:
+        s = np.sqrt(np.clip(np.diag(Qzz), 0, None))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            C = Qzz[ap_idx] / np.outer(s[ap_idx], s)
+        C[:, dep | (s == 0)] = 0.0
+        n_p_off = n_p
+    C = np.nan_to_num(C)
+    off = n_p if cov is not None else 0
+    for i in range(na):
+        C[i, off + ap_idx[i] if cov is None else n_p + ap_idx[i]] = 0.0
+    max_corr = np.abs(C).max(axis=1) if C.size else np.zeros(na)
+    arg = np.abs(C).argmax(axis=1) if C.size else np.zeros(na, dtype=int)
+    partner = tuple(names[(a if cov is not None else n_p + a)] for a in arg)
+    max_corr[ap_dep] = np.nan
+    partner = tuple("" if ap_dep[i] else partner[i] for i in range(na))
+
+    not_est = tuple(_diagnose(plan, q, net, state, j, names, n_p) for j in np.flatnonzero(ap_dep))
+    weak = tuple((plan.ap_labels[i], partner[i], float(max_corr[i])) for i in range(na)
+                 if not ap_dep[i] and max_corr[i] > model.correlation_threshold)
+    rank_def = tuple(names[n_p + j] for j in np.flatnonzero(eop_dep))
+
+    converged = bool(state.converged)
+    if not finite:
+        code = NONFINITE
+    elif rank_def:
+        code = RANK_DEFICIENT
+    elif not converged:
+        code = MAX_ITERATIONS
+    elif not_est:
+        code = NOT_ESTIMABLE
+    else:
+        code = SUCCESS
+    msg = RESULT_MESSAGES[code]
+    if rank_def:
+        msg += ": " + ", ".join(rank_def[:12])
+    if not_est:
+        msg += "; " + "; ".join(f"{n} is not estimable: {reason}" for n, _, reason in not_est)
+
+    # Back to network row order and target order.
+    n_obs = net.observations.shape[0]
+    resid = np.zeros((n_obs, 3))
+    redund = np.zeros((n_obs, 3))
+    txyz = np.zeros((len(net.targets), 3))
+    tsig = np.full((len(net.targets), 3), np.nan)
+    fam_rows = _family_rows(net, plan)
+    off_p = 0
+    for fi, tg in enumerate(plan.family_targets):
+        rows = fam_rows[fi]
+        resid[rows] = np.asarray(q.residuals[fi])
+        redund[rows] = np.asarray(q.redundancy[fi])
+        P = np.asarray(state.params.prims[fi]).reshape(-1, 3)
+        txyz[tg.reshape(-1)] = P
+        if cov is not None:
+            d = np.sqrt(np.clip(np.diag(cov)[off_p: off_p + P.size], 0, None)).reshape(-1, 3)
+            tsig[tg.reshape(-1)] = d
+        off_p += P.size
+    eop_sig = np.sqrt(np.clip(zdiag[: 6 * ns], 0, None)).reshape(ns, 6)
+    if cov is not None:
+        eop_sig = np.sqrt(np.clip(np.diag(cov)[n_p: n_p + 6 * ns], 0, None)).reshape(ns, 6)
+    prior_sum = float(sum(np.asarray(r).sum() for r in q.redundancy_prior))
+    n_obs_total = 3 * n_obs + int((np.asarray(plan.problem.levelling_weight) > 0).sum()) + \
+        int(sum(int((np.asarray(r) != 0).sum()) for r in q.redundancy_prior))
+    return CalibrationResult(
+        result=code, message=msg, converged=converged, iterations=int(state.iteration),
+        sigma0=float(np.sqrt(s0sq)), dof=dof, n_observations=n_obs_total,
+        n_unknowns=int(n_p + (~dep).sum()), datum=("inner" if spec.inner else ("fixed-scan" if plan.fixed_scan_index is not None else "control")),
+        ap_names=plan.ap_labels, ap_units=plan.ap_units, ap_values=values, ap_sigmas=sig, ap_t=tstat,
+        ap_max_abs_corr=max_corr, ap_max_corr_with=partner, not_estimable=not_est, weakly_determined=weak,
+        rank_deficient=rank_def, scans=net.scans, eops=np.asarray(state.params.eops), eop_sigmas=eop_sig,
+        targets=net.targets, target_xyz=txyz, target_sigmas=tsig, residuals=resid, redundancy=redund,
+        redundancy_levelling=np.asarray(q.redundancy_levelling), redundancy_prior_sum=prior_sum,
+        parameter_names=names, covariance=cov, network=net,
+    )
+
+
+def _family_rows(net: Network, plan: Plan):
+    n_t = len(net.targets)
+    fam_of = np.zeros(n_t, dtype=int)
+    for fi, tg in enumerate(plan.family_targets):
+        fam_of[tg.reshape(-1)] = fi
+    return [np.flatnonzero(fam_of[net.target_index] == fi) for fi in range(len(plan.family_targets))]
+
+
+def _diagnose(plan: Plan, q, net, state, j: int, names, n_p: int):
+    """Name what a non-estimable AP (reduced index 6s + j) is confounded with.
+
+    The dependency found by the rank-revealing Cholesky is ``column_j = K_I y`` over the
+    independent columns I (unit-diagonal scaling, datum closed); the partner is the largest
+    |y_i|. When the dependency is a change of network scale (all scan positions scaled), the
+    AP is reported as needing an independent scale.
+    """
+    spec = plan.spec
+    ns = spec.n_scans
+    col = 6 * ns + j
+    Ks = np.asarray(q.Ks)
+    Qs = np.asarray(q.Qs)
+    y = Qs @ Ks[:, col]
+    y[col] = 0.0
+    partner = names[n_p + int(np.argmax(np.abs(y)))]
+    # Scale direction in the reduced space: scan positions scaled about the origin, in the
+    # unit-diagonal coordinates x' = x / scale.
+    scale = _scale_vector(q, state, ns)
+    yz = y[: 6 * ns]
+    cos = abs(yz @ scale) / (np.linalg.norm(yz) * np.linalg.norm(scale) + 1e-300)
+    name = plan.ap_labels[j]
+    if cos > 0.9:
+        return (name, "scale", "scale is undefined; add scale bars or control points")
+    return (name, partner, f"confounded with {partner}")
+
+
+def _scale_vector(q, state, ns):
+    """Change of the scan positions under a scale change of object space, in scaled coordinates."""
+    eops = np.asarray(state.params.eops)
+    v = np.zeros((ns, 6))
+    v[:, :3] = eops[:, :3] - eops[:, :3].mean(axis=0)
+    return v.reshape(-1) / np.asarray(q.scale)[: 6 * ns]

@@ -1,0 +1,136 @@
+"""Quality of an adjustment from the compiled normal equations (SPEC section 7).
+
+* ``s0^2 = v^T P v / r`` with the redundancy ``r = n - u + d`` (d: datum defect).
+* Cofactor matrix: ``K_s + Q Q^T`` (scaled reduced matrix plus the datum null space) inverts to
+  a generalised inverse of the reduced normal matrix; the eliminated primitives follow from
+  the block formulas ``Q_pz = -N_pp^-1 N_pz Q_zz``, ``Q_pp = N_pp^-1 + N_pp^-1 N_pz Q_zz N_zp
+  N_pp^-1``; the S-transformation ``S Q S^T`` gives the inner-constraint cofactor matrix.
+* Redundancy numbers ``r_i = (Q_vv P)_ii = 1 - (J Q J^T)_ii`` in whitened form, datum
+  invariant; their sum equals the degrees of freedom.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ._linalg import cholesky_inverse
+from ._solver import (
+    Params, Problem, Spec, _obs_residual, _prior_residual, _levelling_residual, linearise, null_space, reduce,
+)
+
+
+class Quality(eqx.Module):
+    vtpv: Float[Array, ""]
+    dof: Float[Array, ""]
+    Qzz: Float[Array, "r r"]  # generalised inverse of the reduced system (APs: datum invariant)
+    Qfull: object  # inner-constraint cofactor matrix of all unknowns, or None
+    residuals: tuple  # per family (m, 3): v = F + Delta - l [m, rad, rad]
+    redundancy: tuple  # per family (m, 3)
+    redundancy_prior: tuple  # per family (n, q)
+    redundancy_levelling: Float[Array, "s 2"]
+    dependent: object
+    pivots: object
+    Ks: object
+    Qs: object
+    scale: object
+
+
+def quality(spec: Spec, problem: Problem, params: Params, rank_tolerance, full_covariance: bool = True) -> Quality:
+    blocks = linearise(spec, problem, params)
+    Hp, Hz = null_space(spec, params)
+    red = reduce(spec, problem, blocks, Hz, jnp.asarray(0.0), rank_tolerance)
+    dep = red.dependent
+    Qs = cholesky_inverse(red.L)
+    Qs = jnp.where(dep[:, None] | dep[None, :], 0.0, Qs)
+    Qzz = Qs * red.scale[:, None] * red.scale[None, :]
+
+    ns, na = spec.n_scans, spec.n_aps
+    n_obs = 0.0
+    vtpv = jnp.sum(_levelling_residual(problem, params.eops) ** 2)
+    n_obs = n_obs + jnp.sum(problem.levelling_weight > 0)
+    residuals, redund, redund_prior, Qpp_list, Qpz_list = [], [], [], [], []
+    n_unknowns = jnp.sum(~dep)
+    for fi, fam in enumerate(problem.families):
+        P = params.prims[fi]
+        inst = problem.scan_instrument[fam.scan]
+        f = _obs_residual(spec, fam)
+        args = (P[fam.prim], params.eops[fam.scan], params.aps, fam.obs, fam.weight, fam.point, inst)
+        ax = (0, 0, None, 0, 0, 0, 0)
+        e = jax.vmap(f, in_axes=ax)(*args)
+        Jp, Js, Ja = jax.vmap(jax.jacfwd(f, argnums=(0, 1, 2)), in_axes=ax)(*args)
+        Y = red.Y[fi]
+        Qpz = -jnp.einsum("npr,rq->npq", Y, Qzz)  # (n, p, r)
+        Qpp = red.Npp_inv[fi] - jnp.einsum("npr,nqr->npq", Qpz, Y)  # Ninv + Y Qzz Y^T
+        Qpp_list.append(Qpp)
+        Qpz_list.append(Qpz)
+        # Diagonal of J Q J^T per observation row, gathering only the blocks each row touches.
+        Qzz_s = Qzz[: 6 * ns].reshape(ns, 6, -1)
+        Tss = Qzz_s[:, :, : 6 * ns].reshape(ns, 6, ns, 6)[jnp.arange(ns), :, jnp.arange(ns), :]  # (s, 6, 6)
+        Tsa = Qzz_s[:, :, 6 * ns :]  # (s, 6, a)
+        Taa = Qzz[6 * ns :, 6 * ns :]
+        Qpz_r = Qpz[:, :, : 6 * ns].reshape(fam.n, fam.p, ns, 6)
+        Qps_obs = Qpz_r[fam.prim, :, fam.scan, :]  # (m, p, 6)
+        Qpa_obs = Qpz[fam.prim][:, :, 6 * ns :]  # (m, p, a)
+
+        def quad(Jl, Q, Jr):
+            return jnp.sum(jnp.sum(Jl[..., :, :, None] * Q[..., None, :, :], axis=-2) * Jr, axis=-1)
+
+        JQJ = (
+            quad(Jp, Qpp[fam.prim], Jp)
+            + 2 * quad(Jp, Qps_obs, Js)
+            + 2 * quad(Jp, Qpa_obs, Ja)
+            + quad(Js, Tss[fam.scan], Js)
+            + 2 * quad(Js, Tsa[fam.scan], Ja)
+            + quad(Ja, jnp.broadcast_to(Taa, (Ja.shape[0],) + Taa.shape), Ja)
+        )
+        redund.append(1.0 - JQJ)
+        residuals.append(e / fam.weight)
+        vtpv = vtpv + jnp.sum(e**2)
+        n_obs = n_obs + e.size
+        g = _prior_residual(fam)
+        pargs = (P, fam.ctrl_xyz, fam.ctrl_weight, fam.bar_length, fam.bar_weight)
+        pr = jax.vmap(g)(*pargs)
+        Jpr = jax.vmap(jax.jacfwd(g))(*pargs)
+        active = jnp.any(Jpr != 0, axis=-1)
+        redund_prior.append(jnp.where(active, 1.0 - quad(Jpr, Qpp, Jpr), 0.0))
+        vtpv = vtpv + jnp.sum(pr**2)
+        n_obs = n_obs + jnp.sum(active)
+        n_unknowns = n_unknowns + P.size
+    lw = problem.levelling_weight
+    idx = jnp.arange(ns)
+    q_lev = jnp.stack([Qzz[6 * idx + 3, 6 * idx + 3], Qzz[6 * idx + 4, 6 * idx + 4]], axis=-1)
+    redund_lev = jnp.where(lw > 0, 1.0 - lw**2 * q_lev, 0.0)
+    d = Hz.shape[1]
+    dof = n_obs - n_unknowns + d
+
+    Qfull = None
+    if full_covariance:
+        Qfull = _full_cofactor(spec, red, Qzz, Qpp_list, Qpz_list, Hp, Hz)
+    return Quality(vtpv, jnp.asarray(dof, dtype=jnp.float64), Qzz, Qfull, tuple(residuals), tuple(redund), tuple(redund_prior), redund_lev, dep, red.pivots, red.Ks, Qs, red.scale)
+
+
+def _full_cofactor(spec, red, Qzz, Qpp_list, Qpz_list, Hp, Hz):
+    """Dense cofactor matrix of [primitives..., EOPs, APs], S-transformed to inner constraints."""
+    Y_all = jnp.concatenate([Y.reshape(-1, Y.shape[-1]) for Y in red.Y], axis=0)  # (np, r)
+    n_p = Y_all.shape[0]
+    Ninv = jnp.zeros((n_p, n_p))
+    off = 0
+    for Ni in red.Npp_inv:
+        n, p, _ = Ni.shape
+        idx = off + jnp.arange(n * p).reshape(n, p)
+        Ninv = Ninv.at[idx[:, :, None], idx[:, None, :]].set(Ni)
+        off += n * p
+    Qpp = Ninv + Y_all @ Qzz @ Y_all.T
+    Qpz = -Y_all @ Qzz
+    Q = jnp.block([[Qpp, Qpz], [Qpz.T, Qzz]])
+    if spec.inner and Hz.shape[1]:
+        Hpf = jnp.concatenate([H.reshape(-1, H.shape[-1]) for H in Hp], axis=0)
+        H = jnp.concatenate([Hpf, Hz], axis=0)
+        G = jnp.concatenate([Hpf, jnp.zeros_like(Hz)], axis=0)
+        M = jnp.linalg.inv(G.T @ H)
+        SQ = Q - H @ (M @ (G.T @ Q))
+        Q = SQ - (SQ @ G) @ M.T @ H.T
+    return Q
