@@ -66,7 +66,7 @@ class SolverOptions:
 
     max_iterations: int = 30
     tolerance: float = 1e-8
-    rank_tolerance: float = 1e-9
+    rank_tolerance: float = 1e-6
     full_covariance: bool = True
 
     def arrays(self) -> Options:

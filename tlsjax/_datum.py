@@ -56,4 +56,4 @@ def null_space_columns(action, params, columns):
     Returns (n, p, d) for params of shape (n, p).
     """
     J = jax.vmap(lambda x: jax.jacfwd(lambda m: action(x, m))(jnp.zeros(6)))(params)
-    return J[..., jnp.asarray(columns)]
+    return J[..., jnp.asarray(columns, dtype=jnp.int32)]

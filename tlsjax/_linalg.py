@@ -59,6 +59,9 @@ def rank_revealing_cholesky(A, fixed, tol):
         col = jnp.where(is_dep, 0.0, col)
         col = col.at[j].set(jnp.where(is_dep, 1.0, jnp.sqrt(jnp.maximum(d, 0.0))))
         A = A - jnp.where(is_dep, 0.0, 1.0) * (col[:, None] * col[None, :])
+        # A dependent parameter is removed: its row in the earlier columns must go too, or the
+        # triangular solves would couple it back in.
+        L = jnp.where(is_dep, L.at[j, :].set(0.0), L)
         return A, L.at[:, j].set(col), dep.at[j].set(is_dep), piv.at[j].set(d)
 
     init = (A, jnp.zeros_like(A), jnp.zeros(n, dtype=bool), jnp.zeros(n, dtype=A.dtype))

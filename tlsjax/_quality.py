@@ -18,7 +18,7 @@ from jaxtyping import Array, Float
 
 from ._linalg import cholesky_inverse
 from ._solver import (
-    Params, Problem, Spec, _obs_residual, _prior_residual, _levelling_residual, linearise, null_space, reduce,
+    Params, Problem, Spec, _obs_residual, _prior_residual, _levelling_residual, _levelling_jacobian, linearise, null_space, reduce,
 )
 
 
@@ -100,9 +100,10 @@ def quality(spec: Spec, problem: Problem, params: Params, rank_tolerance, full_c
         n_obs = n_obs + jnp.sum(active)
         n_unknowns = n_unknowns + P.size
     lw = problem.levelling_weight
-    idx = jnp.arange(ns)
-    q_lev = jnp.stack([Qzz[6 * idx + 3, 6 * idx + 3], Qzz[6 * idx + 4, 6 * idx + 4]], axis=-1)
-    redund_lev = jnp.where(lw > 0, 1.0 - lw**2 * q_lev, 0.0)
+    Jl = _levelling_jacobian(problem, params.eops)  # (s, 2, 6)
+    Tss = Qzz[: 6 * ns, : 6 * ns].reshape(ns, 6, ns, 6)[jnp.arange(ns), :, jnp.arange(ns), :]
+    q_lev = jnp.sum(jnp.sum(Jl[:, :, :, None] * Tss[:, None, :, :], axis=-2) * Jl, axis=-1)
+    redund_lev = jnp.where(lw > 0, 1.0 - q_lev, 0.0)
     d = Hz.shape[1]
     dof = n_obs - n_unknowns + d
 

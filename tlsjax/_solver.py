@@ -25,6 +25,7 @@ import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
+from ._geometry import rotation_matrix
 from ._datum import move_eop, move_points, null_space_columns
 from ._linalg import cholesky_inverse, cholesky_solve, rank_revealing_cholesky, spd_inverse
 from ._models import point_misclosure
@@ -155,8 +156,31 @@ def _family_residuals(spec, problem, params, fi):
     return e, pr
 
 
+def compensator_reading(eop):
+    """Tilt readings (omega_c, phi_c) of a dual-axis compensator in the scanner frame [rad].
+
+    The compensator senses the object-space vertical in scanner space, ``g = R_j e3``:
+    ``omega_c = asin(g_y)``, ``phi_c = asin(-g_x / sqrt(1 - g_y^2))``. For kappa = 0 these are
+    exactly the Cardan omega and phi of SPEC section 6, so the levelling pseudo-observations
+    ``omega_c = 0 +- s``, ``phi_c = 0 +- s`` are SPEC's to first order. Unlike omega and phi
+    themselves, g is invariant under a rotation of object space about Z (``R_j -> R_j Rz^T``),
+    so rotation about Z stays an exact null vector of the normal equations and the free-network
+    solution does not depend on the datum.
+    """
+    g = rotation_matrix(eop[3], eop[4], eop[5])[:, 2]
+    gy = jnp.clip(g[1], -1.0, 1.0)
+    omega = jnp.arcsin(gy)
+    phi = jnp.arcsin(jnp.clip(-g[0] / jnp.sqrt(1.0 - gy * gy), -1.0, 1.0))
+    return jnp.stack([omega, phi])
+
+
 def _levelling_residual(problem, eops):
-    return (eops[:, 3:5] - problem.levelling) * problem.levelling_weight
+    return (jax.vmap(compensator_reading)(eops) - problem.levelling) * problem.levelling_weight
+
+
+def _levelling_jacobian(problem, eops):
+    # (s, 2, 6): whitened compensator residuals w.r.t. the scan's pose.
+    return jax.vmap(jax.jacfwd(compensator_reading))(eops) * problem.levelling_weight[:, :, None]
 
 
 def cost(spec, problem, params):
@@ -227,11 +251,11 @@ def linearise(spec: Spec, problem: Problem, params: Params) -> Blocks:
         Naa = Naa + jnp.sum(_outer(Ja, Ja), axis=0)
         bs = bs - seg(_matvec_t(Js, e), fam.scan, ns)
         ba = ba - jnp.sum(_matvec_t(Ja, e), axis=0)
-    # Levelling pseudo-observations act on omega and phi only.
-    lw2 = problem.levelling_weight**2
-    Nss = Nss.at[:, 3, 3].add(lw2[:, 0]).at[:, 4, 4].add(lw2[:, 1])
+    # Levelling pseudo-observations (compensator readings) act on the scan's rotation.
+    Jl = _levelling_jacobian(problem, params.eops)
     lr = _levelling_residual(problem, params.eops)
-    bs = bs.at[:, 3:5].add(-lr * problem.levelling_weight)
+    Nss = Nss + _outer(Jl, Jl)
+    bs = bs - _matvec_t(Jl, lr)
     eye = jnp.eye(ns)
     Nss_full = (Nss[:, None, :, :] * eye[:, :, None, None]).transpose(0, 2, 1, 3).reshape(6 * ns, 6 * ns)
     Nsa_full = Nsa.reshape(6 * ns, na)
@@ -354,7 +378,9 @@ def adjust(spec: Spec, problem: Problem, params0: Params, options: Options):
         size = jnp.max(jnp.where(red.dependent, 0.0, jnp.abs(dz) * jnp.sqrt(jnp.abs(jnp.diagonal(blocks.Nzz)))), initial=0.0)
         for dp, Npp in zip(dps, blocks.Npp):
             size = jnp.maximum(size, jnp.max(jnp.abs(dp) * jnp.sqrt(jnp.abs(jnp.diagonal(Npp, axis1=-2, axis2=-1))), initial=0.0))
-        converged = accept & (size < options.tolerance)
+        # A damped step is short by construction; only an undamped (Gauss-Newton) step may
+        # declare convergence, or LM would stop early on its own damping.
+        converged = accept & (state.damping == 0) & (size < options.tolerance)
         params = jax.tree.map(lambda a, b: jnp.where(accept, a, b), new, state.params)
         damping = jnp.where(accept, jnp.where(state.damping < 1e-7, 0.0, state.damping * 0.1), jnp.maximum(state.damping * 10.0, 1e-4))
         return SolveState(params, jnp.where(accept, new_cost, state.cost), damping, state.iteration + 1, converged, finite | accept)

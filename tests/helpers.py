@@ -1,0 +1,99 @@
+"""Independent references for the tests: a dense Gauss-Newton with a bordered normal matrix.
+
+The oracle writes the point model out by hand (no tlsjax model code), forms the dense Jacobian
+of the whole (small) network by ``jax.jacfwd``, and imposes inner constraints on the targets
+with the textbook constraint matrix ``G = [I, -[X]x]`` in a bordered system (Koch 1999).
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+ARCSEC = np.pi / 180 / 3600
+
+
+def _R(w, p, k):
+    c, s = jnp.cos, jnp.sin
+    R1 = jnp.array([[1, 0, 0], [0, c(w), s(w)], [0, -s(w), c(w)]])
+    R2 = jnp.array([[c(p), 0, -s(p)], [0, 1, 0], [s(p), 0, c(p)]])
+    R3 = jnp.array([[c(k), s(k), 0], [-s(k), c(k), 0], [0, 0, 1]])
+    return R3 @ R2 @ R1
+
+
+# Hybrid-scanner bases written out independently of the registry.
+BASES = {
+    "A0": (0, lambda r, t, a: 1.0),
+    "A1": (0, lambda r, t, a: r),
+    "B6": (1, lambda r, t, a: 1 / jnp.cos(a) - 1),
+    "B7": (1, lambda r, t, a: jnp.tan(a)),
+    "C0": (2, lambda r, t, a: 1.0),
+}
+
+
+def dense_residuals(x, net, aps, n_t, n_s):
+    T = x[: 3 * n_t].reshape(n_t, 3)
+    E = x[3 * n_t : 3 * n_t + 6 * n_s].reshape(n_s, 6)
+    A = x[3 * n_t + 6 * n_s :]
+    out = []
+    l = jnp.asarray(net.observations)
+    for i in range(l.shape[0]):
+        t, s = int(net.target_index[i]), int(net.scan_index[i])
+        p = _R(*E[s, 3:]) @ (T[t] - E[s, :3])
+        rho = jnp.linalg.norm(p)
+        th = jnp.mod(jnp.arctan2(p[1], p[0]), 2 * np.pi)
+        al = jnp.arctan2(p[2], jnp.hypot(p[0], p[1]))
+        F = [rho, th, al]
+        for k, name in enumerate(aps):
+            g, b = BASES[name]
+            F[g] = F[g] + A[k] * b(*l[i])
+        d = jnp.stack(F) - l[i]
+        d = d.at[1:].set(jnp.arctan2(jnp.sin(d[1:]), jnp.cos(d[1:])))
+        out.append(d / net.sigmas[i])
+    res = [jnp.concatenate(out)]
+    lw = np.where(np.isfinite(net.levelling_sigma), 1 / net.levelling_sigma, 0.0)
+    for s in range(n_s):
+        # Compensator: the object-space vertical seen in scanner space, g = R e3, read as
+        # omega = asin(g_y) and phi = asin(-g_x / cos(omega)).
+        g = _R(*E[s, 3:])[:, 2]
+        reading = [jnp.arcsin(g[1]), jnp.arcsin(-g[0] / jnp.sqrt(1 - g[1] ** 2))]
+        for c in range(2):
+            if lw[s, c] > 0:
+                res.append(((reading[c] - net.levelling[s, c]) * lw[s, c])[None])
+    return jnp.concatenate(res)
+
+
+def dense_oracle(net, aps, x0, iterations=8):
+    """Gauss-Newton with a bordered normal matrix; returns x, Qxx (inner constraints on the
+    targets), redundancy numbers (whitened), v^T P v and the degrees of freedom."""
+    n_t, n_s = len(net.targets), len(net.scans)
+    f = jax.jit(lambda x: dense_residuals(x, net, aps, n_t, n_s))
+    J_f = jax.jit(jax.jacfwd(f))
+    levelled = np.isfinite(net.levelling_sigma).all(axis=1).any()
+    cols = [0, 1, 2, 5] if levelled else list(range(6))
+    x = np.asarray(x0, dtype=float)
+    u = x.size
+    for _ in range(iterations):
+        J = np.asarray(J_f(x))
+        e = np.asarray(f(x))
+        G = _constraints(x, n_t, u, cols)
+        N = J.T @ J
+        B = np.block([[N, G], [G.T, np.zeros((G.shape[1], G.shape[1]))]])
+        rhs = np.concatenate([-J.T @ e, np.zeros(G.shape[1])])
+        x = x + np.linalg.solve(B, rhs)[:u]
+    J = np.asarray(J_f(x))
+    e = np.asarray(f(x))
+    G = _constraints(x, n_t, u, cols)
+    B = np.block([[J.T @ J, G], [G.T, np.zeros((G.shape[1], G.shape[1]))]])
+    Q = np.linalg.inv(B)[:u, :u]
+    redundancy = 1 - np.einsum("ij,jk,ik->i", J, Q, J)
+    dof = J.shape[0] - u + len(cols)
+    return x, Q, redundancy, float(e @ e), dof
+
+
+def _constraints(x, n_t, u, cols):
+    G = np.zeros((u, 6))
+    for t in range(n_t):
+        X = x[3 * t : 3 * t + 3]
+        G[3 * t : 3 * t + 3, :3] = np.eye(3)
+        G[3 * t : 3 * t + 3, 3:] = -np.array([[0, -X[2], X[1]], [X[2], 0, -X[0]], [-X[1], X[0], 0]])
+    return G[:, cols]

@@ -1,0 +1,105 @@
+"""The structured adjustment against independent references (SPEC section 7)."""
+
+import numpy as np
+import pytest
+
+import tlsjax as tj
+from helpers import dense_oracle
+
+APS = ("A0", "B6", "B7", "C0")
+
+
+@pytest.fixture(scope="module")
+def small():
+    sim = tj.simulate(tj.Room(n_targets=24), seed=3, aps=" ".join(APS), tilted=True)
+    res = tj.calibrate(sim.network, tj.CalibrationModel(tj.Scanner(aps=APS)))
+    return sim, res
+
+
+def test_structured_equals_dense_bordered_solve(small):
+    sim, res = small
+    net = sim.network
+    assert res.result == 0, res.message
+    # Start the oracle from the structured solution perturbed: it must come back to it. The
+    # target perturbation is orthogonal to the rigid motions, so the inner-constraint datum
+    # (defined relative to the start) is the same one.
+    X = res.target_xyz
+    G = np.zeros((X.size, 6))
+    for t in range(X.shape[0]):
+        G[3 * t : 3 * t + 3, :3] = np.eye(3)
+        G[3 * t : 3 * t + 3, 3:] = [[0, X[t, 2], -X[t, 1]], [-X[t, 2], 0, X[t, 0]], [X[t, 1], -X[t, 0], 0]]
+    d = np.random.default_rng(0).normal(scale=1e-3, size=X.size)
+    d -= G @ np.linalg.lstsq(G, d, rcond=None)[0]
+    x0 = np.concatenate([X.reshape(-1) + d, res.eops.reshape(-1) + 1e-4, res.ap_values * 0.5])
+    x, Q, r, vtpv, dof = dense_oracle(net, APS, x0)
+    n_p = 3 * len(net.targets)
+    ns = len(net.scans)
+    assert dof == res.dof
+    s0sq = vtpv / dof
+    assert np.isclose(res.sigma0**2, s0sq, rtol=1e-8)
+    np.testing.assert_allclose(res.ap_values, x[n_p + 6 * ns :], rtol=1e-8)
+    np.testing.assert_allclose(res.eops.reshape(-1), x[n_p : n_p + 6 * ns], rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(res.target_xyz.reshape(-1), x[:n_p], rtol=1e-8, atol=1e-10)
+    # Covariance (inner constraints on the targets), sigmas and correlations.
+    np.testing.assert_allclose(res.covariance, Q * s0sq, rtol=1e-7, atol=1e-8 * np.abs(Q * s0sq).max())
+    np.testing.assert_allclose(res.ap_sigmas, np.sqrt(np.diag(Q)[n_p + 6 * ns :] * s0sq), rtol=1e-8)
+    s = np.sqrt(np.diag(Q))
+    C = Q / np.outer(s, s)
+    np.testing.assert_allclose(res.correlation(), C, atol=1e-7)
+    # Redundancy numbers of the observations, in network row order.
+    np.testing.assert_allclose(res.redundancy.reshape(-1), r[: res.redundancy.size], rtol=1e-7, atol=1e-9)
+
+
+def test_redundancy_sum_equals_dof(small):
+    _, res = small
+    total = res.redundancy.sum() + res.redundancy_levelling.sum() + res.redundancy_prior_sum
+    assert np.isclose(total, res.dof, rtol=1e-9)
+    assert np.isclose(res.redundancy_summary()["total"]["sum"], res.dof, rtol=1e-9)
+    assert np.all(res.redundancy > -1e-9) and np.all(res.redundancy < 1 + 1e-9)
+
+
+def test_max_correlation_names_the_partner(small):
+    _, res = small
+    C = res.correlation()
+    names = list(res.parameter_names)
+    for k, ap in enumerate(res.ap_names):
+        row = np.abs(C[names.index(ap)])
+        row[names.index(ap)] = 0
+        assert np.isclose(res.ap_max_abs_corr[k], row.max(), rtol=1e-10)
+        assert res.ap_max_corr_with[k] == names[int(row.argmax())]
+
+
+@pytest.mark.parametrize("architecture", ["hybrid", "panoramic"])
+def test_noiseless_recovers_truth(architecture):
+    sim = tj.simulate(seed=5, architecture=architecture, tilted=True, noise=False, aps="chow2013-noscale")
+    res = tj.calibrate(sim.network, tj.CalibrationModel(sim.scanner))
+    assert res.result == 0, res.message
+    truth = np.array([sim.true_aps[n] for n in res.ap_names])
+    np.testing.assert_allclose(res.ap_values, truth, rtol=1e-8, atol=1e-12)
+    assert res.sigma0 < 1e-6
+
+
+def test_datum_invariance_inner_vs_fixed_scan():
+    sim = tj.simulate(tj.Room(n_targets=36), seed=11, aps=" ".join(APS))
+    scanner = tj.Scanner(aps=APS)
+    a = tj.calibrate(sim.network, tj.CalibrationModel(scanner))
+    b = tj.calibrate(sim.network, tj.CalibrationModel(scanner, datum="fixed-scan", fixed_scan="S4"))
+    assert a.result == b.result == 0
+    np.testing.assert_allclose(a.ap_values, b.ap_values, rtol=1e-9)
+    np.testing.assert_allclose(a.ap_sigmas, b.ap_sigmas, rtol=1e-8)
+    assert np.isclose(a.sigma0, b.sigma0, rtol=1e-9) and a.dof == b.dof
+    np.testing.assert_allclose(a.residuals, b.residuals, atol=1e-12)
+    np.testing.assert_allclose(a.redundancy, b.redundancy, atol=1e-9)
+
+
+def test_sigma0_close_to_one_and_estimates_within_sigma():
+    z = []
+    s0 = []
+    for seed in range(3):
+        sim = tj.simulate(seed=100 + seed, aps=" ".join(APS))
+        res = tj.calibrate(sim.network, tj.CalibrationModel(tj.Scanner(aps=APS)))
+        s0.append(res.sigma0**2)
+        z += list((res.ap_values - np.array([sim.true_aps[n] for n in APS])) / res.ap_sigmas)
+    # s0^2 ~ chi2(r)/r with r ~ 1770: its sigma is sqrt(2/r) ~ 0.034.
+    assert abs(np.mean(s0) - 1) < 0.1
+    assert np.max(np.abs(z)) < 4.5

@@ -1,0 +1,181 @@
+"""Bad input gives a clear ValueError that names the scan, target or parameter at fault."""
+
+import re
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import tlsjax as tj
+
+
+@pytest.fixture(scope="module")
+def rows():
+    """(scans, targets, observations) of a noiseless 6-scan, 24-target room, row by row."""
+    net = tj.simulate(tj.Room(n_targets=24), aps="none", noise=False).network
+    scans = np.array([net.scans[j] for j in net.scan_index])
+    targets = np.array([net.targets[t] for t in net.target_index])
+    return scans, targets, net.observations.copy()
+
+
+def _make(scans, targets, obs, **kw):
+    return tj.make_network(list(scans), list(targets), obs, **kw)
+
+
+def test_valid_rows_build_a_network(rows):
+    scans, targets, obs = rows
+    net = _make(scans, targets, obs)
+    assert net.scans == ("S1", "S2", "S3", "S4", "S5", "S6")
+    assert len(net.targets) == 24 and net.observations.shape == (144, 3)
+    assert net.dropped == ()
+
+
+def test_nan_observation_names_scan_and_target(rows):
+    scans, targets, obs = rows
+    obs = obs.copy()
+    i = 37
+    obs[i, 1] = np.nan
+    with pytest.raises(ValueError, match=rf"hz of scan {scans[i]}, target {targets[i]}") as e:
+        _make(scans, targets, obs)
+    assert "finite" in str(e.value)
+    obs = rows[2].copy()
+    obs[5, 0] = np.inf
+    with pytest.raises(ValueError, match=rf"range of scan {scans[5]}, target {targets[5]}"):
+        _make(scans, targets, obs)
+
+
+@pytest.mark.parametrize("value", [0.0, -1.5])
+def test_non_positive_range(rows, value):
+    scans, targets, obs = rows
+    obs = obs.copy()
+    i = 60
+    obs[i, 0] = value
+    with pytest.raises(ValueError, match=rf"range of scan {scans[i]}, target {targets[i]} must be positive"):
+        _make(scans, targets, obs)
+
+
+def test_duplicate_rows(rows):
+    scans, targets, obs = rows
+    s = np.append(scans, scans[10])
+    t = np.append(targets, targets[10])
+    o = np.vstack([obs, obs[10]])
+    with pytest.raises(ValueError, match=rf"duplicate observation of target {targets[10]} in scan {scans[10]}"):
+        _make(s, t, o)
+
+
+def test_scan_with_too_few_targets(rows):
+    scans, targets, obs = rows
+    # S4 keeps only three targets; every target is still seen by S1..S3.
+    keep = (scans != "S4") | np.isin(targets, ["T001", "T002", "T003"])
+    with pytest.raises(ValueError, match=r"scan S4 observes 3 target\(s\)"):
+        _make(scans[keep], targets[keep], obs[keep])
+    # With four it is accepted (the SPEC minimum for a pose).
+    keep = (scans != "S4") | np.isin(targets, ["T001", "T002", "T003", "T004"])
+    net = _make(scans[keep], targets[keep], obs[keep])
+    assert np.sum(net.scan_index == net.scans.index("S4")) == 4
+
+
+def test_target_in_one_scan_only(rows):
+    scans, targets, obs = rows
+    keep = (targets != "T005") | (scans == "S2")
+    s, t, o = scans[keep], targets[keep], obs[keep]
+    with pytest.raises(ValueError, match="T005") as e:
+        _make(s, t, o)
+    assert "drop_single_targets" in str(e.value)
+    net = _make(s, t, o, drop_single_targets=True)
+    assert net.dropped == ("T005",)
+    assert "T005" not in net.targets and len(net.targets) == 23
+    assert net.observations.shape == (144 - 6, 3)  # five rows removed above, the last one dropped
+    # The remaining rows are unchanged and in order.
+    np.testing.assert_array_equal(net.observations, o[t != "T005"])
+
+
+def test_disconnected_scans(rows):
+    scans, targets, obs = rows
+    tnum = np.array([int(x[1:]) for x in targets])
+    group_a = np.isin(scans, ["S1", "S2", "S3"]) & (tnum <= 12)
+    group_b = np.isin(scans, ["S4", "S5", "S6"]) & (tnum > 12)
+    keep = group_a | group_b
+    with pytest.raises(ValueError, match="disconnected") as e:
+        _make(scans[keep], targets[keep], obs[keep])
+    msg = str(e.value)
+    assert all(s in msg for s in ("S4", "S5", "S6")) and "S2" not in msg.split("disconnected")[0]
+    # Two shared targets are still not enough to link the groups (a pose needs three).
+    shared = np.isin(scans, ["S4"]) & np.isin(targets, ["T001", "T002"])
+    with pytest.raises(ValueError, match="disconnected"):
+        _make(scans[keep | shared], targets[keep | shared], obs[keep | shared])
+    shared = np.isin(scans, ["S4"]) & np.isin(targets, ["T001", "T002", "T003"])
+    net = _make(scans[keep | shared], targets[keep | shared], obs[keep | shared])
+    assert len(net.scans) == 6
+
+
+def test_bad_sigmas(rows):
+    scans, targets, obs = rows
+    with pytest.raises(ValueError, match="sigma of range"):
+        _make(scans, targets, obs, sigma_range=-0.5e-3)
+    with pytest.raises(ValueError, match="sigma of hz"):
+        _make(scans, targets, obs, sigma_hz=0.0)
+    sig = np.full(obs.shape, np.nan)
+    i = 77
+    sig[i, 2] = -1e-4
+    with pytest.raises(ValueError, match=rf"sigma of el \(scan {scans[i]}, target {targets[i]}\)"):
+        _make(scans, targets, obs, sigmas=sig)
+    with pytest.raises(ValueError, match="sigmas must have shape"):
+        _make(scans, targets, obs, sigmas=np.ones((3, 3)))
+
+
+def test_wrong_observation_shape(rows):
+    scans, targets, obs = rows
+    with pytest.raises(ValueError, match=re.escape("shape (n, 3)")):
+        _make(scans, targets, obs[:, :2])
+    with pytest.raises(ValueError, match=re.escape("shape (n, 3)")):
+        _make(scans, targets, obs.reshape(-1))
+    with pytest.raises(ValueError, match="scan names"):
+        _make(scans[:-1], targets, obs)
+
+
+def test_scanner_errors():
+    with pytest.raises(ValueError, match="'x'"):
+        tj.Scanner(architecture="x")
+    with pytest.raises(ValueError, match="Q9"):
+        tj.Scanner(aps="A0 Q9")
+    with pytest.raises(ValueError, match="unit_length"):
+        tj.Scanner(unit_length=-1.0)
+
+
+def test_calibration_model_errors(rows):
+    with pytest.raises(ValueError, match="bogus"):
+        tj.CalibrationModel(datum="bogus")
+    with pytest.raises(ValueError, match="fixed_scan"):
+        tj.CalibrationModel(datum="fixed-scan")
+    scans, targets, obs = rows
+    net = _make(scans, targets, obs)
+    model = tj.CalibrationModel(datum="fixed-scan", fixed_scan="S99")
+    # Validation happens on the host before anything is compiled.
+    with pytest.raises(ValueError, match="S99"):
+        tj.calibrate(net, model)
+    with pytest.raises(ValueError, match="control"):
+        tj.calibrate(net, tj.CalibrationModel(datum="control"))
+
+
+def test_register_ap_errors():
+    basis = lambda r, t, a, s: jnp.ones_like(r)  # noqa: E731
+    with pytest.raises(ValueError, match="Zbadgroup.*'angle'"):
+        tj.register_ap("Zbadgroup", "angle", basis, "rad")
+    with pytest.raises(ValueError, match="Zbadunit.*'mm'"):
+        tj.register_ap("Zbadunit", "range", basis, "mm")
+    with pytest.raises(ValueError, match="A0.*already registered"):
+        tj.register_ap("A0", "range", basis, "m")
+    with pytest.raises(ValueError, match="spaces"):
+        tj.register_ap("Z bad", "range", basis, "m")
+    # Failed registrations leave no trace.
+    assert not {"Zbadgroup", "Zbadunit", "Z bad"} & set(tj.registered_aps())
+
+
+def test_room_parse():
+    with pytest.raises(ValueError, match="14by11"):
+        tj.Room.parse("14by11")
+    with pytest.raises(ValueError, match="14x11"):
+        tj.Room.parse("14x11")
+    r = tj.Room.parse("20x10x4")
+    assert (r.length, r.width, r.height) == (20.0, 10.0, 4.0)
