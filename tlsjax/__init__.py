@@ -13,12 +13,27 @@ from ._aps import PRESETS as PRESETS
 from ._aps import register_ap as register_ap
 from ._aps import registered_aps as registered_aps
 from ._aps import resolve_aps as resolve_aps
+from ._io import read_network as read_network
+from ._io import read_observations as read_observations
+from ._io import read_scans as read_scans
+from ._io import write_observations as write_observations
 from ._models import Scanner as Scanner
 from ._network import Network as Network
 from ._network import make_network as make_network
+from ._plots import plot_ap_correlations as plot_ap_correlations
+from ._plots import plot_residuals as plot_residuals
+from ._report import ap_table as ap_table
+from ._report import global_test as global_test
+from ._report import result_to_dict as result_to_dict
+from ._report import write_json as write_json
 from ._simulate import Room as Room
 from ._simulate import Simulation as Simulation
 from ._simulate import simulate as simulate
 from ._solver import RESULT_MESSAGES as RESULT_MESSAGES
 
-__version__ = "0.1.0"
+try:
+    from importlib.metadata import version as _version
+
+    __version__ = _version("tlsjax")
+except Exception:  # pragma: no cover - running from a source tree without metadata
+    __version__ = "0.1.0"

@@ -241,6 +241,7 @@ class CalibrationResult:
     parameter_names: tuple
     covariance: np.ndarray | None  # a posteriori, inner-constraint datum, all unknowns
     network: Network = dataclasses.field(repr=False, default=None)
+    ap_covariance: np.ndarray | None = None  # (a, a) a posteriori; NaN rows/columns for non-estimable APs
 
     @property
     def ok(self) -> bool:
@@ -402,8 +403,17 @@ def _assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
         rank_deficient=rank_def, scans=net.scans, eops=np.asarray(state.params.eops), eop_sigmas=eop_sig,
         targets=net.targets, target_xyz=txyz, target_sigmas=tsig, residuals=resid, redundancy=redund,
         redundancy_levelling=np.asarray(q.redundancy_levelling), redundancy_prior_sum=prior_sum,
-        parameter_names=names, covariance=cov, network=net,
+        parameter_names=names, covariance=cov, network=net, ap_covariance=_ap_covariance(Qzz, ap_idx, ap_dep, s0sq),
     )
+
+
+def _ap_covariance(Qzz, ap_idx, ap_dep, s0sq):
+    # The AP block of the reduced cofactor matrix is datum invariant (SPEC section 6), so it
+    # needs no S-transformation; scaled a posteriori like the sigmas.
+    C = Qzz[np.ix_(ap_idx, ap_idx)] * s0sq
+    C[ap_dep, :] = np.nan
+    C[:, ap_dep] = np.nan
+    return C
 
 
 def _family_rows(net: Network, plan: Plan):

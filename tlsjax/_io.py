@@ -382,3 +382,63 @@ def write_observations(path, table: ObservationTable, *, length_unit="m", angle_
             if table.instruments is not None:
                 row.append(table.instruments[i])
             writer.writerow(row)
+
+
+def write_scans(path, levelling: dict, *, angle_unit="arcsec") -> None:
+    """Write the scans CSV (levelling observations) that :func:`read_scans` reads back.
+
+    ``levelling`` maps scan -> {"omega", "phi", "sigma_omega", "sigma_phi"} in radians.
+    """
+    if angle_unit not in UNITS or UNITS[angle_unit][0] != "angle":
+        raise ValueError(f"angle_unit {angle_unit!r} is not an angle unit; accepted: {_accepted('angle')}")
+    f = UNITS[angle_unit][1]
+    with open(path, "w", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh, delimiter=",", lineterminator="\n")
+        writer.writerow(["scan"] + [f"{q}_{angle_unit}" for q in _SCAN_NUMERIC])
+        for scan, d in levelling.items():
+            writer.writerow([scan] + [_format(float(d[q]) / f) for q in _SCAN_NUMERIC])
+
+
+def table_from_network(net) -> ObservationTable:
+    """The target observations of a :class:`~tlsjax.Network` as a table (sigmas as used, i.e.
+    with the incidence scaling of the range already applied)."""
+    inst = None
+    if len(net.instruments) > 1:
+        inst = tuple(net.instruments[net.instrument_of_scan[j]] for j in net.scan_index)
+    return ObservationTable(
+        kind="target", source=net.source,
+        scans=tuple(net.scans[j] for j in net.scan_index),
+        primitives=tuple(net.targets[t] for t in net.target_index),
+        observations=np.asarray(net.observations), sigmas=np.asarray(net.sigmas), incidence=None,
+        instruments=inst, rows=np.arange(2, len(net.scan_index) + 2),
+    )
+
+
+def levelling_of_network(net) -> dict:
+    """Levelling observations of a network as the mapping :func:`make_network` takes."""
+    return {
+        s: {"omega": float(net.levelling[j, 0]), "phi": float(net.levelling[j, 1]),
+            "sigma_omega": float(net.levelling_sigma[j, 0]), "sigma_phi": float(net.levelling_sigma[j, 1])}
+        for j, s in enumerate(net.scans) if net.is_levelled[j]
+    }
+
+
+def read_network(observations_path, scans_path=None, *, drop_single_targets: bool = False, **kwargs):
+    """Read a target observation CSV (and the optional scans CSV) into a validated Network.
+
+    Missing sigma cells take the group defaults of :func:`~tlsjax.make_network` (or the
+    ``sigma_range``/``sigma_hz``/``sigma_el`` given here); errors name the file and line.
+    """
+    from ._network import make_network
+
+    table = read_observations(observations_path)
+    if table.kind != "target":
+        raise ValueError(f"{table.source}: this is a plane observation file ('plane' column); "
+                         "plane-based calibration is not available yet: give a target file")
+    levelling = read_scans(scans_path) if scans_path is not None else None
+    return make_network(
+        table.scans, table.primitives, table.observations, sigmas=table.sigmas,
+        incidence=None if table.incidence is None else np.nan_to_num(table.incidence, nan=0.0),
+        instruments=table.instruments, levelling=levelling, drop_single_targets=drop_single_targets,
+        source=table.source, rows=table.rows, **kwargs,
+    )

@@ -52,7 +52,7 @@ class Room:
         except ValueError:
             raise ValueError(f"room {text!r} must look like LxWxH in metres, e.g. 14x11x3") from None
         # Keep the stations at the same relative places in a room of another size.
-        st = tuple((x / 14.0 * L, y / 11.0 * W, min(1.6, 0.5 * H)) for x, y, _ in cls.stations)
+        st = tuple((x / 14.0 * L, y / 11.0 * W, min(z, 0.6 * H)) for x, y, z in cls.stations)
         return cls(L, W, H, stations=st, **kw)
 
 

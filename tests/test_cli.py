@@ -1,0 +1,125 @@
+"""The command line and the result JSON contract (SPEC section 11)."""
+
+import json
+
+import numpy as np
+import pytest
+import scipy.stats
+
+import tlsjax as tj
+from tlsjax._cli import main
+from tlsjax._io import read_observations, write_observations
+from tlsjax._report import chi2_quantile, global_test
+
+ROOM = ["--room", "14x11x3", "--targets", "36"]
+CONTRACT = {"sigma0", "dof", "n_observations", "n_unknowns", "converged", "iterations", "aps", "eops",
+            "redundancy", "outliers", "variance_components", "not_estimable"}
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory):
+    d = tmp_path_factory.mktemp("sim")
+    obs, scans, truth = d / "obs.csv", d / "scans.csv", d / "truth.json"
+    assert main(["simulate", "--out", str(obs), "--scans-out", str(scans), "--truth", str(truth),
+                 "--seed", "4", "--aps", "A0 B6 B7 C0", *ROOM]) == 0
+    return d, obs, scans, truth
+
+
+def test_calibrate_json_matches_the_api(simulated, capsys):
+    d, obs, scans, truth = simulated
+    out = d / "res.json"
+    assert main(["calibrate", str(obs), "--scans", str(scans), "--aps", "A0 B6 B7 C0", "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "B6" in printed and "mm" in printed and '"' in printed
+    js = json.loads(out.read_text())
+    assert CONTRACT <= set(js)
+    # The same network through the Python API, built from the simulation in memory.
+    sim = tj.simulate(tj.Room(n_targets=36), seed=4, aps="A0 B6 B7 C0")
+    res = tj.calibrate(sim.network, tj.CalibrationModel(tj.Scanner(aps="A0 B6 B7 C0")))
+    assert js["dof"] == res.dof and js["n_observations"] == res.n_observations
+    assert js["n_unknowns"] == res.n_unknowns
+    assert np.isclose(js["sigma0"], res.sigma0, rtol=1e-9)
+    for i, name in enumerate(res.ap_names):
+        a = js["aps"][name]
+        # The CSV holds 17 significant digits, so the file path reproduces the API to rounding.
+        assert abs(a["value"] - res.ap_values[i]) < 1e-6 * res.ap_sigmas[i]
+        assert np.isclose(a["sigma"], res.ap_sigmas[i], rtol=1e-8)
+        assert a["unit"] == res.ap_units[i] and a["max_corr_with"] == res.ap_max_corr_with[i]
+    cov = np.array(js["ap_covariance"])
+    np.testing.assert_allclose(np.sqrt(np.diag(cov)), [js["aps"][n]["sigma"] for n in js["ap_covariance_names"]], rtol=1e-12)
+    assert np.isclose(js["redundancy"]["total"]["sum"], js["dof"], rtol=1e-9)
+    assert set(js["eops"]) == set(res.scans) and js["not_estimable"] == []
+    true = json.loads(truth.read_text())["aps"]
+    for name, v in true.items():
+        assert abs(js["aps"][name]["value"] - v) < 5 * js["aps"][name]["sigma"]
+
+
+@pytest.mark.parametrize("length_unit,angle_unit", [("mm", "gon"), ("m", "arcsec"), ("m", "rad")])
+def test_units_do_not_change_the_result(simulated, tmp_path, length_unit, angle_unit):
+    d, obs, scans, _ = simulated
+    other = tmp_path / "obs.csv"
+    write_observations(other, read_observations(obs), length_unit=length_unit, angle_unit=angle_unit)
+    assert f"range_{length_unit}" in other.read_text().splitlines()[0]
+    a, b = tmp_path / "a.json", tmp_path / "b.json"
+    assert main(["calibrate", str(obs), "--scans", str(scans), "--json", str(a)]) == 0
+    assert main(["calibrate", str(other), "--scans", str(scans), "--json", str(b)]) == 0
+    ja, jb = json.loads(a.read_text()), json.loads(b.read_text())
+    for name in ja["aps"]:
+        assert abs(ja["aps"][name]["value"] - jb["aps"][name]["value"]) < 1e-6 * ja["aps"][name]["sigma"]
+
+
+def test_not_estimable_scale_is_named_not_numbered(simulated, tmp_path):
+    _, obs, scans, _ = simulated
+    out = tmp_path / "a1.json"
+    # A1 without scale bars or control: a result, not a number (exit 0: the rest is estimated).
+    assert main(["calibrate", str(obs), "--scans", str(scans), "--aps", "A0 A1 B6 B7 C0", "--json", str(out)]) == 0
+    js = json.loads(out.read_text())
+    assert js["aps"]["A1"]["value"] is None and js["aps"]["A1"]["sigma"] is None
+    assert [e["name"] for e in js["not_estimable"]] == ["A1"]
+    assert "scale" in js["not_estimable"][0]["reason"]
+    assert js["aps"]["A0"]["value"] is not None
+
+
+def test_bad_input_names_file_and_line(tmp_path, capsys):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("scan,target,range_m,hz_deg,el_furlong\nS1,T1,5,10,3\n")
+    assert main(["calibrate", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "bad.csv" in err and "el_furlong" in err
+    assert main(["calibrate", str(tmp_path / "missing.csv")]) == 2
+    assert "missing.csv" in capsys.readouterr().err
+
+
+def test_target_seen_once_is_refused_then_dropped_on_request(simulated, tmp_path, capsys):
+    _, obs, scans, _ = simulated
+    lines = obs.read_text().splitlines()
+    # Keep target T001 in its first scan only.
+    keep = [lines[0]] + [ln for ln in lines[1:] if not (",T001," in ln and not ln.startswith("S1,"))]
+    f = tmp_path / "once.csv"
+    f.write_text("\n".join(keep) + "\n")
+    assert main(["calibrate", str(f), "--scans", str(scans)]) == 2
+    assert "T001" in capsys.readouterr().err
+    assert main(["calibrate", str(f), "--scans", str(scans), "--drop-single-targets"]) == 0
+    assert "dropped 1 target(s) seen in one scan only: T001" in capsys.readouterr().out
+
+
+def test_demo_writes_report_and_plots(tmp_path):
+    assert main(["demo", "--out", str(tmp_path), "--aps", "physical"]) == 0
+    for name in ("report.json", "residuals.png", "ap_correlations.png", "observations.csv", "scans.csv", "truth.json"):
+        assert (tmp_path / name).stat().st_size > 0
+    js = json.loads((tmp_path / "report.json").read_text())
+    assert set(js["aps"]) == {"A0", "B6", "B7", "C0"} and js["converged"]
+
+
+def test_global_test_against_scipy():
+    for dof in (3, 40, 1753):
+        for p in (0.025, 0.5, 0.975):
+            assert np.isclose(chi2_quantile(p, dof), scipy.stats.chi2.ppf(p, dof), rtol=1e-9)
+    g = global_test(1.05, 1000)
+    assert np.isclose(g["p_value"], 2 * scipy.stats.chi2.sf(1.05**2 * 1000, 1000), rtol=1e-8)
+    assert g["accepted"] == (g["lower"] <= g["statistic"] <= g["upper"])
+    assert global_test(1.5, 1000)["accepted"] is False
+
+
+def test_room_parse_of_the_default_room_is_the_default_room():
+    assert tj.Room.parse("14x11x3") == tj.Room()
