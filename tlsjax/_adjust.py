@@ -17,6 +17,7 @@ import numpy as np
 
 from ._aps import get_ap
 from ._approx import approximate_values
+from ._diagnose import confounded_partners
 from ._models import Scanner
 from ._network import Network
 from ._quality import quality
@@ -348,7 +349,7 @@ def _assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
     max_corr[ap_dep] = np.nan
     partner = tuple("" if ap_dep[i] else partner[i] for i in range(na))
 
-    not_est = tuple(_diagnose(plan, q, net, state, j, names, n_p) for j in np.flatnonzero(ap_dep))
+    not_est = _diagnose(plan, q, net, state, np.flatnonzero(ap_dep), names, n_p) if ap_dep.any() else ()
     weak = tuple((plan.ap_labels[i], partner[i], float(max_corr[i])) for i in range(na)
                  if not ap_dep[i] and max_corr[i] > model.correlation_threshold)
     rank_def = tuple(names[n_p + j] for j in np.flatnonzero(eop_dep))
@@ -424,36 +425,19 @@ def _family_rows(net: Network, plan: Plan):
     return [np.flatnonzero(fam_of[net.target_index] == fi) for fi in range(len(plan.family_targets))]
 
 
-def _diagnose(plan: Plan, q, net, state, j: int, names, n_p: int):
-    """Name what a non-estimable AP (reduced index 6s + j) is confounded with.
-
-    The dependency found by the rank-revealing Cholesky is ``column_j = K_I y`` over the
-    independent columns I (unit-diagonal scaling, datum closed); the partner is the largest
-    |y_i|. When the dependency is a change of network scale (all scan positions scaled), the
-    AP is reported as needing an independent scale.
-    """
-    spec = plan.spec
-    ns = spec.n_scans
-    col = 6 * ns + j
-    Ks = np.asarray(q.Ks)
-    Qs = np.asarray(q.Qs)
-    y = Qs @ Ks[:, col]
-    y[col] = 0.0
-    partner = names[n_p + int(np.argmax(np.abs(y)))]
-    # Scale direction in the reduced space: scan positions scaled about the origin, in the
-    # unit-diagonal coordinates x' = x / scale.
-    scale = _scale_vector(q, state, ns)
-    yz = y[: 6 * ns]
-    cos = abs(yz @ scale) / (np.linalg.norm(yz) * np.linalg.norm(scale) + 1e-300)
-    name = plan.ap_labels[j]
-    if cos > 0.9:
-        return (name, "scale", "scale is undefined; add scale bars or control points")
-    return (name, partner, f"confounded with {partner}")
-
-
-def _scale_vector(q, state, ns):
-    """Change of the scan positions under a scale change of object space, in scaled coordinates."""
-    eops = np.asarray(state.params.eops)
-    v = np.zeros((ns, 6))
-    v[:, :3] = eops[:, :3] - eops[:, :3].mean(axis=0)
-    return v.reshape(-1) / np.asarray(q.scale)[: 6 * ns]
+def _diagnose(plan: Plan, q, net, state, columns, names, n_p: int):
+    """Name what each non-estimable AP (reduced indices ``6s + j``) is confounded with, in the
+    inner-constraint datum on the targets (:mod:`._diagnose`)."""
+    ns = plan.spec.n_scans
+    found = confounded_partners(plan.spec, plan.problem, state.params, np.asarray(q.dependent),
+                                np.asarray(plan.problem.fixed), [6 * ns + j for j in columns])
+    out = []
+    for j in columns:
+        partner_col, _, scale_like = found[6 * ns + j]
+        name = plan.ap_labels[j]
+        if scale_like:
+            out.append((name, "scale", "scale is undefined; add scale bars or control points"))
+        else:
+            partner = names[n_p + partner_col]
+            out.append((name, partner, f"confounded with {partner}"))
+    return tuple(out)
