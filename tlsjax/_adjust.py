@@ -59,14 +59,14 @@ class CalibrationModel:
 
 @dataclasses.dataclass(frozen=True)
 class SolverOptions:
-    """Numerical settings. ``tolerance``: largest update in units of the parameter's
-    stand-alone precision ``1/sqrt(N_ii)``; ``rank_tolerance``: smallest accepted Cholesky
-    pivot ``1 - R^2`` of the unit-diagonal reduced normal matrix (below it a parameter is not
-    estimable); ``full_covariance``: also form the inner-constraint cofactor matrix of all
+    """Numerical settings. ``tolerance``: convergence when the largest update is below this
+    fraction of the parameter's standard deviation (cofactor ``sqrt(Q_ii)``);
+    ``rank_tolerance``: smallest accepted Cholesky pivot ``1 - R^2`` of the unit-diagonal
+    reduced normal matrix (below it a parameter is not estimable); ``full_covariance``: also form the inner-constraint cofactor matrix of all
     unknowns (needed for correlations with targets)."""
 
     max_iterations: int = 30
-    tolerance: float = 1e-8
+    tolerance: float = 1e-6
     rank_tolerance: float = 1e-6
     full_covariance: bool = True
 

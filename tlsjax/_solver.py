@@ -307,8 +307,8 @@ def reduce(spec, problem, blocks: Blocks, Hz, damping, rank_tolerance) -> Reduce
     # Rank is judged on the undamped system; the damped one is factorised with the same
     # dependent columns held fixed.
     L, dep, piv = rank_revealing_cholesky(Ks, problem.fixed | ~ok, rank_tolerance)
-    Ld, _, _ = rank_revealing_cholesky(Ks + damping * jnp.eye(Ks.shape[0]), dep, -1.0)
-    L = jnp.where(damping > 0, Ld, L)
+    # Undamped Gauss-Newton steps (the common case) skip the second factorisation.
+    L = lax.cond(damping > 0, lambda: rank_revealing_cholesky(Ks + damping * jnp.eye(Ks.shape[0]), dep, -1.0)[0], lambda: L)
     return Reduced(tuple(inv_list), tuple(Y_list), scale, L, dep, piv, Ks)
 
 
@@ -348,6 +348,25 @@ def s_transform_vector(Hp, Hz, dps, dz):
     return dps, dz - Hz @ coef
 
 
+def update_size(blocks, red: Reduced, dz, dps):
+    """Largest update in units of the parameter's precision: ``|dx_i| / sqrt(Q_ii)``.
+
+    For the scan poses and APs, Q_ii is the diagonal of the inverse of the Schur-reduced matrix
+    (from its Cholesky factor, r^3/3 flops), i.e. the parameter's actual cofactor; the
+    stand-alone ``1/N_ii`` would be far smaller than that for strongly correlated APs, and the
+    test would then chase rounding noise along their nearly singular directions. For the
+    eliminated primitives the stand-alone ``(N_pp^-1)_ii`` is used: it is a lower bound of their
+    cofactor, so the test is, if anything, stricter there.
+    """
+    Li = jax.scipy.linalg.solve_triangular(red.L, jnp.eye(red.L.shape[0], dtype=red.L.dtype), lower=True)
+    q = jnp.sum(Li * Li, axis=0) * red.scale**2
+    size = jnp.max(jnp.where(red.dependent | (q <= 0), 0.0, jnp.abs(dz) / jnp.sqrt(jnp.where(q > 0, q, 1.0))), initial=0.0)
+    for dp, Ninv in zip(dps, red.Npp_inv):
+        qp = jnp.diagonal(Ninv, axis1=-2, axis2=-1)
+        size = jnp.maximum(size, jnp.max(jnp.abs(dp) / jnp.sqrt(jnp.abs(qp)), initial=0.0))
+    return size
+
+
 class SolveState(eqx.Module):
     params: Params
     cost: Float[Array, ""]
@@ -361,9 +380,9 @@ def adjust(spec: Spec, problem: Problem, params0: Params, options: Options):
     """Gauss-Newton with Levenberg-Marquardt damping as a safeguard, one ``lax.while_loop``.
 
     A step is accepted when it does not increase ``v^T P v``; otherwise the damping grows
-    tenfold and the step is recomputed. Convergence: the largest update scaled by
-    ``sqrt(N_ii)`` (the update in units of the parameter's stand-alone precision) is below
-    ``options.tolerance``. Returns the final state (pure, jittable, vmappable).
+    tenfold and the step is recomputed. Convergence: the largest update in units of the
+    parameter's precision (:func:`update_size`) is below ``options.tolerance``. Returns the
+    final state (pure, jittable, vmappable).
     """
 
     def step(state: SolveState):
@@ -374,10 +393,7 @@ def adjust(spec: Spec, problem: Problem, params0: Params, options: Options):
         new_cost = cost(spec, problem, new)
         finite = jnp.isfinite(new_cost)
         accept = finite & (new_cost <= state.cost * (1.0 + 1e-12) + 1e-12)
-        # Scaled update: |dx_i| sqrt(N_ii).
-        size = jnp.max(jnp.where(red.dependent, 0.0, jnp.abs(dz) * jnp.sqrt(jnp.abs(jnp.diagonal(blocks.Nzz)))), initial=0.0)
-        for dp, Npp in zip(dps, blocks.Npp):
-            size = jnp.maximum(size, jnp.max(jnp.abs(dp) * jnp.sqrt(jnp.abs(jnp.diagonal(Npp, axis1=-2, axis2=-1))), initial=0.0))
+        size = update_size(blocks, red, dz, dps)
         # A damped step is short by construction; only an undamped (Gauss-Newton) step may
         # declare convergence, or LM would stop early on its own damping.
         converged = accept & (state.damping == 0) & (size < options.tolerance)
