@@ -13,6 +13,17 @@ from ._aps import PRESETS as PRESETS
 from ._aps import register_ap as register_ap
 from ._aps import registered_aps as registered_aps
 from ._aps import resolve_aps as resolve_aps
+from ._clouds import Board as Board
+from ._clouds import CloudDesign as CloudDesign
+from ._clouds import PointClouds as PointClouds
+from ._clouds import simulate_point_clouds as simulate_point_clouds
+from ._extract import ExtractedPlanes as ExtractedPlanes
+from ._extract import ExtractionConfig as ExtractionConfig
+from ._extract import MatchingConfig as MatchingConfig
+from ._extract import extract_planes as extract_planes
+from ._extract import load_planes as load_planes
+from ._extract import match_planes as match_planes
+from ._extract import save_planes as save_planes
 from ._io import read_network as read_network
 from ._io import read_observations as read_observations
 from ._io import read_scans as read_scans
@@ -20,6 +31,8 @@ from ._io import write_observations as write_observations
 from ._models import Scanner as Scanner
 from ._network import Network as Network
 from ._network import make_network as make_network
+from ._pointclouds import PointCloudScan as PointCloudScan
+from ._pointclouds import read_point_clouds as read_point_clouds
 from ._plots import plot_ap_correlations as plot_ap_correlations
 from ._plots import plot_residuals as plot_residuals
 from ._report import ap_table as ap_table

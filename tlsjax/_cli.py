@@ -1,4 +1,4 @@
-"""Command line: ``tlsjax demo | simulate | calibrate``.
+"""Command line: ``tlsjax demo | simulate | calibrate | extract-planes``.
 
 Every subcommand is a thin layer over the public API. Bad input is reported as one line
 naming the file, line, scan, target or parameter (exit code 2); a calibration that fails
@@ -83,6 +83,14 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--correlation-threshold", type=float, default=0.99,
                    help="flag APs whose max |correlation| exceeds this (default 0.99)")
     _scanner_args(c)
+
+    d.set_defaults(func=_demo)
+    s.set_defaults(func=_simulate)
+    c.set_defaults(func=_calibrate)
+    # Subcommands that live with their library code register themselves (func set there).
+    from ._extract import add_extract_parser
+
+    add_extract_parser(sub)
     return ap
 
 
@@ -90,12 +98,16 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     _enable_compilation_cache()
     try:
-        return {"demo": _demo, "simulate": _simulate, "calibrate": _calibrate}[args.command](args)
+        return args.func(args)
     except ValueError as exc:
         print(f"tlsjax {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except FileNotFoundError as exc:
         print(f"tlsjax {args.command}: error: {exc.filename}: no such file", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except ImportError as exc:
+        # Optional dependencies (open3d, pye57) are named in the message.
+        print(f"tlsjax {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
 
 
@@ -139,7 +151,7 @@ def _calibrate(args) -> int:
     from ._adjust import CalibrationModel, SolverOptions, calibrate
     from ._io import read_network
     from ._models import Scanner
-    from ._report import ap_table, summary, write_json
+    from ._report import ap_table, summary
 
     ARC = np.pi / 648000.0
     net = read_network(args.observations, args.scans, drop_single_targets=args.drop_single_targets,

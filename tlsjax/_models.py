@@ -9,6 +9,7 @@ Jacobian blocks come from ``jax.vmap(jax.jacfwd(...))`` over observations.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -82,13 +83,21 @@ def simulate_point_observations(X, eop, coeffs, scanners, ap_names, ap_slices, i
 
     Delta is evaluated at the observations (SPEC section 2), so simulated data are made
     consistent with the model by a few fixed-point iterations; the AP terms are small, so the
-    iteration contracts quickly.
+    iteration contracts quickly. A rolled loop, so it compiles once and quickly.
     """
     x = point_geometry(X, eop)
-    l_geo = spherical_from_cartesian(x, face2)
-    l = l_geo + noise
-    for _ in range(iterations):
-        f = point_misclosure(X, eop, coeffs, l, scanners, ap_names, ap_slices, instrument)
-        # f = F + Delta(l) - l, so l + f is the next iterate (angles already wrapped).
-        l = l + f + noise
-    return l
+    l0 = spherical_from_cartesian(x, face2) + noise
+
+    def step(_, l):
+        # f = F + Delta(l) - l (angles wrapped), so l + f is the next iterate.
+        return l + point_misclosure(X, eop, coeffs, l, scanners, ap_names, ap_slices, instrument) + noise
+
+    return jax.lax.fori_loop(0, iterations, step, l0)
+
+
+@functools.partial(jax.jit, static_argnames=("scanner", "names"))
+def observe_points(X, eops, noise, face2, coeffs, scanner: Scanner, names: tuple):
+    """:func:`simulate_point_observations` for many points of one instrument: ``X``, ``eops``,
+    ``noise`` (m, 3)/(m, 6)/(m, 3), ``face2`` (m,). Compiled once per (scanner, AP names, m)."""
+    one = lambda Xi, ei, ni, f2: simulate_point_observations(Xi, ei, coeffs, (scanner,), (names,), ((0, len(names)),), 0, ni, f2)
+    return jax.vmap(one)(X, eops, noise, face2)

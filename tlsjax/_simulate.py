@@ -12,13 +12,12 @@ from __future__ import annotations
 import dataclasses
 from typing import Mapping
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ._aps import get_ap, resolve_aps
 from ._geometry import TWO_PI, rotation_matrix, spherical_from_cartesian
-from ._models import Scanner, simulate_point_observations
+from ._models import Scanner, observe_points
 from ._network import ARCSEC, DEFAULT_SIGMA_ANGLE, DEFAULT_SIGMA_LEVELLING, DEFAULT_SIGMA_RANGE, Network, make_network
 
 DEG = np.pi / 180.0
@@ -163,10 +162,8 @@ def simulate(
     e = rng.standard_normal((len(ti), 3)) * sig if noise else np.zeros((len(ti), 3))
 
     coeffs = jnp.asarray([values[n] for n in names])
-    sim = jax.jit(jax.vmap(
-        lambda Xi, ei, ni, f2: simulate_point_observations(Xi, ei, coeffs, (scanner,), (names,), ((0, len(names)),), 0, ni, f2),
-    ))
-    obs = np.array(sim(jnp.asarray(X[ti]), jnp.asarray(eops[si]), jnp.asarray(e), jnp.asarray(face2)))
+    obs = np.array(observe_points(jnp.asarray(X[ti]), jnp.asarray(eops[si]), jnp.asarray(e), jnp.asarray(face2),
+                                  coeffs, scanner, names))
     # Wrap by a full turn only: a panoramic direction near theta = 0 that the APs push below
     # zero is the same direction at 2 pi, not at pi.
     obs[:, 1] = np.mod(obs[:, 1], TWO_PI)

@@ -27,7 +27,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._geometry import rotation_matrix
 from ._datum import move_eop, move_points, null_space_columns
-from ._linalg import cholesky_inverse, cholesky_solve, rank_revealing_cholesky, spd_inverse
+from ._linalg import cholesky_solve, rank_revealing_cholesky, spd_inverse
 from ._models import point_misclosure
 
 # Result codes (SPEC section 7). Value-dependent failures come back as codes, never as NaN.

@@ -1,0 +1,249 @@
+"""Plane extraction and matching against the simulation's ground-truth plane labels."""
+
+import argparse
+
+import numpy as np
+import pytest
+
+pytest.importorskip("open3d", exc_type=ImportError)
+
+import tlsjax  # noqa: F401  (x64)
+from tlsjax._clouds import CloudDesign, simulate_point_clouds
+from tlsjax._extract import (
+    ExtractionConfig,
+    MatchingConfig,
+    add_extract_parser,
+    extract_planes,
+    load_planes,
+    match_planes,
+    read_poses,
+    save_planes,
+)
+from tlsjax._io import read_observations, write_observations
+from tlsjax._pointclouds import write_ptx
+
+DEG = np.pi / 180
+MIN_FOUND = 0.95  # fraction of a plane's points in a scan that extraction must find
+
+
+@pytest.fixture(scope="module")
+def room():
+    # 1 deg grid: boards get 50-200 points per scan, walls thousands. APs and noise as SPEC 8.
+    return simulate_point_clouds(CloudDesign(angular_step=1.0 * DEG), seed=11)
+
+
+@pytest.fixture(scope="module")
+def matched(room):
+    ex = extract_planes(room.observations, ExtractionConfig(), seed=0)
+    return match_planes(ex, room.eops)
+
+
+@pytest.fixture(scope="module")
+def small(room):
+    # Two scans (of one station), at most 100 points per patch.
+    return extract_planes(room.observations[:2], ExtractionConfig(budget=100), seed=4)
+
+
+def _true_labels(pc, planes):
+    return np.concatenate([pc.plane_ids[j][planes.point_index[planes.point_scan == j]] for j in range(len(pc.scans))])
+
+
+def test_every_plane_found_in_every_scan(room, matched):
+    cfg = ExtractionConfig()
+    n_checked = 0
+    for j, ids in enumerate(room.plane_ids):
+        found = np.zeros(len(ids), dtype=bool)
+        found[matched.point_index[matched.point_scan == j]] = True
+        for k in range(len(room.planes)):
+            n_k = int((ids == k).sum())
+            if n_k < 2 * cfg.min_points:
+                continue  # too few points in this scan to be a patch at all
+            n_checked += 1
+            assert found[ids == k].mean() >= MIN_FOUND, (room.scans[j], room.plane_names[k], found[ids == k].mean())
+    assert n_checked >= 45  # 6 scans x 9 planes, less the boards seen by fewer than 60 points
+
+
+def test_matching_gives_one_global_plane_per_true_plane(room, matched):
+    true = _true_labels(room, matched)
+    K, G = len(room.planes), len(matched.planes)
+    assert G == K  # no false planes, no split planes
+    confusion = np.zeros((G, K), dtype=int)
+    np.add.at(confusion, (matched.point_plane, true), 1)
+    purity = confusion.max(axis=1) / confusion.sum(axis=1)
+    assert purity.min() > 0.995
+    # A bijection: each true plane is the majority of exactly one global plane.
+    assert sorted(confusion.argmax(axis=1)) == list(range(K))
+    # Fitted object-space planes agree with the truth to within the uncalibrated APs' effect.
+    for g, k in enumerate(confusion.argmax(axis=1)):
+        n, d = matched.planes[g, :3], matched.planes[g, 3]
+        assert np.degrees(np.arccos(min(1.0, n @ room.planes[k, :3]))) < 0.2
+        assert abs(d - room.planes[k, 3]) < 0.03
+
+
+def test_incidence_and_refinement(room, matched):
+    true = _true_labels(room, matched)
+    inc_true = np.concatenate([room.incidence[j][matched.point_index[matched.point_scan == j]] for j in range(6)])
+    confusion = np.zeros((len(matched.planes), len(room.planes)), dtype=int)
+    np.add.at(confusion, (matched.point_plane, true), 1)
+    # Points on the right plane (the few edge points of a neighbour plane have its incidence).
+    ok = confusion.argmax(axis=1)[matched.point_plane] == true
+    assert ok.mean() > 0.995
+    assert np.degrees(np.abs(matched.incidence[ok] - inc_true[ok])).max() < 1.0
+    # Patch RMS a few mm: noise 0.5 mm sec(beta) + 20" plus the APs' bending of the planes.
+    assert matched.patch_rms.max() < 0.006
+    assert len(true) == len(matched.observations)
+
+
+def test_deterministic_and_budget(room, small):
+    obs = room.observations[:2]
+    a = small
+    b = extract_planes(obs, ExtractionConfig(budget=100), seed=4)
+    for name in ("patch_scan", "patch_normal", "point_index", "observations"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    counts = np.bincount(a.point_patch)
+    assert counts.max() <= 100
+    np.testing.assert_array_equal(counts, np.minimum(a.patch_inliers, 100))
+    # The kept observations are rows of the input.
+    for j in range(2):
+        sel = a.point_scan == j
+        np.testing.assert_array_equal(a.observations[sel], obs[j][a.point_index[sel]])
+
+
+def _plane_points(rng, centre, u, v, half, n):
+    s = rng.uniform(-half, half, size=(n, 2))
+    return centre + s[:, :1] * u + s[:, 1:] * v
+
+
+def test_disjoint_coplanar_patches_and_overlap():
+    # Two 1 m squares of the plane z = -1.5 in scanner space, 3 m apart, and one wall x = 4:
+    # DBSCAN splits the floor into two patches; matching joins them only without the overlap test.
+    rng = np.random.default_rng(0)
+    ex_, ey, ez = np.eye(3)
+    floor1 = _plane_points(rng, np.array([1.0, -1.5, -1.5]), ex_, ey, 0.5, 2000)
+    floor2 = _plane_points(rng, np.array([1.0, 1.5, -1.5]), ex_, ey, 0.5, 2000)
+    wall = _plane_points(rng, np.array([4.0, 0.0, 0.0]), ey, ez, 1.0, 2000)
+    x = np.concatenate([floor1, floor2, wall])
+    rho = np.linalg.norm(x, axis=1)
+    obs = np.stack([rho, np.mod(np.arctan2(x[:, 1], x[:, 0]), 2 * np.pi), np.arcsin(x[:, 2] / rho)], axis=1)
+    ex = extract_planes([obs], ExtractionConfig(min_points=50), seed=0)
+    assert len(ex.patch_scan) == 3
+    normals = np.round(np.abs(ex.patch_normal), 6)
+    assert sorted(map(tuple, normals)) == [(0, 0, 1), (0, 0, 1), (1, 0, 0)]
+    # Normals face the scanner at the origin: n . 0 - d > 0.
+    assert np.all(ex.patch_distance < 0)
+    label = np.repeat([0, 1, 2], 2000)
+    for p in range(3):
+        assert len(np.unique(label[ex.point_index[ex.point_patch == p]])) == 1
+    np.testing.assert_allclose(np.sort(-ex.patch_distance), [1.5, 1.5, 4.0], atol=1e-9)
+    apart = match_planes(ex, np.zeros((1, 6)), MatchingConfig(overlap_distance=0.5))
+    joined = match_planes(ex, np.zeros((1, 6)), MatchingConfig(overlap_distance=None))
+    assert len(apart.planes) == 3 and len(joined.planes) == 2
+
+
+def test_table_and_npz_round_trip(tmp_path, room, small):
+    matched = match_planes(small, room.eops[:2])
+    table = matched.to_table()
+    assert table.kind == "plane" and len(table) == len(matched.observations)
+    write_observations(tmp_path / "planes.csv", table, angle_unit="rad")
+    back = read_observations(tmp_path / "planes.csv")
+    assert back.primitives == table.primitives and back.scans == table.scans
+    np.testing.assert_allclose(back.observations, table.observations, rtol=0, atol=1e-12)
+    save_planes(tmp_path / "planes.npz", matched)
+    again = load_planes(tmp_path / "planes.npz")
+    assert again.scans == matched.scans
+    for name in ("patch_plane", "point_index", "observations", "incidence", "planes", "poses"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(matched, name))
+    with pytest.raises(ValueError, match="match_planes"):
+        extract_planes([matched.observations[:10]], ExtractionConfig(min_points=3)).to_table()
+    (tmp_path / "bad.npz").write_bytes(b"not a zip")
+    with pytest.raises(ValueError, match="bad.npz"):
+        load_planes(tmp_path / "bad.npz")
+
+
+def test_read_poses(tmp_path):
+    p = tmp_path / "poses.csv"
+    p.write_text("scan,x_m,y_m,z_mm,omega_deg,phi_deg,kappa_gon\nA,1,2,3000,90,0,100\n")
+    poses = read_poses(p)
+    np.testing.assert_allclose(poses["A"], [1, 2, 3, np.pi / 2, 0, np.pi / 2])
+    p.write_text("scan,x_m,y_m,z_deg,omega_deg,phi_deg,kappa_deg\nA,1,2,3,0,0,0\n")
+    with pytest.raises(ValueError, match=r"poses.csv, line 1, column z_deg"):
+        read_poses(p)
+    p.write_text("scan,x_m,y_m,z_m,omega_deg,phi_deg,kappa_deg\nA,1,2,oops,0,0,0\n")
+    with pytest.raises(ValueError, match=r"line 2, column z_m"):
+        read_poses(p)
+
+
+def test_cli_extract_planes(tmp_path, room):
+    # Two scans of different stations as one PTX file with their poses; CSV and npz out.
+    from tlsjax._geometry import cartesian_from_spherical
+
+    scans = [(cartesian_from_spherical(room.observations[j], xp=np), room.eops[j]) for j in (0, 3)]
+    write_ptx(tmp_path / "room.ptx", scans)
+    parser = argparse.ArgumentParser()
+    add_extract_parser(parser.add_subparsers())
+    args = parser.parse_args(["extract-planes", str(tmp_path / "room.ptx"), "--out", str(tmp_path / "p.npz"),
+                              "--csv", str(tmp_path / "p.csv"), "--budget", "200"])
+    assert args.func(args) == 0
+    planes = load_planes(tmp_path / "p.npz")
+    assert planes.scans == ("room_1", "room_2")
+    assert len(planes.planes) == 9
+    table = read_observations(tmp_path / "p.csv")
+    assert len(set(table.primitives)) == 9 and len(table) <= 200 * len(planes.patch_scan)
+
+
+def test_cli_with_poses_file(tmp_path, room, capsys):
+    from tlsjax._geometry import cartesian_from_spherical
+    from tlsjax._pointclouds import write_xyz
+
+    rows = ["scan,x_m,y_m,z_m,omega_rad,phi_rad,kappa_rad"]
+    files = []
+    for j in (1, 4):
+        write_xyz(tmp_path / f"{room.scans[j]}.xyz", cartesian_from_spherical(room.observations[j], xp=np))
+        files.append(str(tmp_path / f"{room.scans[j]}.xyz"))
+        rows.append(",".join([room.scans[j]] + [f"{v:.17g}" for v in room.eops[j]]))
+    (tmp_path / "poses.csv").write_text("\n".join(rows) + "\n")
+    parser = argparse.ArgumentParser()
+    add_extract_parser(parser.add_subparsers())
+    args = parser.parse_args(["extract-planes", *files, "--out", str(tmp_path / "p.npz"),
+                              "--poses", str(tmp_path / "poses.csv"), "--budget", "50"])
+    assert args.func(args) == 0
+    assert "9 planes" in capsys.readouterr().out
+    planes = load_planes(tmp_path / "p.npz")
+    np.testing.assert_allclose(planes.poses, room.eops[[1, 4]], rtol=0, atol=1e-15)
+    # Without poses two scans cannot be matched; asking for the CSV then is an error.
+    args = parser.parse_args(["extract-planes", *files, "--out", str(tmp_path / "q.npz"), "--csv", str(tmp_path / "q.csv")])
+    with pytest.raises(ValueError, match="--poses"):
+        args.func(args)
+
+
+def test_clutter_gives_no_false_planes(room):
+    # Random points in a shell 2-10 m around the scanner: no plane, so no patch. The same number
+    # of random points inside the room added to a real scan: the same planes, nearly pure.
+    rng = np.random.default_rng(1)
+    u = rng.standard_normal((20000, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+
+    def observe(x):
+        rho = np.linalg.norm(x, axis=1)
+        return np.stack([rho, np.mod(np.arctan2(x[:, 1], x[:, 0]), 2 * np.pi), np.arcsin(x[:, 2] / rho)], axis=1)
+
+    assert len(extract_planes([observe(u * rng.uniform(2, 10, 20000)[:, None])], seed=0).patch_scan) == 0
+    from tlsjax._geometry import rotation_matrix
+
+    j = 3
+    X = rng.uniform([0.5, 0.5, 0.2], [13.5, 10.5, 2.8], size=(20000, 3))
+    clutter = (X - room.eops[j, :3]) @ rotation_matrix(*room.eops[j, 3:], xp=np).T
+    obs = np.concatenate([room.observations[j], observe(clutter)])
+    label = np.concatenate([room.plane_ids[j], np.full(20000, -1)])
+    ex = match_planes(extract_planes([obs], seed=0), room.eops[j:j + 1])
+    counts = np.bincount(room.plane_ids[j], minlength=len(room.planes))
+    visible = np.flatnonzero(counts >= 2 * ExtractionConfig().min_points)
+    assert len(ex.planes) == len(visible)
+    for g in range(len(ex.planes)):
+        lab = label[ex.point_index[ex.point_plane == g]]
+        majority = np.bincount(lab[lab >= 0]).argmax()
+        assert (lab == majority).mean() > 0.97  # a clutter point or two inside a board's 3-sigma slab
+    found = np.zeros(len(label), dtype=bool)
+    found[ex.point_index] = True
+    for k in visible:
+        assert found[label == k].mean() > MIN_FOUND
