@@ -470,3 +470,15 @@ def test_user_term_equals_builtin_in_calibration():
     # And the estimate is the simulated truth (180") within a few sigma.
     i = res_u.ap_names.index("Zuser1")
     assert abs(res_u.ap_values[i] - sim.true_aps["C0"]) < 5 * res_u.ap_sigmas[i]
+
+
+@pytest.mark.parametrize("r", [5, 40, 59])
+def test_forward_substitution_and_cholesky_inverse_match_numpy(r):
+    from tlsjax._linalg import cholesky_inverse, forward_substitution
+
+    A = np.random.default_rng(r).normal(size=(r, r))
+    A = A @ A.T + r * np.eye(r)
+    L = np.linalg.cholesky(A)
+    B = np.random.default_rng(1).normal(size=(r, 7))
+    np.testing.assert_allclose(np.asarray(forward_substitution(jnp.asarray(L), jnp.asarray(B))), np.linalg.solve(L, B), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(cholesky_inverse(jnp.asarray(L))), np.linalg.inv(A), rtol=1e-9, atol=1e-12)

@@ -17,6 +17,10 @@ from ._clouds import Board as Board
 from ._clouds import CloudDesign as CloudDesign
 from ._clouds import PointClouds as PointClouds
 from ._clouds import simulate_point_clouds as simulate_point_clouds
+from ._compat import APSet as APSet
+from ._compat import CompatibilityOptions as CompatibilityOptions
+from ._compat import CompatibilityResult as CompatibilityResult
+from ._compat import compatibility_test as compatibility_test
 from ._extract import ExtractedPlanes as ExtractedPlanes
 from ._extract import ExtractionConfig as ExtractionConfig
 from ._extract import MatchingConfig as MatchingConfig
@@ -29,6 +33,10 @@ from ._io import read_observations as read_observations
 from ._io import read_scans as read_scans
 from ._io import write_observations as write_observations
 from ._models import Scanner as Scanner
+from ._montecarlo import MonteCarloOptions as MonteCarloOptions
+from ._montecarlo import MonteCarloResult as MonteCarloResult
+from ._montecarlo import monte_carlo as monte_carlo
+from ._montecarlo import monte_carlo_network as monte_carlo_network
 from ._network import Network as Network
 from ._network import make_network as make_network
 from ._pointclouds import PointCloudScan as PointCloudScan

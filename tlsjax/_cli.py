@@ -1,4 +1,4 @@
-"""Command line: ``tlsjax demo | simulate | calibrate | extract-planes``.
+"""Command line: ``tlsjax demo | simulate | calibrate | extract-planes | montecarlo | compare``.
 
 Every subcommand is a thin layer over the public API. Bad input is reported as one line
 naming the file, line, scan, target or parameter (exit code 2); a calibration that fails
@@ -88,9 +88,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=_simulate)
     c.set_defaults(func=_calibrate)
     # Subcommands that live with their library code register themselves (func set there).
+    from ._compat import add_compare_parser
     from ._extract import add_extract_parser
+    from ._montecarlo import add_montecarlo_parser
 
     add_extract_parser(sub)
+    add_montecarlo_parser(sub)
+    add_compare_parser(sub)
     return ap
 
 

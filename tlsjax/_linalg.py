@@ -69,11 +69,25 @@ def rank_revealing_cholesky(A, fixed, tol):
     return L, dep, piv
 
 
+def forward_substitution(L, B):
+    """``L^-1 B`` for lower-triangular L, row by row in a ``fori_loop``.
+
+    XLA's CPU triangular solve with a *matrix* right-hand side falls off a cliff at r >= 40
+    (measured here: 0.01 ms for r = 28, 7.9 ms for r = 40..64); this loop takes 0.02-0.07 ms
+    and gives the same numbers. Vector right-hand sides do not have the problem.
+    """
+
+    def body(i, X):
+        return X.at[i].set((B[i] - L[i] @ X) / L[i, i])
+
+    return lax.fori_loop(0, L.shape[0], body, jnp.zeros_like(B))
+
+
 def cholesky_solve(L, b):
     y = jax.scipy.linalg.solve_triangular(L, b, lower=True)
     return jax.scipy.linalg.solve_triangular(L.T, y, lower=False)
 
 
 def cholesky_inverse(L):
-    Li = jax.scipy.linalg.solve_triangular(L, jnp.eye(L.shape[0], dtype=L.dtype), lower=True)
+    Li = forward_substitution(L, jnp.eye(L.shape[0], dtype=L.dtype))
     return Li.T @ Li

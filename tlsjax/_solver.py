@@ -27,7 +27,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._geometry import rotation_matrix
 from ._datum import move_eop, move_points, null_space_columns
-from ._linalg import cholesky_solve, rank_revealing_cholesky, spd_inverse
+from ._linalg import cholesky_solve, forward_substitution, rank_revealing_cholesky, spd_inverse
 from ._models import point_misclosure
 
 # Result codes (SPEC section 7). Value-dependent failures come back as codes, never as NaN.
@@ -358,7 +358,7 @@ def update_size(blocks, red: Reduced, dz, dps):
     eliminated primitives the stand-alone ``(N_pp^-1)_ii`` is used: it is a lower bound of their
     cofactor, so the test is, if anything, stricter there.
     """
-    Li = jax.scipy.linalg.solve_triangular(red.L, jnp.eye(red.L.shape[0], dtype=red.L.dtype), lower=True)
+    Li = forward_substitution(red.L, jnp.eye(red.L.shape[0], dtype=red.L.dtype))
     q = jnp.sum(Li * Li, axis=0) * red.scale**2
     size = jnp.max(jnp.where(red.dependent | (q <= 0), 0.0, jnp.abs(dz) / jnp.sqrt(jnp.where(q > 0, q, 1.0))), initial=0.0)
     for dp, Ninv in zip(dps, red.Npp_inv):
