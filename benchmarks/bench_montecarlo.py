@@ -19,9 +19,8 @@ on the start) and iterates Gauss-Newton to a per-member convergence test.
 Peer: the scipy program of ``benchmarks/bench_point.py`` (``ScipyPeer``: numpy residuals,
 exact sparse Jacobian pattern, ``least_squares(method="trf", x_scale="jac")`` with its
 tolerances), run in a Python loop on the first ``--scipy-runs`` realisations (the same
-observations), each also started from the truth. The peer's levelling rows use the
-compensator model of tlsjax (``CompensatorPeer`` below: bench_point's peer treats the readings
-as Cardan omega, phi, which for scans with kappa != 0 is another model with another minimum). Its time per realisation is extrapolated to
+observations), each also started from the truth; its levelling rows are compensator
+readings, as in tlsjax. Its time per realisation is extrapolated to
 ``runs`` (a loop of 1,000 scipy runs would take minutes). Its APs are compared with tlsjax's
 for the same realisations (datum invariant: the peer holds scan S1, tlsjax a minimal datum).
 
@@ -42,37 +41,10 @@ from scipy.optimize import least_squares
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import tlsjax as tj  # noqa: E402
-from bench_point import ScipyPeer, _rotations, machine_info  # noqa: E402
+from bench_point import ScipyPeer, machine_info  # noqa: E402
 from tlsjax._montecarlo import MonteCarloOptions, monte_carlo, monte_carlo_network  # noqa: E402
 
 CASES = {"physical": "A0 B6 B7 C0", "chow2013-noscale": "chow2013-noscale"}
-
-
-class CompensatorPeer(ScipyPeer):
-    """bench_point's peer with tlsjax's levelling model: the dual-axis compensator reads the
-    object-space vertical in scanner space, ``g = R e3``: ``omega_c = asin(g_y)``, ``phi_c =
-    asin(-g_x / sqrt(1 - g_y^2))`` (it depends on kappa too). The simulated levelling readings
-    are compensator readings, so the peer must use the same model to reach the same minimum."""
-
-    def residual_full(self, T, E, A):
-        r = super().residual_full(T, E, A)
-        g = _rotations(E[:, 3], E[:, 4], E[:, 5])[:, :, 2]
-        gy = np.clip(g[:, 1], -1.0, 1.0)
-        reading = np.stack([np.arcsin(gy), np.arcsin(np.clip(-g[:, 0] / np.sqrt(1.0 - gy * gy), -1.0, 1.0))], axis=1)
-        n = len(self.lev)
-        r[-n:] = (reading[self.lev_scan, self.lev_comp] - self.lev) * self.lev_w
-        return r
-
-    def jac_sparsity(self):
-        J = super().jac_sparsity().tolil()
-        n3 = 3 * self.n_t
-        eop_col = -np.ones((self.n_s, 6), dtype=int)
-        eop_col[self.eop_free] = n3 + np.arange(int(self.eop_free.sum()))
-        for k, s in enumerate(self.lev_scan):
-            for c in (3, 4, 5):
-                if eop_col[s, c] >= 0:
-                    J[3 * len(self.ti) + k, eop_col[s, c]] = 1
-        return J.tocsr()
 
 
 def scipy_loop(sim, scanner, n, seed, tol, lsmr_tol, max_nfev):
@@ -80,7 +52,7 @@ def scipy_loop(sim, scanner, n, seed, tol, lsmr_tol, max_nfev):
     nets = monte_carlo_network(sim, list(range(n)), seed=seed)
     aps, times, nfev = [], [], []
     for net, truth in nets:
-        peer = CompensatorPeer(net, scanner, fixed_scan=0)
+        peer = ScipyPeer(net, scanner, fixed_scan=0)
         t0 = time.perf_counter()
         peer.prepare()
         x0 = peer.pack(sim.true_targets, sim.true_eops, np.array([truth.get(a, 0.0) for a in scanner.aps]))

@@ -102,7 +102,8 @@ def _wrap(a):
 
 
 class ScipyPeer:
-    """Whitened residuals of the point-based model with S1's Xs, Ys, Zs, kappa held fixed."""
+    """Whitened residuals of the point-based model with S1's Xs, Ys, Zs, kappa held fixed,
+    levelling as compensator readings (as tlsjax)."""
 
     def __init__(self, net, scanner: tj.Scanner, fixed_scan: int = 0):
         self.obs = np.asarray(net.observations, dtype=np.float64)
@@ -162,7 +163,13 @@ class ScipyPeer:
         f = np.stack([rho + delta[0] - self.obs[:, 0],
                       _wrap(theta + delta[1] - self.obs[:, 1]),
                       _wrap(alpha + delta[2] - self.obs[:, 2])], axis=1) * self.w
-        lev = (E[self.lev_scan, 3 + self.lev_comp] - self.lev) * self.lev_w
+        # Levelling as tlsjax models it: the dual-axis compensator reads the object-space
+        # vertical in scanner space, g = R e3: omega_c = asin(g_y), phi_c = asin(-g_x / cos omega_c)
+        # (it depends on kappa too, unlike the Cardan omega and phi).
+        g = R[:, :, 2]
+        gy = np.clip(g[:, 1], -1.0, 1.0)
+        reading = np.stack([np.arcsin(gy), np.arcsin(np.clip(-g[:, 0] / np.sqrt(1.0 - gy * gy), -1.0, 1.0))], axis=1)
+        lev = (reading[self.lev_scan, self.lev_comp] - self.lev) * self.lev_w
         return np.concatenate([f.ravel(), lev])
 
     def residual(self, x, eops0):
@@ -187,9 +194,10 @@ class ScipyPeer:
             for k in np.flatnonzero(self.ap_group == g):  # APs of this group only
                 rows.append(r); cols.append(np.full(n, ap_col0 + k))
         r_lev = 3 * n + np.arange(len(self.lev))
-        c_lev = eop_col[self.lev_scan, 3 + self.lev_comp]
-        ok = c_lev >= 0
-        rows.append(r_lev[ok]); cols.append(c_lev[ok])
+        for c in (3, 4, 5):  # a compensator reading depends on omega, phi and kappa
+            c_lev = eop_col[self.lev_scan, c]
+            ok = c_lev >= 0
+            rows.append(r_lev[ok]); cols.append(c_lev[ok])
         rows, cols = np.concatenate(rows), np.concatenate(cols)
         return sp.csr_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(self.n_obs, self.n_unknowns))
 

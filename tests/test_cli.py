@@ -28,7 +28,7 @@ def simulated(tmp_path_factory):
 def test_calibrate_json_matches_the_api(simulated, capsys):
     d, obs, scans, truth = simulated
     out = d / "res.json"
-    assert main(["calibrate", str(obs), "--scans", str(scans), "--aps", "A0 B6 B7 C0", "--json", str(out)]) == 0
+    assert main(["calibrate", str(obs), "--scans", str(scans), "--aps", "A0 B6 B7 C0", "--no-vce", "--json", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "B6" in printed and "mm" in printed and '"' in printed
     js = json.loads(out.read_text())
@@ -52,6 +52,27 @@ def test_calibrate_json_matches_the_api(simulated, capsys):
     true = json.loads(truth.read_text())["aps"]
     for name, v in true.items():
         assert abs(js["aps"][name]["value"] - v) < 5 * js["aps"][name]["sigma"]
+
+
+def test_vce_and_snooping_through_the_cli(simulated, tmp_path, capsys):
+    d, obs, scans, _ = simulated
+    # One 30-sigma blunder in the range of the 10th row.
+    lines = obs.read_text().splitlines()
+    cells = lines[10].split(",")
+    cells[2] = repr(float(cells[2]) + 30 * 0.5e-3)
+    lines[10] = ",".join(cells)
+    bad = tmp_path / "blunder.csv"
+    bad.write_text("\n".join(lines) + "\n")
+    out = tmp_path / "tested.json"
+    assert main(["calibrate", str(bad), "--scans", str(scans), "--snoop", "--bonferroni", "--json", str(out)]) == 0
+    js = json.loads(out.read_text())
+    scan, target = cells[0], cells[1]
+    assert [(o["scan"], o["target"], o["group"]) for o in js["outliers"]] == [(scan, target, "range")]
+    vc = js["variance_components"]
+    assert {"range", "hz", "el"} <= set(vc if isinstance(vc, dict) else [v["group"] for v in vc])
+    # The removed observation leaves the degrees of freedom.
+    assert np.isclose(js["redundancy"]["total"]["sum"], js["dof"], rtol=1e-9)
+    assert "removed" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize("length_unit,angle_unit", [("mm", "gon"), ("m", "arcsec"), ("m", "rad")])

@@ -13,6 +13,8 @@ from ._aps import PRESETS as PRESETS
 from ._aps import register_ap as register_ap
 from ._aps import registered_aps as registered_aps
 from ._aps import resolve_aps as resolve_aps
+from ._checkpoints import CheckpointReport as CheckpointReport
+from ._checkpoints import assess_checkpoints as assess_checkpoints
 from ._clouds import Board as Board
 from ._clouds import CloudDesign as CloudDesign
 from ._clouds import PointClouds as PointClouds
@@ -47,10 +49,17 @@ from ._report import ap_table as ap_table
 from ._report import global_test as global_test
 from ._report import result_to_dict as result_to_dict
 from ._report import write_json as write_json
+from ._selection import SelectionOptions as SelectionOptions
+from ._selection import SelectionResult as SelectionResult
+from ._selection import select_aps as select_aps
 from ._simulate import Room as Room
 from ._simulate import Simulation as Simulation
 from ._simulate import simulate as simulate
 from ._solver import RESULT_MESSAGES as RESULT_MESSAGES
+from ._statistics import TestedCalibration as TestedCalibration
+from ._statistics import TestingOptions as TestingOptions
+from ._statistics import ap_t_tests as ap_t_tests
+from ._statistics import calibrate_and_test as calibrate_and_test
 
 try:
     from importlib.metadata import version as _version

@@ -393,8 +393,8 @@ def _assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
     if cov is not None:
         eop_sig = np.sqrt(np.clip(np.diag(cov)[n_p: n_p + 6 * ns], 0, None)).reshape(ns, 6)
     prior_sum = float(sum(np.asarray(r).sum() for r in q.redundancy_prior))
-    n_obs_total = 3 * n_obs + int((np.asarray(plan.problem.levelling_weight) > 0).sum()) + \
-        int(sum(int((np.asarray(r) != 0).sum()) for r in q.redundancy_prior))
+    # Observations with weight 0 (removed by data snooping) are not counted (SPEC section 7).
+    n_obs_total = int(round(float(q.n_observations))) if q.n_observations is not None else 3 * n_obs
     return CalibrationResult(
         result=code, message=msg, converged=converged, iterations=int(state.iteration),
         sigma0=float(np.sqrt(s0sq)), dof=dof, n_observations=n_obs_total,

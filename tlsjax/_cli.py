@@ -8,6 +8,7 @@ naming the file, line, scan, target or parameter (exit code 2); a calibration th
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -82,6 +83,22 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--max-iterations", type=int, default=30)
     c.add_argument("--correlation-threshold", type=float, default=0.99,
                    help="flag APs whose max |correlation| exceeds this (default 0.99)")
+    c.add_argument("--vce", action=argparse.BooleanOptionalAction, default=True,
+                   help="variance component estimation per group (range, hz, el, levelling); default on")
+    c.add_argument("--snoop", action="store_true", help="Baarda data snooping: remove rejected observations, re-adjust")
+    c.add_argument("--snoop-alpha", type=float, default=0.001,
+                   help="significance level of each w-test (default 0.001: critical value 3.29)")
+    c.add_argument("--bonferroni", action="store_true",
+                   help="divide --snoop-alpha by the number of tests (family-wise level; no clean observation "
+                        "removed with probability 1 - alpha)")
+    c.add_argument("--snoop-removal", choices=("observation", "target"), default="observation",
+                   help="remove one scalar observation or all three of the target in that scan")
+    c.add_argument("--select", action="store_true",
+                   help="stepwise AP selection starting from --aps, adding from --select-candidates")
+    c.add_argument("--select-candidates", default="chow2013-noscale", help="candidate terms (names or presets)")
+    c.add_argument("--select-alpha", type=float, default=0.01, help="significance level of the selection t-tests")
+    c.add_argument("--max-correlation", type=float, default=0.9,
+                   help="a candidate more correlated than this with the model is not added (default 0.9)")
     _scanner_args(c)
 
     d.set_defaults(func=_demo)
@@ -163,29 +180,53 @@ def _calibrate(args) -> int:
                        sigma_el=args.sigma_el_arcsec * ARC)
     if net.dropped:
         print(f"dropped {len(net.dropped)} target(s) seen in one scan only: {', '.join(net.dropped)}")
-    model = CalibrationModel(Scanner(architecture=args.architecture, aps=args.aps, unit_length=args.unit_length),
-                             datum=args.datum, fixed_scan=args.fixed_scan,
+    scanner = Scanner(architecture=args.architecture, aps=args.aps, unit_length=args.unit_length)
+    model = CalibrationModel(scanner, datum=args.datum, fixed_scan=args.fixed_scan,
                              correlation_threshold=args.correlation_threshold)
+    solver = SolverOptions(max_iterations=args.max_iterations)
     t0 = time.perf_counter()
-    res = calibrate(net, model, SolverOptions(max_iterations=args.max_iterations))
     print(f"{net.source}: {len(net.scans)} scans, {len(net.targets)} targets, "
-          f"{net.observations.shape[0]} target observations ({time.perf_counter() - t0:.2f} s)")
+          f"{net.observations.shape[0]} target observations")
+    extra, mask = {}, None
+    if args.select:
+        from ._selection import SelectionOptions, select_aps
+
+        # Selection runs on the a priori weights; the chosen set is then weighted and tested.
+        sel = select_aps(net, model, start=args.aps, candidates=args.select_candidates,
+                         options=SelectionOptions(alpha=args.select_alpha, max_correlation=args.max_correlation))
+        print(sel.report())
+        print()
+        scanner = dataclasses.replace(scanner, aps=tuple(sel.aps))
+        model = dataclasses.replace(model, scanner=scanner)
+        extra["selection"] = {"aps": list(sel.aps), "n_fits": sel.n_fits}
+    if args.vce or args.snoop:
+        from ._statistics import TestingOptions, calibrate_and_test
+
+        tested = calibrate_and_test(net, model, solver, TestingOptions(
+            vce=args.vce, snooping=args.snoop, alpha=args.snoop_alpha, bonferroni=args.bonferroni,
+            removal=args.snoop_removal))
+        res, mask = tested.calibration, tested.mask
+        extra.update(tested.json_fields())
+        print(tested.summary())
+    else:
+        res = calibrate(net, model, solver)
+    print(f"({time.perf_counter() - t0:.2f} s)")
     print(summary(res))
     print()
     print(ap_table(res))
-    _write_outputs(res, args.json, args.plots)
+    _write_outputs(res, args.json, args.plots, extra=extra, scanner=scanner, mask=mask)
     return EXIT_OK if res.ok else EXIT_FAILED
 
 
-def _write_outputs(res, json_path, plots_dir):
+def _write_outputs(res, json_path, plots_dir, *, extra=None, scanner=None, mask=None):
     from ._plots import plot_ap_correlations, plot_residuals
     from ._report import write_json
 
     if json_path:
-        write_json(res, json_path)
+        write_json(res, json_path, extra=extra)
         print(f"wrote {json_path}")
     if plots_dir:
-        a = plot_residuals(res, os.path.join(plots_dir, "residuals.png"))
+        a = plot_residuals(res, os.path.join(plots_dir, "residuals.png"), scanner=scanner, mask=mask)
         b = plot_ap_correlations(res, os.path.join(plots_dir, "ap_correlations.png"))
         print(f"wrote {a} and {b}")
 
@@ -210,7 +251,7 @@ def _demo(args) -> int:
     os.makedirs(args.out, exist_ok=True)
     _write_simulation(sim, os.path.join(args.out, "observations.csv"), os.path.join(args.out, "scans.csv"),
                       os.path.join(args.out, "truth.json"))
-    _write_outputs(res, os.path.join(args.out, "report.json"), args.out)
+    _write_outputs(res, os.path.join(args.out, "report.json"), args.out, scanner=sim.scanner)
     print(f"simulated data in {args.out}/observations.csv and scans.csv; rerun with "
           f"`tlsjax calibrate {args.out}/observations.csv --scans {args.out}/scans.csv --aps {args.aps}`")
     return EXIT_OK if res.ok else EXIT_FAILED

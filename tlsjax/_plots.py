@@ -27,19 +27,50 @@ def _pyplot():
     return plt
 
 
-def plot_residuals(result, path, *, title: str | None = None):
+def plot_residuals(result, path, *, title: str | None = None, overlay: bool = True, compare=None,
+                   mask=None, scanner=None):
     """3 x 3 grid: residuals ``v = F + Delta - l`` of range, hz and el (rows) against the
-    observed range, horizontal direction and elevation angle (columns). Writes PNG or SVG by
-    the file name's extension and returns the path."""
+    observed range, horizontal direction and elevation angle (columns), as in Chow et al. 2013
+    figs. 2-13 and Lichti & Licht 2006 figs. 1-3. Writes PNG or SVG by the file name's
+    extension and returns the path.
+
+    ``overlay``: where an estimated AP of a row's group depends only on that column's variable
+    (or is constant), the panel shows the residuals *without* that term, ``v - Delta_c(l)``
+    (approximately what an adjustment without it would leave), and the fitted AP curve
+    ``-Delta_c`` as a line, so the term's signal and its fit are seen together; other panels
+    show plain residuals. ``compare``: another result of the same observations (e.g. without
+    APs), drawn in grey behind. ``mask`` (n, 3) bool: observations used in the adjustment
+    (e.g. ``TestedCalibration.mask``; default all); the others (removed by data snooping) are
+    drawn as red crosses. ``scanner``: the :class:`Scanner` of the calibration (architecture and unit
+    lengths enter some bases, e.g. B6 and A3/A4; default hybrid).
+    """
     plt = _pyplot()
     l = np.asarray(result.network.observations)
     v = np.asarray(result.residuals)
+    used = np.ones_like(v, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
+    curves = _ap_curves(result, scanner) if overlay else {}
     fig, axes = plt.subplots(3, 3, figsize=(12, 9), sharey="row")
     for g in range(3):
         for c, (xlabel, xf) in enumerate(ABSCISSAE):
             ax = axes[g, c]
-            ax.plot(l[:, c] * xf, v[:, g] * GROUP_FACTORS[g], ".", ms=2, alpha=0.6)
+            y = v[:, g].copy()
+            curve = curves.get((g, c))
+            if compare is not None:
+                ax.plot(l[:, c] * xf, np.asarray(compare.residuals)[:, g] * GROUP_FACTORS[g], ".", ms=2, color="0.7",
+                        label=f"APs: {' '.join(compare.ap_names) or 'none'}")
+            if curve is not None:
+                y = y - curve["at_obs"]
+            m = used[:, g]
+            ax.plot(l[m, c] * xf, y[m] * GROUP_FACTORS[g], ".", ms=2, alpha=0.6,
+                    label=(f"without {' '.join(curve['terms'])}" if curve is not None else f"APs: {' '.join(result.ap_names) or 'none'}"))
+            if (~m).any():
+                ax.plot(l[~m, c] * xf, y[~m] * GROUP_FACTORS[g], "x", ms=5, color="tab:red", label="removed")
+            if curve is not None:
+                ax.plot(curve["x"] * xf, -curve["y"] * GROUP_FACTORS[g], "-", color="tab:orange", lw=1.5,
+                        label=f"fitted {' + '.join(curve['terms'])}")
             ax.axhline(0.0, color="k", lw=0.5)
+            if curve is not None or compare is not None or (~m).any():
+                ax.legend(fontsize=7, loc="upper right", markerscale=3)
             if g == 2:
                 ax.set_xlabel(xlabel)
             if c == 0:
@@ -49,6 +80,61 @@ def plot_residuals(result, path, *, title: str | None = None):
     _save(fig, path)
     plt.close(fig)
     return path
+
+
+def _ap_curves(result, scanner=None):
+    """Per (group, abscissa): the estimated terms of that group whose basis depends only on
+    that abscissa (constants included), their sum at the observations and along a grid."""
+    from ._aps import GROUP_INDEX, get_ap
+
+    net = result.network
+    if net is None or len(net.instruments) != 1 or not len(result.ap_names):
+        return {}
+    if scanner is None:
+        from ._models import Scanner
+
+        scanner = Scanner(aps=())
+    l = np.asarray(net.observations)
+    rng = np.random.default_rng(0)
+    probe = l[rng.choice(len(l), min(len(l), 50), replace=False)]
+    out = {}
+    for c in range(3):
+        grid_1d = np.linspace(l[:, c].min(), l[:, c].max(), 200)
+        for name, value in zip(result.ap_names, result.ap_values):
+            if not np.isfinite(value):
+                continue
+            term = get_ap(name)
+            g = GROUP_INDEX[term.group]
+            deps = _dependencies(term, probe, scanner)
+            if deps - {c}:
+                continue
+            d = out.setdefault((g, c), {"terms": [], "at_obs": np.zeros(len(l)), "x": grid_1d, "y": np.zeros_like(grid_1d)})
+            d["terms"].append(name)
+            d["at_obs"] = d["at_obs"] + value * _basis(term, l, scanner)
+            grid = np.tile(np.median(l, axis=0), (len(grid_1d), 1))
+            grid[:, c] = grid_1d
+            d["y"] = d["y"] + value * _basis(term, grid, scanner)
+    # A panel whose only terms are constants shows nothing a constant line would not; keep it
+    # (it is the offset the term removes) only in the first column.
+    for (g, c) in list(out):
+        if all(not _dependencies(get_ap(n), probe, scanner) for n in out[(g, c)]["terms"]) and c != 0:
+            del out[(g, c)]
+    return out
+
+
+def _basis(term, l, scanner):
+    return np.asarray(term.basis(l[:, 0], l[:, 1], l[:, 2], scanner), dtype=float) * np.ones(len(l))
+
+
+def _dependencies(term, probe, scanner):
+    base = _basis(term, probe, scanner)
+    deps = set()
+    for c in range(3):
+        q = probe.copy()
+        q[:, c] = q[:, c] * 0.9 + 0.01
+        if not np.allclose(_basis(term, q, scanner), base, rtol=1e-12, atol=1e-15):
+            deps.add(c)
+    return deps
 
 
 def plot_ap_correlations(result, path):

@@ -7,6 +7,13 @@
   N_pp^-1``; the S-transformation ``S Q S^T`` gives the inner-constraint cofactor matrix.
 * Redundancy numbers ``r_i = (Q_vv P)_ii = 1 - (J Q J^T)_ii`` in whitened form, datum
   invariant; their sum equals the degrees of freedom.
+* An observation with weight 0 is removed (data snooping masks, :mod:`._statistics`): it is not
+  counted in the degrees of freedom, its redundancy number is 0, and its residual is still
+  computed (the misclosure at the solution), so that a removed blunder can be reported.
+* AP influence (external reliability, Baarda 1968): the change of the APs caused by an error of
+  one a priori sigma in observation i, ``dx_a = Q_(a, u_i) J_i^T P_i sigma_i`` over the
+  unknowns u_i that observation touches (its target, its scan, the APs), in units of the AP's
+  a priori sigma ``sqrt(Q_aa)``; gathered from the Qpz/Qzz blocks, never a whole Jacobian.
 """
 
 from __future__ import annotations
@@ -36,6 +43,8 @@ class Quality(eqx.Module):
     Ks: object
     Qs: object
     scale: object
+    n_observations: object = None  # observations with nonzero weight (pseudo-observations included)
+    ap_influence: tuple = ()  # per family (m, 3, a): dx_AP / sigma_AP for a 1-sigma error
 
 
 def quality(spec: Spec, problem: Problem, params: Params, rank_tolerance, full_covariance: bool = True) -> Quality:
@@ -51,7 +60,7 @@ def quality(spec: Spec, problem: Problem, params: Params, rank_tolerance, full_c
     n_obs = 0.0
     vtpv = jnp.sum(_levelling_residual(problem, params.eops) ** 2)
     n_obs = n_obs + jnp.sum(problem.levelling_weight > 0)
-    residuals, redund, redund_prior, Qpp_list, Qpz_list = [], [], [], [], []
+    residuals, redund, redund_prior, Qpp_list, Qpz_list, influence = [], [], [], [], [], []
     n_unknowns = jnp.sum(~dep)
     for fi, fam in enumerate(problem.families):
         P = params.prims[fi]
@@ -59,7 +68,10 @@ def quality(spec: Spec, problem: Problem, params: Params, rank_tolerance, full_c
         f = _obs_residual(spec, fam)
         args = (P[fam.prim], params.eops[fam.scan], params.aps, fam.obs, fam.weight, fam.point, inst)
         ax = (0, 0, None, 0, 0, 0, 0)
-        e = jax.vmap(f, in_axes=ax)(*args)
+        # Misclosure at unit weight, so that a masked (weight 0) observation keeps its residual.
+        raw = jax.vmap(f, in_axes=ax)(*args[:4], jnp.ones_like(fam.weight), *args[5:])
+        e = raw * fam.weight
+        active_obs = fam.weight > 0
         Jp, Js, Ja = jax.vmap(jax.jacfwd(f, argnums=(0, 1, 2)), in_axes=ax)(*args)
         Y = red.Y[fi]
         Qpz = -jnp.einsum("npr,rq->npq", Y, Qzz)  # (n, p, r)
@@ -86,10 +98,19 @@ def quality(spec: Spec, problem: Problem, params: Params, rank_tolerance, full_c
             + 2 * quad(Js, Tsa[fam.scan], Ja)
             + quad(Ja, jnp.broadcast_to(Taa, (Ja.shape[0],) + Taa.shape), Ja)
         )
-        redund.append(1.0 - JQJ)
-        residuals.append(e / fam.weight)
+        redund.append(jnp.where(active_obs, 1.0 - JQJ, 0.0))
+        residuals.append(raw)
         vtpv = vtpv + jnp.sum(e**2)
-        n_obs = n_obs + e.size
+        n_obs = n_obs + jnp.sum(active_obs)
+        # External reliability: Q_(a, touched) J^T for every observation row, in AP sigmas.
+        # Written as small matmuls: broadcast-multiply-sum over (m, 3, a, a) was 10x slower.
+        infl = (
+            jnp.einsum("mkp,mpa->mka", Jp, Qpa_obs)
+            + jnp.einsum("mks,msa->mka", Js, Tsa[fam.scan])
+            + jnp.einsum("mkb,ab->mka", Ja, Taa)
+        )  # (m, 3, a)
+        sa = jnp.sqrt(jnp.clip(jnp.diagonal(Taa), 0.0, None))
+        influence.append(jnp.where(sa > 0, infl / jnp.where(sa > 0, sa, 1.0), 0.0))
         g = _prior_residual(fam)
         pargs = (P, fam.ctrl_xyz, fam.ctrl_weight, fam.bar_length, fam.bar_weight)
         pr = jax.vmap(g)(*pargs)
@@ -110,7 +131,8 @@ def quality(spec: Spec, problem: Problem, params: Params, rank_tolerance, full_c
     Qfull = None
     if full_covariance:
         Qfull = _full_cofactor(spec, red, Qzz, Qpp_list, Qpz_list, Hp, Hz)
-    return Quality(vtpv, jnp.asarray(dof, dtype=jnp.float64), Qzz, Qfull, tuple(residuals), tuple(redund), tuple(redund_prior), redund_lev, dep, red.pivots, red.Ks, Qs, red.scale)
+    return Quality(vtpv, jnp.asarray(dof, dtype=jnp.float64), Qzz, Qfull, tuple(residuals), tuple(redund), tuple(redund_prior), redund_lev, dep, red.pivots, red.Ks, Qs, red.scale,
+                   jnp.asarray(n_obs, dtype=jnp.float64), tuple(influence))
 
 
 def _full_cofactor(spec, red, Qzz, Qpp_list, Qpz_list, Hp, Hz):

@@ -111,16 +111,20 @@ def result_to_dict(res, *, alpha: float = 0.05) -> dict:
         "ap_covariance": None if cov is None else [[_num(v) for v in row] for row in cov],
         "eops": eops,
         "redundancy": res.redundancy_summary(),
-        "outliers": [dict(o) for o in getattr(res, "outliers", ())],
-        "variance_components": dict(getattr(res, "variance_components", {}) or {}),
+        # Filled by calibrate_and_test (data snooping, VCE); a plain calibration has neither.
+        "outliers": [],
+        "variance_components": {},
         "not_estimable": [{"name": n, "confounded_with": w, "reason": r} for n, w, r in res.not_estimable],
         "weakly_determined": [{"name": n, "correlated_with": w, "max_abs_corr": c} for n, w, c in res.weakly_determined],
         "rank_deficient": list(res.rank_deficient),
     }
 
 
-def write_json(res, path, **kw) -> dict:
+def write_json(res, path, *, extra: dict | None = None, **kw) -> dict:
+    """Write :func:`result_to_dict` (updated with ``extra``, e.g. the ``outliers`` and
+    ``variance_components`` of :func:`tlsjax.calibrate_and_test`) as strict JSON."""
     d = result_to_dict(res, **kw)
+    d.update(extra or {})
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with open(path, "w", encoding="utf-8") as fh:
         json.dump(d, fh, indent=2, allow_nan=False)
