@@ -4,25 +4,10 @@ Run from the repository root:  python notebooks/_make_01.py
 (writes the notebook with its outputs; needs the ``python3`` Jupyter kernel).
 """
 
-import pathlib
-import time
+from _nbtools import Builder
 
-import nbclient
-import nbformat
-from nbformat.v4 import new_code_cell, new_markdown_cell, new_notebook
-
-HERE = pathlib.Path(__file__).resolve().parent
-OUT = HERE / "01_point_based_tilted_scans.ipynb"
-
-cells = []
-
-
-def md(text):
-    cells.append(new_markdown_cell(text.strip("\n")))
-
-
-def code(text):
-    cells.append(new_code_cell(text.strip("\n")))
+BUILD = Builder("01_point_based_tilted_scans.ipynb")
+md, code = BUILD.md, BUILD.code
 
 
 md(r"""
@@ -298,15 +283,5 @@ the observations unchanged); the reduction removes that part and with it the cor
 kappa, without changing what the data say about B6. Neither basis is reported as not estimable.
 """)
 
-nb = new_notebook(cells=cells)
-nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
-nb.metadata["language_info"] = {"name": "python"}
-
 if __name__ == "__main__":
-    import sys
-
-    t0 = time.perf_counter()
-    nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
-                            resources={"metadata": {"path": str(HERE.parent)}}).execute()
-    nbformat.write(nb, OUT)
-    print(f"executed and wrote {OUT} in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+    BUILD.run()

@@ -4,25 +4,10 @@ Run from the repository root:  python notebooks/_make_02.py
 (writes the notebook with its outputs; needs the ``python3`` Jupyter kernel).
 """
 
-import pathlib
-import time
+from _nbtools import Builder
 
-import nbclient
-import nbformat
-from nbformat.v4 import new_code_cell, new_markdown_cell, new_notebook
-
-HERE = pathlib.Path(__file__).resolve().parent
-OUT = HERE / "02_model_identification.ipynb"
-
-cells = []
-
-
-def md(text):
-    cells.append(new_markdown_cell(text.strip("\n")))
-
-
-def code(text):
-    cells.append(new_code_cell(text.strip("\n")))
+BUILD = Builder("02_model_identification.ipynb")
+md, code = BUILD.md, BUILD.code
 
 
 md(r"""
@@ -183,15 +168,5 @@ is lost in the noise of a residual plot.
   shifted band. The fitted-curve panels with all terms estimated show the offset itself.
 """)
 
-nb = new_notebook(cells=cells)
-nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
-nb.metadata["language_info"] = {"name": "python"}
-
 if __name__ == "__main__":
-    import sys
-
-    t0 = time.perf_counter()
-    nbclient.NotebookClient(nb, timeout=900, kernel_name="python3",
-                            resources={"metadata": {"path": str(HERE.parent)}}).execute()
-    nbformat.write(nb, OUT)
-    print(f"executed and wrote {OUT} in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+    BUILD.run()

@@ -4,25 +4,10 @@ Run from the repository root:  python notebooks/_make_04.py
 (writes the notebook with its outputs; needs the ``python3`` Jupyter kernel).
 """
 
-import pathlib
-import time
+from _nbtools import Builder
 
-import nbclient
-import nbformat
-from nbformat.v4 import new_code_cell, new_markdown_cell, new_notebook
-
-HERE = pathlib.Path(__file__).resolve().parent
-OUT = HERE / "04_compatibility.ipynb"
-
-cells = []
-
-
-def md(text):
-    cells.append(new_markdown_cell(text.strip("\n")))
-
-
-def code(text):
-    cells.append(new_code_cell(text.strip("\n")))
+BUILD = Builder("04_compatibility.ipynb")
+md, code = BUILD.md, BUILD.code
 
 
 md(r"""
@@ -171,28 +156,5 @@ md(r"""
   compiled, vmapped computation (times above; the machine is shared, so they vary).
 """)
 
-nb = new_notebook(cells=cells)
-nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
-nb.metadata["language_info"] = {"name": "python"}
-
 if __name__ == "__main__":
-    import sys
-
-    import tlsjax
-
-    if not hasattr(tlsjax, "monte_carlo"):
-        # Until tlsjax/__init__.py re-exports the Monte Carlo API, make it visible to the
-        # notebook's `tj`; regenerate after wiring and this cell disappears.
-        print("warning: tlsjax does not re-export monte_carlo yet; adding a shim cell", file=sys.stderr)
-        cells.insert(2, new_code_cell(
-            "# temporary: the public re-exports are not wired into tlsjax/__init__.py yet\n"
-            "from tlsjax._montecarlo import MonteCarloOptions, MonteCarloResult, monte_carlo\n"
-            "from tlsjax._compat import APSet, CompatibilityOptions, CompatibilityResult, compatibility_test\n"
-            "for _n in ('MonteCarloOptions', 'MonteCarloResult', 'monte_carlo', 'APSet', 'CompatibilityOptions',\n"
-            "           'CompatibilityResult', 'compatibility_test'):\n"
-            "    setattr(tj, _n, globals()[_n])"))
-    t0 = time.perf_counter()
-    nbclient.NotebookClient(nb, timeout=900, kernel_name="python3",
-                            resources={"metadata": {"path": str(HERE.parent)}}).execute()
-    nbformat.write(nb, OUT)
-    print(f"executed and wrote {OUT} in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
+    BUILD.run()
