@@ -198,3 +198,18 @@ def test_residual_plot_ap_curves(sim, tmp_path):
     for ext in ("png", "svg"):
         p = plot_residuals(res, str(tmp_path / f"r.{ext}"), scanner=tj.Scanner(), compare=res, mask=np.ones_like(l, dtype=bool))
         assert (tmp_path / f"r.{ext}").stat().st_size > 10_000 and p.endswith(ext)
+
+
+def test_removed_observation_is_left_out_of_the_redundancy_means():
+    sim = tj.simulate(tj.Room(n_targets=36), seed=21, aps="A0 B6 B7 C0")
+    net = sim.network
+    obs = net.observations.copy()
+    obs[7, 0] += 40 * net.sigmas[7, 0]
+    tested = tj.calibrate_and_test(net.with_observations(obs), tj.CalibrationModel(sim.scanner),
+                                   testing=tj.TestingOptions(vce=False, snooping=True, bonferroni=True, alpha=0.05))
+    res = tested.calibration
+    assert [(o.row, o.group) for o in tested.outliers] == [(7, "range")]
+    assert not res.used[7, 0] and res.used.sum() == res.used.size - 1 and res.redundancy[7, 0] == 0
+    summary = res.redundancy_summary()
+    assert np.isclose(summary["range"]["mean"], np.delete(res.redundancy[:, 0], 7).mean(), rtol=1e-12)
+    assert np.isclose(summary["total"]["sum"], res.dof, rtol=1e-9)

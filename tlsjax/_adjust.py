@@ -243,6 +243,7 @@ class CalibrationResult:
     covariance: np.ndarray | None  # a posteriori, inner-constraint datum, all unknowns
     network: Network = dataclasses.field(repr=False, default=None)
     ap_covariance: np.ndarray | None = None  # (a, a) a posteriori; NaN rows/columns for non-estimable APs
+    used: np.ndarray | None = None  # (n, 3) False where an observation was removed (weight 0)
 
     @property
     def ok(self) -> bool:
@@ -259,15 +260,20 @@ class CalibrationResult:
     def redundancy_summary(self) -> dict:
         """Mean and sum of redundancy numbers per group, per scan and in total."""
         r = self.redundancy
+        used = np.ones(r.shape, dtype=bool) if self.used is None else self.used
+        # Means over the observations in the adjustment: a removed one has redundancy 0 by
+        # construction and would pull the mean down.
+        mean = lambda rows: float(r[rows][used[rows]].mean()) if used[rows].any() else float("nan")
         out = {}
         for g, name in enumerate(GROUP_NAMES):
-            out[name] = {"mean": float(r[:, g].mean()), "sum": float(r[:, g].sum())}
+            out[name] = {"mean": float(r[:, g][used[:, g]].mean()) if used[:, g].any() else float("nan"),
+                         "sum": float(r[:, g].sum())}
         lev = self.redundancy_levelling
         active = self.network.is_levelled
         if active.any():
             out["levelling"] = {"mean": float(lev[active].mean()), "sum": float(lev[active].sum())}
         out["per_scan"] = {
-            s: {"mean": float(r[self.network.scan_index == j].mean())} for j, s in enumerate(self.scans)
+            s: {"mean": mean(self.network.scan_index == j)} for j, s in enumerate(self.scans)
         }
         total = float(r.sum() + lev.sum() + self.redundancy_prior_sum)
         out["total"] = {"mean": total / max(self.n_observations, 1), "sum": total}
@@ -338,7 +344,6 @@ def _assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
         with np.errstate(invalid="ignore", divide="ignore"):
             C = Qzz[ap_idx] / np.outer(s[ap_idx], s)
         C[:, dep | (s == 0)] = 0.0
-        n_p_off = n_p
     C = np.nan_to_num(C)
     off = n_p if cov is not None else 0
     for i in range(na):
@@ -375,6 +380,7 @@ def _assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
     n_obs = net.observations.shape[0]
     resid = np.zeros((n_obs, 3))
     redund = np.zeros((n_obs, 3))
+    used = np.ones((n_obs, 3), dtype=bool)
     txyz = np.zeros((len(net.targets), 3))
     tsig = np.full((len(net.targets), 3), np.nan)
     fam_rows = _family_rows(net, plan)
@@ -383,6 +389,7 @@ def _assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
         rows = fam_rows[fi]
         resid[rows] = np.asarray(q.residuals[fi])
         redund[rows] = np.asarray(q.redundancy[fi])
+        used[rows] = np.asarray(plan.problem.families[fi].weight) > 0
         P = np.asarray(state.params.prims[fi]).reshape(-1, 3)
         txyz[tg.reshape(-1)] = P
         if cov is not None:
@@ -405,6 +412,7 @@ def _assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
         targets=net.targets, target_xyz=txyz, target_sigmas=tsig, residuals=resid, redundancy=redund,
         redundancy_levelling=np.asarray(q.redundancy_levelling), redundancy_prior_sum=prior_sum,
         parameter_names=names, covariance=cov, network=net, ap_covariance=_ap_covariance(Qzz, ap_idx, ap_dep, s0sq),
+        used=used,
     )
 
 
