@@ -103,3 +103,21 @@ def test_sigma0_close_to_one_and_estimates_within_sigma():
     # s0^2 ~ chi2(r)/r with r ~ 1770: its sigma is sqrt(2/r) ~ 0.034.
     assert abs(np.mean(s0) - 1) < 0.1
     assert np.max(np.abs(z)) < 4.5
+
+
+def test_fixed_aps_equal_the_model_without_them():
+    """Holding APs at zero (one compiled shape for every subset) gives the adjustment of the
+    model without them: the rank-revealing factorisation drops their columns exactly."""
+    sim = tj.simulate(tj.Room(n_targets=36), seed=12, aps=" ".join(APS))
+    small = tj.calibrate(sim.network, tj.CalibrationModel(tj.Scanner(aps="A0 B7")))
+    wide = tj.calibrate(sim.network, tj.CalibrationModel(tj.Scanner(aps=APS), fixed_aps=("B6", "C0")))
+    assert wide.result == small.result == 0 and wide.ap_fixed == ("B6", "C0")
+    assert wide.dof == small.dof and wide.n_unknowns == small.n_unknowns
+    assert np.isclose(wide.sigma0, small.sigma0, rtol=1e-10)
+    i = [wide.ap_names.index(a) for a in ("A0", "B7")]
+    np.testing.assert_allclose(wide.ap_values[i], small.ap_values, rtol=1e-9)
+    np.testing.assert_allclose(wide.ap_sigmas[i], small.ap_sigmas, rtol=1e-9)
+    np.testing.assert_allclose(wide.redundancy, small.redundancy, atol=1e-10)
+    j = [wide.ap_names.index(a) for a in ("B6", "C0")]
+    assert np.all(wide.ap_values[j] == 0) and np.all(wide.ap_sigmas[j] == 0)
+    assert "held at 0" in tj.ap_table(wide)

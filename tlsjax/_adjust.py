@@ -40,15 +40,19 @@ class CalibrationModel:
     parameters the datum leaves free: all six, or X, Y, Z, kappa with levelling), "control"
     (control points with their sigmas), or "auto" (control if the network has control points,
     otherwise inner). ``correlation_threshold``: an AP whose largest absolute correlation
-    exceeds it is flagged as weakly determined.
+    exceeds it is flagged as weakly determined. ``fixed_aps``: AP labels held at zero (they keep
+    their place in the parameter vector, so a model that differs only in which APs are fixed
+    reuses the compiled adjustment: stepwise selection fits every candidate set this way).
     """
 
     scanner: Scanner | Mapping[str, Scanner] = dataclasses.field(default_factory=Scanner)
     datum: str = "auto"
     fixed_scan: str | None = None
     correlation_threshold: float = 0.99
+    fixed_aps: tuple = ()
 
     def __post_init__(self):
+        object.__setattr__(self, "fixed_aps", tuple(self.fixed_aps.split() if isinstance(self.fixed_aps, str) else self.fixed_aps))
         if self.datum not in DATUMS:
             raise ValueError(f"datum {self.datum!r} is not one of {DATUMS}")
         if self.datum == "fixed-scan" and self.fixed_scan is None:
@@ -124,6 +128,10 @@ def build_plan(net: Network, model: CalibrationModel) -> Plan:
         fixed_idx = net.scans.index(model.fixed_scan)
         cols = (0, 1, 2, 5) if levelled else tuple(range(6))
         fixed[[6 * fixed_idx + c for c in cols]] = True
+    for name in model.fixed_aps:
+        if name not in labels:
+            raise ValueError(f"fixed AP {name!r} is not among the APs of the model: {' '.join(labels)}")
+        fixed[6 * n_s + labels.index(name)] = True
     datum_columns = ((0, 1, 2, 5) if levelled else tuple(range(6))) if datum == "inner" else ()
     spec = Spec(scanners, tuple(ap_names), tuple(ap_slices), n_s, datum_columns, datum == "inner")
 
@@ -244,6 +252,7 @@ class CalibrationResult:
     network: Network = dataclasses.field(repr=False, default=None)
     ap_covariance: np.ndarray | None = None  # (a, a) a posteriori; NaN rows/columns for non-estimable APs
     used: np.ndarray | None = None  # (n, 3) False where an observation was removed (weight 0)
+    ap_fixed: tuple = ()  # APs held at zero (CalibrationModel.fixed_aps): value 0, sigma 0
 
     @property
     def ok(self) -> bool:
@@ -326,8 +335,10 @@ def _assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
     eop_dep = dep[: 6 * ns] & ~fixed[: 6 * ns]
     values = np.asarray(state.params.aps).copy()
     sig = np.sqrt(np.clip(zdiag[ap_idx], 0, None))
+    ap_fixed = fixed[ap_idx]
     values[ap_dep] = np.nan
     sig[ap_dep] = np.nan
+    sig[ap_fixed] = 0.0
     with np.errstate(invalid="ignore", divide="ignore"):
         tstat = values / sig
 
@@ -351,8 +362,8 @@ def _assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
     max_corr = np.abs(C).max(axis=1) if C.size else np.zeros(na)
     arg = np.abs(C).argmax(axis=1) if C.size else np.zeros(na, dtype=int)
     partner = tuple(names[(a if cov is not None else n_p + a)] for a in arg)
-    max_corr[ap_dep] = np.nan
-    partner = tuple("" if ap_dep[i] else partner[i] for i in range(na))
+    max_corr[ap_dep | ap_fixed] = np.nan
+    partner = tuple("" if ap_dep[i] or ap_fixed[i] else partner[i] for i in range(na))
 
     not_est = _diagnose(plan, q, net, state, np.flatnonzero(ap_dep), names, n_p) if ap_dep.any() else ()
     weak = tuple((plan.ap_labels[i], partner[i], float(max_corr[i])) for i in range(na)
@@ -412,7 +423,7 @@ def _assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
         targets=net.targets, target_xyz=txyz, target_sigmas=tsig, residuals=resid, redundancy=redund,
         redundancy_levelling=np.asarray(q.redundancy_levelling), redundancy_prior_sum=prior_sum,
         parameter_names=names, covariance=cov, network=net, ap_covariance=_ap_covariance(Qzz, ap_idx, ap_dep, s0sq),
-        used=used,
+        used=used, ap_fixed=tuple(plan.ap_labels[i] for i in np.flatnonzero(ap_fixed)),
     )
 
 

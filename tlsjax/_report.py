@@ -145,6 +145,9 @@ def ap_table(res, truth: dict | None = None) -> str:
         if name in not_est:
             lines.append(f"{name:<8} not estimable: {not_est[name]}")
             continue
+        if name in getattr(res, "ap_fixed", ()):
+            lines.append(f"{name:<8} held at 0 (fixed)")
+            continue
         v, u = display(res.ap_values[i], res.ap_units[i])
         s, _ = display(res.ap_sigmas[i], res.ap_units[i])
         row = (f"{name:<8} {v:12.4f} {s:10.4f} {u:<4} {abs(res.ap_t[i]):8.1f} {res.ap_max_abs_corr[i]:10.3f}  "

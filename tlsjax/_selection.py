@@ -93,6 +93,20 @@ def _rms(res: CalibrationResult) -> dict:
             "el_arcsec": float(np.sqrt(np.mean(v[:, 2] ** 2)) / ARCSEC)}
 
 
+def _restrict(res: CalibrationResult, aps: tuple) -> CalibrationResult:
+    """The result seen as a model of ``aps`` only (the fixed terms dropped from the AP fields)."""
+    idx = [res.ap_names.index(a) for a in aps]
+    keep = set(aps)
+    cov = None if res.ap_covariance is None else res.ap_covariance[np.ix_(idx, idx)]
+    return dataclasses.replace(
+        res, ap_names=tuple(aps), ap_units=tuple(res.ap_units[i] for i in idx), ap_values=res.ap_values[idx],
+        ap_sigmas=res.ap_sigmas[idx], ap_t=res.ap_t[idx], ap_max_abs_corr=res.ap_max_abs_corr[idx],
+        ap_max_corr_with=tuple(res.ap_max_corr_with[i] for i in idx), ap_covariance=cov,
+        not_estimable=tuple(x for x in res.not_estimable if x[0] in keep),
+        weakly_determined=tuple(x for x in res.weakly_determined if x[0] in keep), ap_fixed=(),
+    )
+
+
 def _max_ap_corr(res: CalibrationResult) -> float:
     m = res.ap_max_abs_corr
     m = m[np.isfinite(m)]
@@ -117,12 +131,17 @@ def select_aps(network: Network, model: CalibrationModel | None = None, *, start
     n_fits = 0
     cache: dict = {}
 
+    # Every candidate set is the same parameter vector (the union of all terms) with the
+    # terms outside the set held at zero: one compiled adjustment serves every fit.
+    universe = tuple(dict.fromkeys(start + candidates))
+    wide = dataclasses.replace(model, scanner=dataclasses.replace(model.scanner, aps=universe))
+
     def fit(aps):
         nonlocal n_fits
         key = tuple(aps)
         if key not in cache:
-            m = dataclasses.replace(model, scanner=dataclasses.replace(model.scanner, aps=key))
-            cache[key] = calibrate(network, m, solver)
+            res = calibrate(network, dataclasses.replace(wide, fixed_aps=tuple(a for a in universe if a not in key)), solver)
+            cache[key] = _restrict(res, key)
             n_fits += 1
         return cache[key]
 
@@ -190,4 +209,6 @@ def select_aps(network: Network, model: CalibrationModel | None = None, *, start
         res = best[2]
         steps.append(step_record("add", best[0], current, res, "most significant admissible candidate: " + best[3]))
     steps.append(step_record("final", "", current, res, "no admissible candidate left"))
-    return SelectionResult(tuple(current), res, tuple(steps), n_fits, crit(res))
+    # The chosen set once more as a model of its own, so the result carries only its terms.
+    final = calibrate(network, dataclasses.replace(model, scanner=dataclasses.replace(model.scanner, aps=tuple(current))), solver)
+    return SelectionResult(tuple(current), final, tuple(steps), n_fits, crit(res))
