@@ -49,7 +49,9 @@ def plot_residuals(result, path, *, title: str | None = None, overlay: bool = Tr
     v = np.asarray(result.residuals)
     used = np.ones_like(v, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
     curves = _ap_curves(result, scanner) if overlay else {}
-    fig, axes = plt.subplots(3, 3, figsize=(12, 9), sharey="row")
+    # Own y scale per panel: an overlay panel (residuals without a term) spans far more than a
+    # plain one, and a shared scale would flatten the plain residuals to a line.
+    fig, axes = plt.subplots(3, 3, figsize=(12, 9))
     for g in range(3):
         for c, (xlabel, xf) in enumerate(ABSCISSAE):
             ax = axes[g, c]
