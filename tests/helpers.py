@@ -22,39 +22,39 @@ def _R(w, p, k):
 
 # Hybrid-scanner bases written out independently of the registry.
 BASES = {
-    "A0": (0, lambda r, t, a: 1.0),
+    "A0": (0, lambda r, t, a: jnp.ones_like(r)),
     "A1": (0, lambda r, t, a: r),
     "B6": (1, lambda r, t, a: 1 / jnp.cos(a) - 1),
     "B7": (1, lambda r, t, a: jnp.tan(a)),
-    "C0": (2, lambda r, t, a: 1.0),
+    "C0": (2, lambda r, t, a: jnp.ones_like(r)),
 }
 
 
 def dense_residuals(x, net, aps, n_t, n_s):
+    """Whitened residuals of the whole network as one vector, written out by hand: rows in
+    network order (range, hz, el per observation), then the levelling rows."""
     T = x[: 3 * n_t].reshape(n_t, 3)
     E = x[3 * n_t : 3 * n_t + 6 * n_s].reshape(n_s, 6)
     A = x[3 * n_t + 6 * n_s :]
-    out = []
     l = jnp.asarray(net.observations)
-    for i in range(l.shape[0]):
-        t, s = int(net.target_index[i]), int(net.scan_index[i])
-        p = _R(*E[s, 3:]) @ (T[t] - E[s, :3])
-        rho = jnp.linalg.norm(p)
-        th = jnp.mod(jnp.arctan2(p[1], p[0]), 2 * np.pi)
-        al = jnp.arctan2(p[2], jnp.hypot(p[0], p[1]))
-        F = [rho, th, al]
-        for k, name in enumerate(aps):
-            g, b = BASES[name]
-            F[g] = F[g] + A[k] * b(*l[i])
-        d = jnp.stack(F) - l[i]
-        d = d.at[1:].set(jnp.arctan2(jnp.sin(d[1:]), jnp.cos(d[1:])))
-        out.append(d / net.sigmas[i])
-    res = [jnp.concatenate(out)]
+    ti, si = np.asarray(net.target_index), np.asarray(net.scan_index)
+    R = jax.vmap(lambda e: _R(*e[3:]))(E)  # (s, 3, 3)
+    p = jnp.einsum("nij,nj->ni", R[si], T[ti] - E[si, :3])
+    rho = jnp.linalg.norm(p, axis=1)
+    th = jnp.mod(jnp.arctan2(p[:, 1], p[:, 0]), 2 * np.pi)
+    al = jnp.arctan2(p[:, 2], jnp.hypot(p[:, 0], p[:, 1]))
+    F = [rho, th, al]
+    for k, name in enumerate(aps):
+        g, b = BASES[name]
+        F[g] = F[g] + A[k] * b(l[:, 0], l[:, 1], l[:, 2])
+    d = jnp.stack(F, axis=1) - l
+    d = d.at[:, 1:].set(jnp.arctan2(jnp.sin(d[:, 1:]), jnp.cos(d[:, 1:])))
+    res = [(d / jnp.asarray(net.sigmas)).reshape(-1)]
     lw = np.where(np.isfinite(net.levelling_sigma), 1 / net.levelling_sigma, 0.0)
     for s in range(n_s):
         # Compensator: the object-space vertical seen in scanner space, g = R e3, read as
         # omega = asin(g_y) and phi = asin(-g_x / cos(omega)).
-        g = _R(*E[s, 3:])[:, 2]
+        g = R[s][:, 2]
         reading = [jnp.arcsin(g[1]), jnp.arcsin(-g[0] / jnp.sqrt(1 - g[1] ** 2))]
         for c in range(2):
             if lw[s, c] > 0:
