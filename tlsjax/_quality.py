@@ -24,6 +24,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from ._linalg import cholesky_inverse
+from ._planes import condition_variance, observation_residuals
 from ._solver import (
     Params, Problem, Spec, _obs_residual, _prior_residual, _levelling_residual, _levelling_jacobian, linearise, null_space, reduce,
 )
@@ -98,10 +99,25 @@ def quality(spec: Spec, problem: Problem, params: Params, rank_tolerance, full_c
             + 2 * quad(Js, Tsa[fam.scan], Ja)
             + quad(Ja, jnp.broadcast_to(Taa, (Ja.shape[0],) + Taa.shape), Ja)
         )
-        redund.append(jnp.where(active_obs, 1.0 - JQJ, 0.0))
-        residuals.append(raw)
-        vtpv = vtpv + jnp.sum(e**2)
-        n_obs = n_obs + jnp.sum(active_obs)
+        if fam.kind == "plane":
+            # Gauss-Helmert: one condition per point. Its redundancy r_c = 1 - (a Q a^T) splits
+            # over the point's three observations in the ratio sigma_l^2 b_l^2 / m (SPEC 4).
+            e = jax.vmap(f, in_axes=ax)(*args)  # (m, 1)
+            rows = jnp.any(fam.weight > 0, axis=-1)
+            sig = jnp.where(fam.weight > 0, 1.0 / jnp.where(fam.weight > 0, fam.weight, 1.0), 0.0)
+            m, B = jax.vmap(lambda P_, E_, A_, l_, s_, i_: condition_variance(
+                P_, E_, A_, l_, s_, spec.scanners, spec.ap_names, spec.ap_slices, i_))(args[0], args[1], jnp.broadcast_to(args[2], (fam.obs.shape[0],) + args[2].shape), fam.obs, sig, inst)
+            share = (sig * B) ** 2 / jnp.where(m > 0, m, 1.0)[:, None]
+            redund.append(jnp.where(rows, 1.0 - JQJ[:, 0], 0.0)[:, None] * share)
+            residuals.append(jax.vmap(lambda P_, E_, l_, w_, i_: observation_residuals(
+                P_, E_, params.aps, l_, w_, spec.scanners, spec.ap_names, spec.ap_slices, i_))(args[0], args[1], fam.obs, fam.weight, inst))
+            vtpv = vtpv + jnp.sum(e**2)
+            n_obs = n_obs + jnp.sum(rows)
+        else:
+            redund.append(jnp.where(active_obs, 1.0 - JQJ, 0.0))
+            residuals.append(raw)
+            vtpv = vtpv + jnp.sum(e**2)
+            n_obs = n_obs + jnp.sum(active_obs)
         # External reliability: Q_(a, touched) J^T for every observation row, in AP sigmas.
         # Written as small matmuls: broadcast-multiply-sum over (m, 3, a, a) was 10x slower.
         infl = (

@@ -29,6 +29,7 @@ from ._geometry import rotation_matrix
 from ._datum import move_eop, move_points, null_space_columns
 from ._linalg import cholesky_solve, forward_substitution, rank_revealing_cholesky, spd_inverse
 from ._models import point_misclosure
+from ._planes import move_plane, unit_normal_constraint, whitened_condition
 
 # Result codes (SPEC section 7). Value-dependent failures come back as codes, never as NaN.
 SUCCESS = 0
@@ -67,6 +68,7 @@ class Family(eqx.Module):
     bar_length: Float[Array, " n"]
     bar_weight: Float[Array, " n"]
     k: int = eqx.field(static=True)
+    kind: str = eqx.field(static=True, default="point")
 
     @property
     def n(self) -> int:
@@ -74,7 +76,8 @@ class Family(eqx.Module):
 
     @property
     def p(self) -> int:
-        return 3 * self.k
+        # A plane is (n_x, n_y, n_z, d) with |n| = 1 (SPEC section 4).
+        return 4 if self.kind == "plane" else 3 * self.k
 
 
 class Problem(eqx.Module):
@@ -97,6 +100,10 @@ class Spec:
     n_scans: int
     datum_columns: tuple  # rigid motions that leave the observations invariant
     inner: bool  # S-transform updates to the inner-constraint datum on the primitives
+    family_kinds: tuple = ()  # "point" or "plane" per family (default: all point families)
+
+    def kind(self, fi: int) -> str:
+        return self.family_kinds[fi] if self.family_kinds else "point"
 
     @property
     def n_aps(self) -> int:
@@ -126,6 +133,13 @@ class Options(eqx.Module):
 
 
 def _obs_residual(spec: Spec, fam: Family):
+    if fam.kind == "plane":
+        # One Gauss-Helmert condition per point, whitened by sqrt(B Sigma B^T) (_planes.py).
+        def g(P, eop, aps, l, w, point, inst):
+            return whitened_condition(P, eop, aps, l, w, spec.scanners, spec.ap_names, spec.ap_slices, inst)
+
+        return g
+
     def f(P, eop, aps, l, w, point, inst):
         X = P.reshape(fam.k, 3)[point]
         return point_misclosure(X, eop, aps, l, spec.scanners, spec.ap_names, spec.ap_slices, inst) * w
@@ -134,6 +148,14 @@ def _obs_residual(spec: Spec, fam: Family):
 
 
 def _prior_residual(fam: Family):
+    if fam.kind == "plane":
+        # The unit-normal constraint as a pseudo-observation of weight ``lw`` (the family's
+        # bar_weight slot): heavy enough that |n| = 1 holds to rounding, counted in the dof.
+        def c(P, cx, cw, L, lw):
+            return (unit_normal_constraint(P) * lw)[None]
+
+        return c
+
     def f(P, cx, cw, L, lw):
         pts = P.reshape(fam.k, 3)
         out = ((pts - cx) * cw).reshape(-1)
@@ -224,11 +246,14 @@ def _family_args(problem, params, fi):
 def ap_jacobians(spec: Spec, problem: Problem, params: Params) -> tuple:
     """``d e / d AP`` per family, (m, 3, a).
 
-    Constant during an adjustment: Delta is linear in the AP coefficients with its bases
-    evaluated at the observations, and F does not depend on the APs (SPEC section 2). Taking it
+    Constant during an adjustment of points: Delta is linear in the AP coefficients with its
+    bases evaluated at the observations, and F does not depend on the APs (SPEC section 2). Taking it
     once leaves 3 + 6 tangents per observation for the iterations instead of 9 + a.
     """
+    # Not for planes: their condition mixes the corrected observation with the plane and the
+    # pose, so d g / d AP changes with them.
     return tuple(
+        None if fam.kind == "plane" else
         jax.vmap(jax.jacfwd(_obs_residual(spec, fam), argnums=2), in_axes=_OBS_AXES)(*_family_args(problem, params, fi))
         for fi, fam in enumerate(problem.families)
     )
@@ -251,7 +276,7 @@ def linearise(spec: Spec, problem: Problem, params: Params, ap_jac: tuple | None
         f = _obs_residual(spec, fam)
         args = _family_args(problem, params, fi)
         e = jax.vmap(f, in_axes=_OBS_AXES)(*args)
-        if ap_jac is None:
+        if ap_jac is None or ap_jac[fi] is None:
             Jp, Js, Ja = jax.vmap(jax.jacfwd(f, argnums=(0, 1, 2)), in_axes=_OBS_AXES)(*args)
         else:
             Jp, Js = jax.vmap(jax.jacfwd(f, argnums=(0, 1)), in_axes=_OBS_AXES)(*args)
@@ -294,7 +319,8 @@ def linearise(spec: Spec, problem: Problem, params: Params, ap_jac: tuple | None
 def null_space(spec: Spec, params: Params):
     """Rigid-motion null-space columns H: per family (n, p, d) and the reduced part (r, d)."""
     cols = spec.datum_columns
-    Hp = tuple(null_space_columns(move_points, P, cols) for P in params.prims)
+    Hp = tuple(null_space_columns(move_plane if spec.kind(fi) == "plane" else move_points, P, cols)
+               for fi, P in enumerate(params.prims))
     Hs = null_space_columns(move_eop, params.eops, cols).reshape(6 * spec.n_scans, len(cols))
     Hz = jnp.concatenate([Hs, jnp.zeros((spec.n_aps, len(cols)))], axis=0)
     return Hp, Hz
