@@ -29,7 +29,7 @@ from ._geometry import rotation_matrix
 from ._datum import move_eop, move_points, null_space_columns
 from ._linalg import cholesky_solve, forward_substitution, rank_revealing_cholesky, spd_inverse
 from ._models import point_misclosure
-from ._planes import move_plane, unit_normal_constraint, whitened_condition
+from ._planes import condition_variance, move_plane, plane_condition, unit_normal_constraint, whitened_condition
 
 # Result codes (SPEC section 7). Value-dependent failures come back as codes, never as NaN.
 SUCCESS = 0
@@ -205,13 +205,31 @@ def _levelling_jacobian(problem, eops):
     return jax.vmap(jax.jacfwd(compensator_reading))(eops) * problem.levelling_weight[:, :, None]
 
 
-def cost(spec, problem, params):
-    """``v^T P v``: sum of squared whitened residuals, observations and pseudo-observations."""
+def cost(spec, problem, params, frozen: Params | None = None):
+    """``v^T P v``: sum of squared whitened residuals, observations and pseudo-observations.
+
+    ``frozen``: evaluate the plane conditions' variances ``m = B Sigma B^T`` there instead of at
+    ``params``. A Gauss-Helmert step holds M fixed at its linearisation point, so its
+    acceptance must compare costs under that M: with M re-evaluated the step can look like an
+    ascent near the solution and Levenberg-Marquardt would stall (seen at 100k points).
+    """
     total = jnp.sum(_levelling_residual(problem, params.eops) ** 2)
-    for fi in range(len(problem.families)):
+    for fi, fam in enumerate(problem.families):
         e, pr = _family_residuals(spec, problem, params, fi)
+        if frozen is not None and fam.kind == "plane":
+            e = _plane_rows_frozen(spec, problem, params, frozen, fi)
         total = total + jnp.sum(e**2) + jnp.sum(pr**2)
     return total
+
+
+def _plane_rows_frozen(spec, problem, params, frozen, fi):
+    fam = problem.families[fi]
+    new, ref = _family_args(problem, params, fi), _family_args(problem, frozen, fi)
+    sigma = jnp.where(fam.weight > 0, 1.0 / jnp.where(fam.weight > 0, fam.weight, 1.0), 0.0)
+    sl = (spec.scanners, spec.ap_names, spec.ap_slices)
+    m = jax.vmap(lambda P, E, l, s, i: condition_variance(P, E, frozen.aps, l, s, *sl, i)[0])(ref[0], ref[1], fam.obs, sigma, ref[6])
+    g = jax.vmap(lambda P, E, l, i: plane_condition(P, E, params.aps, l, *sl, i))(new[0], new[1], fam.obs, new[6])
+    return jnp.where(jnp.any(fam.weight > 0, axis=-1), g / jnp.sqrt(jnp.where(m > 0, m, 1.0)), 0.0)
 
 
 def _outer(a, b):
@@ -439,15 +457,20 @@ def adjust(spec: Spec, problem: Problem, params0: Params, options: Options):
     """
 
     ap_jac = ap_jacobians(spec, problem, params0)
+    planes = any(fam.kind == "plane" for fam in problem.families)
 
     def step(state: SolveState):
         blocks = linearise(spec, problem, state.params, ap_jac)
         Hp, Hz = null_space(spec, state.params)
         red = reduce(spec, problem, blocks, Hz, state.damping, options.rank_tolerance)
         new, dps, dz = solve_step(spec, problem, state.params, blocks, red, Hp, Hz)
-        new_cost = cost(spec, problem, new)
+        if planes:
+            ref_cost = cost(spec, problem, state.params)
+            new_cost = cost(spec, problem, new, frozen=state.params)
+        else:
+            ref_cost, new_cost = state.cost, cost(spec, problem, new)
         finite = jnp.isfinite(new_cost)
-        accept = finite & (new_cost <= state.cost * (1.0 + 1e-12) + 1e-12)
+        accept = finite & (new_cost <= ref_cost * (1.0 + 1e-12) + 1e-12)
         size = update_size(blocks, red, dz, dps)
         # A damped step is short by construction; only an undamped (Gauss-Newton) step may
         # declare convergence, or LM would stop early on its own damping.
