@@ -14,17 +14,10 @@ import pytest
 import tlsjax as tj
 from tlsjax._solver import Family, Options, Params, Problem, Spec, adjust
 from tlsjax._quality import quality
+from helpers import _R
 
 DEG = np.pi / 180
 APS = ("A0", "B6", "B7", "C0")
-
-
-def _R(w, p, k):
-    c, s = jnp.cos, jnp.sin
-    R1 = jnp.array([[1, 0, 0], [0, c(w), s(w)], [0, -s(w), c(w)]])
-    R2 = jnp.array([[c(p), 0, -s(p)], [0, 1, 0], [s(p), 0, c(p)]])
-    R3 = jnp.array([[c(k), s(k), 0], [-s(k), c(k), 0], [0, 0, 1]])
-    return R3 @ R2 @ R1
 
 
 def _g_by_hand(plane, eop, aps, l):
