@@ -43,8 +43,8 @@ import numpy as np
 from jax import lax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from ._adjust import CalibrationModel, build_plan
-from ._aps import get_ap, resolve_aps
+from ._adjust import CalibrationModel
+from ._aps import get_ap
 from ._geometry import is_face2, spherical_from_cartesian, wrap_angle
 from ._linalg import forward_substitution, spd_inverse
 from ._aps import ap_corrections

@@ -57,7 +57,7 @@ def quality(spec: Spec, problem: Problem, params: Params, rank_tolerance, full_c
     Qs = jnp.where(dep[:, None] | dep[None, :], 0.0, Qs)
     Qzz = Qs * red.scale[:, None] * red.scale[None, :]
 
-    ns, na = spec.n_scans, spec.n_aps
+    ns = spec.n_scans
     n_obs = 0.0
     vtpv = jnp.sum(_levelling_residual(problem, params.eops) ** 2)
     n_obs = n_obs + jnp.sum(problem.levelling_weight > 0)

@@ -282,7 +282,7 @@ def linearise(spec: Spec, problem: Problem, params: Params, ap_jac: tuple | None
 
     ``ap_jac``: the AP Jacobians of :func:`ap_jacobians`, if already taken.
     """
-    ns, na, r = spec.n_scans, spec.n_aps, spec.r
+    ns, na = spec.n_scans, spec.n_aps
     Nss = jnp.zeros((ns, 6, 6))
     Nsa = jnp.zeros((ns, 6, na))
     Naa = jnp.zeros((na, na))
