@@ -97,3 +97,17 @@ def _constraints(x, n_t, u, cols):
         G[3 * t : 3 * t + 3, :3] = np.eye(3)
         G[3 * t : 3 * t + 3, 3:] = -np.array([[0, -X[2], X[1]], [X[2], 0, -X[0]], [-X[1], X[0], 0]])
     return G[:, cols]
+
+
+def perturbed_start(res, target_scale, eop_shift=0.0, ap_factor=1.0, seed=0):
+    """A start for the oracle near a structured solution: targets moved orthogonally to the
+    rigid motions (so the inner-constraint datum, defined relative to the start, is the same),
+    poses shifted, APs scaled."""
+    X = res.target_xyz
+    G = np.zeros((X.size, 6))
+    for t in range(X.shape[0]):
+        G[3 * t : 3 * t + 3, :3] = np.eye(3)
+        G[3 * t : 3 * t + 3, 3:] = [[0, X[t, 2], -X[t, 1]], [-X[t, 2], 0, X[t, 0]], [X[t, 1], -X[t, 0], 0]]
+    d = np.random.default_rng(seed).normal(scale=target_scale, size=X.size)
+    d -= G @ np.linalg.lstsq(G, d, rcond=None)[0]
+    return np.concatenate([X.reshape(-1) + d, res.eops.reshape(-1) + eop_shift, res.ap_values * ap_factor])

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
-from helpers import dense_oracle
+from helpers import dense_oracle, perturbed_start
 
 APS = ("A0", "B6", "B7", "C0")
 
@@ -20,17 +20,8 @@ def test_structured_equals_dense_bordered_solve(small):
     sim, res = small
     net = sim.network
     assert res.result == 0, res.message
-    # Start the oracle from the structured solution perturbed: it must come back to it. The
-    # target perturbation is orthogonal to the rigid motions, so the inner-constraint datum
-    # (defined relative to the start) is the same one.
-    X = res.target_xyz
-    G = np.zeros((X.size, 6))
-    for t in range(X.shape[0]):
-        G[3 * t : 3 * t + 3, :3] = np.eye(3)
-        G[3 * t : 3 * t + 3, 3:] = [[0, X[t, 2], -X[t, 1]], [-X[t, 2], 0, X[t, 0]], [X[t, 1], -X[t, 0], 0]]
-    d = np.random.default_rng(0).normal(scale=1e-3, size=X.size)
-    d -= G @ np.linalg.lstsq(G, d, rcond=None)[0]
-    x0 = np.concatenate([X.reshape(-1) + d, res.eops.reshape(-1) + 1e-4, res.ap_values * 0.5])
+    # Start the oracle from the structured solution perturbed: it must come back to it.
+    x0 = perturbed_start(res, 1e-3, eop_shift=1e-4, ap_factor=0.5)
     x, Q, r, vtpv, dof = dense_oracle(net, APS, x0)
     n_p = 3 * len(net.targets)
     ns = len(net.scans)

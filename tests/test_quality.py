@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
-from helpers import dense_oracle, dense_residuals
+from helpers import dense_oracle, dense_residuals, perturbed_start
 from tlsjax._statistics import _Reweighter, minimal_detectable_bias, w_tests
 
 APS = ("A0", "B6", "B7", "C0")
@@ -16,15 +16,7 @@ ROW, COL = 11, 1  # the masked observation
 
 
 def _oracle_start(res):
-    # Structured solution perturbed orthogonally to the rigid motions (same inner datum).
-    X = res.target_xyz
-    G = np.zeros((X.size, 6))
-    for t in range(X.shape[0]):
-        G[3 * t : 3 * t + 3, :3] = np.eye(3)
-        G[3 * t : 3 * t + 3, 3:] = [[0, X[t, 2], -X[t, 1]], [-X[t, 2], 0, X[t, 0]], [X[t, 1], -X[t, 0], 0]]
-    d = np.random.default_rng(0).normal(scale=1e-4, size=X.size)
-    d -= G @ np.linalg.lstsq(G, d, rcond=None)[0]
-    return np.concatenate([X.reshape(-1) + d, res.eops.reshape(-1), res.ap_values * 0.9])
+    return perturbed_start(res, 1e-4, ap_factor=0.9)
 
 
 @pytest.fixture(scope="module")
