@@ -41,6 +41,7 @@ from ._montecarlo import monte_carlo as monte_carlo
 from ._montecarlo import monte_carlo_network as monte_carlo_network
 from ._network import Network as Network
 from ._network import make_network as make_network
+from ._network import make_plane_network as make_plane_network
 from ._pointclouds import PointCloudScan as PointCloudScan
 from ._pointclouds import read_point_clouds as read_point_clouds
 from ._plots import plot_ap_correlations as plot_ap_correlations

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._aps import get_ap
-from ._approx import approximate_values
+from ._approx import approximate_network, approximate_values
 from ._diagnose import confounded_partners
 from ._models import Scanner
 from ._network import Network
@@ -28,6 +28,11 @@ from ._solver import (
 
 DATUMS = ("auto", "inner", "fixed-scan", "control")
 GROUP_NAMES = ("range", "hz", "el")
+#: Weight of the unit-normal constraint ``|n|^2 - 1`` of a plane, as a pseudo-observation: with
+#: it the constraint holds to ~1e-13 while the normal matrix stays well conditioned (a hard
+#: constraint in a bordered system gives the same solution, tests/test_plane_adjustment.py).
+UNIT_NORMAL_WEIGHT = 1e7
+PLANE_PARAMETERS = ("nx", "ny", "nz", "d")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,6 +94,7 @@ class Plan:
     ap_units: tuple
     parameter_names: tuple
     fixed_scan_index: int | None
+    plane_family: int | None = None  # index of the plane family among problem.families
 
 
 def _scanner_for(model: CalibrationModel, instrument: str) -> Scanner:
@@ -133,7 +139,6 @@ def build_plan(net: Network, model: CalibrationModel) -> Plan:
             raise ValueError(f"fixed AP {name!r} is not among the APs of the model: {' '.join(labels)}")
         fixed[6 * n_s + labels.index(name)] = True
     datum_columns = ((0, 1, 2, 5) if levelled else tuple(range(6))) if datum == "inner" else ()
-    spec = Spec(scanners, tuple(ap_names), tuple(ap_slices), n_s, datum_columns, datum == "inner")
 
     # Families: free targets (k=1) and scale bars (k=2: both end targets in one block).
     n_t = len(net.targets)
@@ -161,6 +166,8 @@ def build_plan(net: Network, model: CalibrationModel) -> Plan:
         ctrl_w_t[net.control_index] = 1.0 / net.control_sigma
         ctrl_x_t[net.control_index] = net.control_xyz
     families = []
+    if not net.has_targets:
+        fam_targets = []
     for fi, tg in enumerate(fam_targets):
         m = fam_of[net.target_index] == fi
         prim = prim_of[net.target_index[m]]
@@ -180,6 +187,23 @@ def build_plan(net: Network, model: CalibrationModel) -> Plan:
             ctrl_xyz=jnp.asarray(ctrl_x_t[tg]), ctrl_weight=jnp.asarray(ctrl_w_t[tg]),
             bar_length=jnp.asarray(blen), bar_weight=jnp.asarray(bw), k=k,
         ))
+    kinds = ["point"] * len(families)
+    plane_family = None
+    if net.has_planes:
+        # Planes: one Gauss-Helmert condition per point (SPEC section 4), p = 4 per plane.
+        n_k = len(net.planes)
+        prim, scan = net.plane_index, net.plane_scan_index
+        pairs, pair = np.unique(np.stack([prim, scan], axis=1), axis=0, return_inverse=True)
+        plane_family = len(families)
+        families.append(Family(
+            obs=jnp.asarray(net.plane_observations), weight=jnp.asarray(1.0 / net.plane_sigmas),
+            prim=jnp.asarray(prim), point=jnp.zeros(len(prim), dtype=jnp.int32), scan=jnp.asarray(scan),
+            pair=jnp.asarray(pair.reshape(-1).astype(np.int32)), pair_prim=jnp.asarray(pairs[:, 0]),
+            pair_scan=jnp.asarray(pairs[:, 1]), ctrl_xyz=jnp.zeros((n_k, 1, 3)), ctrl_weight=jnp.zeros((n_k, 1, 3)),
+            bar_length=jnp.zeros(n_k), bar_weight=jnp.full(n_k, UNIT_NORMAL_WEIGHT), k=1, kind="plane",
+        ))
+        kinds.append("plane")
+    spec = Spec(scanners, tuple(ap_names), tuple(ap_slices), n_s, datum_columns, datum == "inner", tuple(kinds))
     lw = np.where(np.isfinite(net.levelling_sigma), 1.0 / net.levelling_sigma, 0.0)
     problem = Problem(tuple(families), jnp.asarray(net.instrument_of_scan), jnp.asarray(net.levelling), jnp.asarray(lw), jnp.asarray(fixed))
 
@@ -188,17 +212,27 @@ def build_plan(net: Network, model: CalibrationModel) -> Plan:
         for row in tg:
             for t in row:
                 names += [f"{c}[{net.targets[t]}]" for c in "XYZ"]
+    for k in net.planes:
+        names += [f"{c}[{k}]" for c in PLANE_PARAMETERS]
     for s in net.scans:
         names += [f"{c}[{s}]" for c in ("Xs", "Ys", "Zs", "omega", "phi", "kappa")]
     names += labels
-    return Plan(spec, problem, tuple(fam_targets), tuple(labels), tuple(units), tuple(names), fixed_idx)
+    return Plan(spec, problem, tuple(fam_targets), tuple(labels), tuple(units), tuple(names), fixed_idx, plane_family)
 
 
-def initial_params(net: Network, plan: Plan, targets=None, eops=None) -> Params:
-    if targets is None or eops is None:
-        targets, eops = approximate_values(net)
-    prims = tuple(jnp.asarray(targets[tg].reshape(len(tg), -1)) for tg in plan.family_targets)
-    return Params(prims, jnp.asarray(eops), jnp.zeros(plan.spec.n_aps))
+def initial_params(net: Network, plan: Plan, targets=None, eops=None, planes=None) -> Params:
+    """Approximate values: computed from the observations (:mod:`._approx`) unless given."""
+    if targets is None or eops is None or (net.has_planes and planes is None):
+        t0, e0, p0 = approximate_network(net) if net.has_planes else (*approximate_values(net), None)
+        targets = t0 if targets is None else np.asarray(targets, dtype=np.float64)
+        eops = e0 if eops is None else np.asarray(eops, dtype=np.float64)
+        planes = p0 if planes is None else planes
+    prims = [jnp.asarray(np.asarray(targets)[tg].reshape(len(tg), -1)) for tg in plan.family_targets]
+    if net.has_planes:
+        P = np.array(planes, dtype=np.float64).reshape(len(net.planes), 4)
+        P /= np.linalg.norm(P[:, :3], axis=1, keepdims=True)[:, [0, 0, 0, 0]]
+        prims.append(jnp.asarray(P))
+    return Params(tuple(prims), jnp.asarray(eops), jnp.zeros(plan.spec.n_aps))
 
 
 @functools.partial(jax.jit, static_argnums=(0, 5))
@@ -216,6 +250,11 @@ class CalibrationResult:
     defect, 4 non-finite) with ``message``. AP sigmas are a posteriori (scaled by sigma0^2).
     Non-estimable APs have NaN value and sigma and are listed in ``not_estimable`` with the
     parameter they are confounded with; they are never reported as numbers.
+
+    ``n_observations`` counts scalar observations, three per target observation and per plane
+    point (plus the pseudo-observations); a plane point gives one condition, so with planes
+    ``dof = conditions + unit-normal constraints + other pseudo-observations - unknowns + datum
+    defect`` (Gauss-Helmert) rather than ``n_observations - n_unknowns + defect``.
     """
 
     result: int
@@ -253,6 +292,13 @@ class CalibrationResult:
     ap_covariance: np.ndarray | None = None  # (a, a) a posteriori; NaN rows/columns for non-estimable APs
     used: np.ndarray | None = None  # (n, 3) False where an observation was removed (weight 0)
     ap_fixed: tuple = ()  # APs held at zero (CalibrationModel.fixed_aps): value 0, sigma 0
+    # Plane networks (SPEC section 4), in the network's plane row order; empty without planes.
+    planes: tuple = ()
+    plane_params: np.ndarray | None = None  # (k, 4) = (nx, ny, nz, d [m]), n . X = d
+    plane_sigmas: np.ndarray | None = None  # (k, 4) a posteriori, inner-constraint datum
+    plane_residuals: np.ndarray | None = None  # (m, 3) Gauss-Helmert residuals v [m, rad, rad]
+    plane_redundancy: np.ndarray | None = None  # (m, 3); the three of a point sum to <= 1
+    plane_used: np.ndarray | None = None  # (m, 3)
 
     @property
     def ok(self) -> bool:
@@ -268,23 +314,36 @@ class CalibrationResult:
 
     def redundancy_summary(self) -> dict:
         """Mean and sum of redundancy numbers per group, per scan and in total."""
+        net = self.network
         r = self.redundancy
         used = np.ones(r.shape, dtype=bool) if self.used is None else self.used
+        rp = np.zeros((0, 3)) if self.plane_redundancy is None else self.plane_redundancy
+        up = np.ones(rp.shape, dtype=bool) if self.plane_used is None else self.plane_used
         # Means over the observations in the adjustment: a removed one has redundancy 0 by
         # construction and would pull the mean down.
-        mean = lambda rows: float(r[rows][used[rows]].mean()) if used[rows].any() else float("nan")
+        mean = lambda a, keep: float(a[keep].mean()) if keep.any() else float("nan")
         out = {}
-        for g, name in enumerate(GROUP_NAMES):
-            out[name] = {"mean": float(r[:, g][used[:, g]].mean()) if used[:, g].any() else float("nan"),
-                         "sum": float(r[:, g].sum())}
+        if r.shape[0] or not rp.shape[0]:
+            for g, name in enumerate(GROUP_NAMES):
+                out[name] = {"mean": mean(r[:, g], used[:, g]), "sum": float(r[:, g].sum())}
+        if rp.shape[0]:
+            # Plane points (Gauss-Helmert): a point's three numbers share one condition's
+            # redundancy, so the mean over plane observations never exceeds 1/3 (SPEC 4).
+            pl = {name: {"mean": mean(rp[:, g], up[:, g]), "sum": float(rp[:, g].sum())} for g, name in enumerate(GROUP_NAMES)}
+            pl["all"] = {"mean": mean(rp, up), "sum": float(rp.sum())}
+            pl["per_point"] = {"mean": mean(rp.sum(axis=1), up.any(axis=1))}
+            out["planes"] = pl
         lev = self.redundancy_levelling
-        active = self.network.is_levelled
+        active = net.is_levelled
         if active.any():
             out["levelling"] = {"mean": float(lev[active].mean()), "sum": float(lev[active].sum())}
-        out["per_scan"] = {
-            s: {"mean": mean(self.network.scan_index == j)} for j, s in enumerate(self.scans)
-        }
-        total = float(r.sum() + lev.sum() + self.redundancy_prior_sum)
+        per_scan = {}
+        for j, s in enumerate(self.scans):
+            a = np.concatenate([r[net.scan_index == j][used[net.scan_index == j]],
+                                rp[net.plane_scan_index == j][up[net.plane_scan_index == j]]])
+            per_scan[s] = {"mean": float(a.mean()) if a.size else float("nan")}
+        out["per_scan"] = per_scan
+        total = float(r.sum() + rp.sum() + lev.sum() + self.redundancy_prior_sum)
         out["total"] = {"mean": total / max(self.n_observations, 1), "sum": total}
         return out
 
@@ -296,13 +355,16 @@ class CalibrationResult:
 
 def calibrate(network: Network, model: CalibrationModel | None = None, options: SolverOptions | None = None, *,
               throw: bool = False, initial=None) -> CalibrationResult:
-    """Self-calibrate a TLS network: one free-network adjustment of targets, scan poses and APs.
+    """Self-calibrate a TLS network: one free-network adjustment of targets and/or planes, scan
+    poses and APs.
 
-    Gauss-Markov model of Chow et al. 2013 (eqs. 1-6), structured Gauss-Newton with LM damping,
-    datum by inner constraints on the targets (or a fixed scan, or control points), quality
-    from the compiled normal matrix. With ``throw=True`` a failed result raises ``RuntimeError``.
-    ``initial`` optionally gives (targets (t, 3), eops (s, 6)) instead of the computed
-    approximate values.
+    Targets: Gauss-Markov model of Chow et al. 2013 (eqs. 1-6). Planes: one Gauss-Helmert
+    condition per point, ``n . (R^T x(l - Delta) + S) - d = 0`` (eq. 3; SPEC section 4), with
+    the unit-normal constraint. Structured Gauss-Newton with LM damping (targets and planes
+    eliminated by Schur complement), datum by inner constraints on the object-space primitives
+    (or a fixed scan, or control points), quality from the compiled normal matrix. With
+    ``throw=True`` a failed result raises ``RuntimeError``. ``initial`` optionally gives
+    (targets (t, 3), eops (s, 6)[, planes (k, 4)]) instead of the computed approximate values.
     """
     model = model or CalibrationModel()
     options = options or SolverOptions()
@@ -396,6 +458,19 @@ def _assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
     tsig = np.full((len(net.targets), 3), np.nan)
     fam_rows = _family_rows(net, plan)
     off_p = 0
+    n_t_params = sum(3 * tg.size for tg in plan.family_targets)
+    plane_out = {}
+    if plan.plane_family is not None:
+        fp = plan.plane_family
+        P = np.asarray(state.params.prims[fp])
+        psig = np.full(P.shape, np.nan)
+        if cov is not None:
+            psig = np.sqrt(np.clip(np.diag(cov)[n_t_params: n_t_params + P.size], 0, None)).reshape(P.shape)
+        plane_out = dict(
+            planes=net.planes, plane_params=P, plane_sigmas=psig,
+            plane_residuals=np.asarray(q.residuals[fp]), plane_redundancy=np.asarray(q.redundancy[fp]),
+            plane_used=np.asarray(plan.problem.families[fp].weight) > 0,
+        )
     for fi, tg in enumerate(plan.family_targets):
         rows = fam_rows[fi]
         resid[rows] = np.asarray(q.residuals[fi])
@@ -413,6 +488,9 @@ def _assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
     prior_sum = float(sum(np.asarray(r).sum() for r in q.redundancy_prior))
     # Observations with weight 0 (removed by data snooping) are not counted (SPEC section 7).
     n_obs_total = int(round(float(q.n_observations))) if q.n_observations is not None else 3 * n_obs
+    if plane_out:
+        # The solver counts one condition per plane point; a point is three observations.
+        n_obs_total += 2 * int(plane_out["plane_used"].any(axis=1).sum())
     return CalibrationResult(
         result=code, message=msg, converged=converged, iterations=int(state.iteration),
         sigma0=float(np.sqrt(s0sq)), dof=dof, n_observations=n_obs_total,
@@ -423,7 +501,7 @@ def _assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
         targets=net.targets, target_xyz=txyz, target_sigmas=tsig, residuals=resid, redundancy=redund,
         redundancy_levelling=np.asarray(q.redundancy_levelling), redundancy_prior_sum=prior_sum,
         parameter_names=names, covariance=cov, network=net, ap_covariance=_ap_covariance(Qzz, ap_idx, ap_dep, s0sq),
-        used=used, ap_fixed=tuple(plan.ap_labels[i] for i in np.flatnonzero(ap_fixed)),
+        used=used, ap_fixed=tuple(plan.ap_labels[i] for i in np.flatnonzero(ap_fixed)), **plane_out,
     )
 
 

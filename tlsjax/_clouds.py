@@ -30,7 +30,7 @@ from ._aps import resolve_aps
 from ._geometry import TWO_PI, rotation_matrix, spherical_from_cartesian
 from ._io import ObservationTable
 from ._models import Scanner, observe_points
-from ._network import DEFAULT_SIGMA_ANGLE, DEFAULT_SIGMA_RANGE
+from ._network import DEFAULT_SIGMA_ANGLE, DEFAULT_SIGMA_LEVELLING, DEFAULT_SIGMA_RANGE, make_plane_network
 from ._simulate import DEG, Room, default_true_value, room_scans
 
 
@@ -82,7 +82,9 @@ class CloudDesign:
     field of view in scanner space (hybrid convention). The upper limit stays below the zenith
     because the trunnion and collimation terms (tan alpha, sec alpha) are singular there.
     ``max_incidence`` [rad]: rays that meet their surface more obliquely return nothing.
-    ``boards``: finite planes inside the room besides its six faces.
+    ``boards``: finite planes inside the room besides its six faces. ``levelling``: the
+    levelled (untilted) scans get dual-axis compensator observations with ``sigma_levelling``
+    [rad], as in :func:`~tlsjax.simulate`.
     """
 
     room: Room = Room()
@@ -98,6 +100,8 @@ class CloudDesign:
     sigma_range: float = DEFAULT_SIGMA_RANGE
     sigma_angle: float = DEFAULT_SIGMA_ANGLE
     unit_length: float = 1.2
+    levelling: bool = True
+    sigma_levelling: float = DEFAULT_SIGMA_LEVELLING
 
     def __post_init__(self):
         if not (0.0 < self.angular_step <= 10.0 * DEG):
@@ -123,7 +127,8 @@ class PointClouds:
     plane of each point (index into ``planes``); ``incidence[j]`` [rad]; ``true_points[j]``
     (n_j, 3) object-space points. ``eops`` (s, 6) = (Xs, Ys, Zs, omega, phi, kappa);
     ``planes`` (k, 4) = (n_x, n_y, n_z, d) with ``n . X = d``, unit normals pointing into the
-    room for its faces. ``true_aps``: name -> value (SI).
+    room for its faces. ``true_aps``: name -> value (SI). ``levelling``: scan -> compensator
+    observation (the mapping :func:`~tlsjax.make_network` takes) of the levelled scans.
     """
 
     scans: tuple
@@ -138,20 +143,42 @@ class PointClouds:
     true_aps: dict
     sigma_range: float
     sigma_angle: float
+    levelling: dict = dataclasses.field(default_factory=dict)
 
-    def to_table(self) -> ObservationTable:
-        """The plane observations with the true plane labels, as a plane ``ObservationTable``."""
-        scans, prims = [], []
-        for name, ids in zip(self.scans, self.plane_ids):
-            scans += [name] * len(ids)
-            prims += [self.plane_names[i] for i in ids]
-        obs = np.concatenate(self.observations)
-        inc = np.concatenate(self.incidence)
-        sig = np.stack([self.sigma_range / np.cos(inc), np.full(len(inc), self.sigma_angle),
+    def to_table(self, max_points: int | None = None, *, seed: int = 0) -> ObservationTable:
+        """The plane observations with the true plane labels, as a plane ``ObservationTable``
+        (sigmas at normal incidence plus the incidence angles, as in a plane CSV).
+
+        ``max_points``: keep at most this many points of each plane in each scan, drawn at
+        random (``seed``) without replacement; None keeps all.
+        """
+        rng = np.random.default_rng(seed)
+        scans, prims, obs, inc = [], [], [], []
+        for name, ids, o, b in zip(self.scans, self.plane_ids, self.observations, self.incidence):
+            keep = np.arange(len(ids))
+            if max_points is not None:
+                parts = [rng.permutation(np.flatnonzero(ids == k))[:max_points] for k in np.unique(ids)]
+                keep = np.sort(np.concatenate(parts)) if parts else keep[:0]
+            scans += [name] * len(keep)
+            prims += [self.plane_names[i] for i in ids[keep]]
+            obs.append(o[keep])
+            inc.append(b[keep])
+        obs = np.concatenate(obs)
+        inc = np.concatenate(inc)
+        # The range sigma at normal incidence: readers and make_network scale it by sec(incidence)
+        # from the incidence column (SPEC section 5), exactly as the simulation drew the noise.
+        sig = np.stack([np.full(len(inc), self.sigma_range), np.full(len(inc), self.sigma_angle),
                         np.full(len(inc), self.sigma_angle)], axis=1)
         return ObservationTable(kind="plane", source="<simulated point clouds>", scans=tuple(scans),
                                 primitives=tuple(prims), observations=obs, sigmas=sig, incidence=inc,
                                 instruments=None, rows=np.arange(2, len(obs) + 2, dtype=np.int64))
+
+    def to_network(self, max_points: int | None = None, *, seed: int = 0, levelling: bool = True):
+        """A plane :class:`~tlsjax.Network` of these scans (see :meth:`to_table`), with the
+        compensator observations of the levelled scans unless ``levelling=False``."""
+        return make_plane_network(self.to_table(max_points, seed=seed), sigma_range=self.sigma_range,
+                                  sigma_hz=self.sigma_angle, sigma_el=self.sigma_angle,
+                                  levelling=self.levelling if levelling else None)
 
 
 def room_patches(room: Room, boards=()):
@@ -288,6 +315,14 @@ def simulate_point_clouds(design: CloudDesign | None = None, *, seed: int = 0) -
     obs[:, 1] = np.mod(obs[:, 1], TWO_PI)
     obs[:, 1] = np.where(obs[:, 1] >= TWO_PI, 0.0, obs[:, 1])
 
+    lev = {}
+    if design.levelling:
+        for j in range(len(eops)):
+            if eops[j, 3] == 0.0 and eops[j, 4] == 0.0:
+                dl = rng.standard_normal(2) * design.sigma_levelling if design.noise else np.zeros(2)
+                lev[f"S{j + 1}"] = {"omega": dl[0], "phi": dl[1], "sigma_omega": design.sigma_levelling,
+                                    "sigma_phi": design.sigma_levelling}
+
     split = np.cumsum([len(p) for p in plane_all])[:-1]
     return PointClouds(
         scans=tuple(f"S{j + 1}" for j in range(len(eops))),
@@ -302,4 +337,5 @@ def simulate_point_clouds(design: CloudDesign | None = None, *, seed: int = 0) -
         true_aps=values,
         sigma_range=design.sigma_range,
         sigma_angle=design.sigma_angle,
+        levelling=lev,
     )
