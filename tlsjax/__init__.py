@@ -32,6 +32,7 @@ from ._extract import match_planes as match_planes
 from ._extract import save_planes as save_planes
 from ._io import read_network as read_network
 from ._io import read_observations as read_observations
+from ._io import read_planes as read_planes
 from ._io import read_scans as read_scans
 from ._io import write_observations as write_observations
 from ._models import Scanner as Scanner

@@ -68,8 +68,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--angle-unit", default="deg", choices=("rad", "deg", "gon", "arcsec"))
     _scanner_args(s)
 
-    c = sub.add_parser("calibrate", help="self-calibrate from a target observation CSV")
-    c.add_argument("observations", help="target observation CSV (SPEC section 11; units from the header suffixes)")
+    c = sub.add_parser("calibrate", help="self-calibrate from target and/or plane observations")
+    c.add_argument("observations", nargs="?",
+                   help="target or plane observation CSV (SPEC section 11; units from the header suffixes)")
+    c.add_argument("--planes", help="plane observations: a plane CSV or the .npz of `tlsjax extract-planes`; "
+                                    "alone (plane-based) or with a target CSV (combined network)")
     c.add_argument("--scans", help="scans CSV with levelling observations")
     c.add_argument("--aps", default="physical", help='APs to estimate, e.g. "A0 B6 B7 C0" or a preset (default: physical)')
     c.add_argument("--datum", choices=("auto", "inner", "fixed-scan"), default="auto")
@@ -83,8 +86,10 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--max-iterations", type=int, default=30)
     c.add_argument("--correlation-threshold", type=float, default=0.99,
                    help="flag APs whose max |correlation| exceeds this (default 0.99)")
-    c.add_argument("--vce", action=argparse.BooleanOptionalAction, default=True,
-                   help="variance component estimation per group (range, hz, el, levelling); default on")
+    c.add_argument("--vce", action=argparse.BooleanOptionalAction, default=None,
+                   help="variance component estimation per group (range, hz, el, levelling); default on for "
+                        "target networks, off with planes (SPEC section 5: the near-zero angular residuals of "
+                        "plane points bias it)")
     c.add_argument("--snoop", action="store_true", help="Baarda data snooping: remove rejected observations, re-adjust")
     c.add_argument("--snoop-alpha", type=float, default=0.001,
                    help="significance level of each w-test (default 0.001: critical value 3.29)")
@@ -175,9 +180,16 @@ def _calibrate(args) -> int:
     from ._report import ap_table, summary
 
     ARC = np.pi / 648000.0
-    net = read_network(args.observations, args.scans, drop_single_targets=args.drop_single_targets,
+    if args.observations is None and args.planes is None:
+        raise ValueError("give an observation CSV, --planes FILE, or both")
+    net = read_network(args.observations, args.scans, planes=args.planes, drop_single_targets=args.drop_single_targets,
                        sigma_range=args.sigma_range_mm * 1e-3, sigma_hz=args.sigma_hz_arcsec * ARC,
                        sigma_el=args.sigma_el_arcsec * ARC)
+    if args.vce is None:
+        args.vce = not net.has_planes
+    if net.has_planes and (args.vce or args.snoop):
+        raise ValueError("--vce and --snoop are for target networks; with planes the weights are held fixed "
+                         "(SPEC section 5): run without them")
     if net.dropped:
         print(f"dropped {len(net.dropped)} target(s) seen in one scan only: {', '.join(net.dropped)}")
     scanner = Scanner(architecture=args.architecture, aps=args.aps, unit_length=args.unit_length)
@@ -185,8 +197,12 @@ def _calibrate(args) -> int:
                              correlation_threshold=args.correlation_threshold)
     solver = SolverOptions(max_iterations=args.max_iterations)
     t0 = time.perf_counter()
-    print(f"{net.source}: {len(net.scans)} scans, {len(net.targets)} targets, "
-          f"{net.observations.shape[0]} target observations")
+    parts = [f"{len(net.scans)} scans"]
+    if net.has_targets:
+        parts.append(f"{len(net.targets)} targets, {net.observations.shape[0]} target observations")
+    if net.has_planes:
+        parts.append(f"{len(net.planes)} planes, {net.plane_observations.shape[0]} plane points")
+    print(f"{net.source}: " + ", ".join(parts))
     extra, mask = {}, None
     if args.select:
         from ._selection import SelectionOptions, select_aps

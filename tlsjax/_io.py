@@ -423,22 +423,51 @@ def levelling_of_network(net) -> dict:
     }
 
 
-def read_network(observations_path, scans_path=None, *, drop_single_targets: bool = False, **kwargs):
-    """Read a target observation CSV (and the optional scans CSV) into a validated Network.
+def read_planes(path) -> ObservationTable:
+    """Plane observations from a plane CSV (SPEC section 11) or from the ``.npz`` of
+    ``tlsjax extract-planes`` (matched across scans; its kept points, sigmas from the defaults
+    and the incidence angles of the extraction)."""
+    source = os.fspath(path)
+    if source.lower().endswith(".npz"):
+        from ._extract import load_planes
 
-    Missing sigma cells take the group defaults of :func:`~tlsjax.make_network` (or the
-    ``sigma_range``/``sigma_hz``/``sigma_el`` given here); errors name the file and line.
+        planes = load_planes(source)
+        if planes.planes is None:
+            raise ValueError(f"{source}: the planes are not matched across scans (no scan poses at extraction); "
+                             "run tlsjax extract-planes with --poses")
+        return dataclasses.replace(planes.to_table(), source=source)
+    table = read_observations(source)
+    if table.kind != "plane":
+        raise ValueError(f"{source}: this is a target observation file ('target' column), not a plane file")
+    return table
+
+
+def read_network(observations_path=None, scans_path=None, *, planes=None, drop_single_targets: bool = False, **kwargs):
+    """Read observation files (and the optional scans CSV) into a validated Network.
+
+    ``observations_path``: a target or a plane observation CSV (told apart by its ``target`` or
+    ``plane`` column). ``planes``: a plane CSV or an extracted-planes ``.npz`` besides a target
+    file (a combined network), or instead of it. Missing sigma cells take the group defaults of
+    :func:`~tlsjax.make_network` (or the ``sigma_range``/``sigma_hz``/``sigma_el`` given here);
+    errors name the file and line.
     """
     from ._network import make_network
 
-    table = read_observations(observations_path)
-    if table.kind != "target":
-        raise ValueError(f"{table.source}: this is a plane observation file ('plane' column); "
-                         "plane-based calibration is not available yet: give a target file")
+    if observations_path is None and planes is None:
+        raise ValueError("give an observation file, a planes file, or both")
+    table = read_observations(observations_path) if observations_path is not None else None
+    plane_table = read_planes(planes) if planes is not None else None
+    if table is not None and table.kind == "plane":
+        if plane_table is not None:
+            raise ValueError(f"{table.source}: a plane file; a combined network takes one target file and one plane file")
+        table, plane_table = None, table
     levelling = read_scans(scans_path) if scans_path is not None else None
+    if table is None:
+        return make_network((), (), np.zeros((0, 3)), planes=plane_table, levelling=levelling,
+                            source=plane_table.source, **kwargs)
     return make_network(
         table.scans, table.primitives, table.observations, sigmas=table.sigmas,
         incidence=None if table.incidence is None else np.nan_to_num(table.incidence, nan=0.0),
         instruments=table.instruments, levelling=levelling, drop_single_targets=drop_single_targets,
-        source=table.source, rows=table.rows, **kwargs,
+        source=table.source, rows=table.rows, planes=plane_table, **kwargs,
     )

@@ -45,9 +45,9 @@ def plot_residuals(result, path, *, title: str | None = None, overlay: bool = Tr
     lengths enter some bases, e.g. B6 and A3/A4; default hybrid).
     """
     plt = _pyplot()
-    l = np.asarray(result.network.observations)
-    v = np.asarray(result.residuals)
-    used = np.ones_like(v, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
+    l, v, used = _rows(result)
+    if mask is not None:
+        used = np.asarray(mask, dtype=bool)
     curves = _ap_curves(result, scanner) if overlay else {}
     # Own y scale per panel: an overlay panel (residuals without a term) spans far more than a
     # plain one, and a shared scale would flatten the plain residuals to a line.
@@ -58,7 +58,7 @@ def plot_residuals(result, path, *, title: str | None = None, overlay: bool = Tr
             y = v[:, g].copy()
             curve = curves.get((g, c))
             if compare is not None:
-                ax.plot(l[:, c] * xf, np.asarray(compare.residuals)[:, g] * GROUP_FACTORS[g], ".", ms=2, color="0.7",
+                ax.plot(l[:, c] * xf, _rows(compare)[1][:, g] * GROUP_FACTORS[g], ".", ms=2, color="0.7",
                         label=f"APs: {' '.join(compare.ap_names) or 'none'}")
             if curve is not None:
                 y = y - curve["at_obs"]
@@ -84,6 +84,17 @@ def plot_residuals(result, path, *, title: str | None = None, overlay: bool = Tr
     return path
 
 
+def _rows(result):
+    """Observations, residuals and used-mask of the rows to plot: the target observations, or
+    for a plane network the plane points (Gauss-Helmert residuals, SPEC section 4)."""
+    net = result.network
+    if net.observations.shape[0] == 0 and getattr(result, "planes", ()):
+        return np.asarray(net.plane_observations), np.asarray(result.plane_residuals), np.asarray(result.plane_used)
+    v = np.asarray(result.residuals)
+    used = np.ones_like(v, dtype=bool) if result.used is None else np.asarray(result.used)
+    return np.asarray(net.observations), v, used
+
+
 def _ap_curves(result, scanner=None):
     """Per (group, abscissa): the estimated terms of that group whose basis depends only on
     that abscissa (constants included), their sum at the observations and along a grid."""
@@ -96,7 +107,7 @@ def _ap_curves(result, scanner=None):
         from ._models import Scanner
 
         scanner = Scanner(aps=())
-    l = np.asarray(net.observations)
+    l = _rows(result)[0]
     rng = np.random.default_rng(0)
     probe = l[rng.choice(len(l), min(len(l), 50), replace=False)]
     out = {}

@@ -117,7 +117,29 @@ def result_to_dict(res, *, alpha: float = 0.05) -> dict:
         "not_estimable": [{"name": n, "confounded_with": w, "reason": r} for n, w, r in res.not_estimable],
         "weakly_determined": [{"name": n, "correlated_with": w, "max_abs_corr": c} for n, w, c in res.weakly_determined],
         "rank_deficient": list(res.rank_deficient),
+        **_planes_dict(res),
     }
+
+
+def _planes_dict(res) -> dict:
+    """Plane parameters with sigmas and the Gauss-Helmert residual summary (plane networks)."""
+    if not getattr(res, "planes", ()):
+        return {}
+    P, S = res.plane_params, res.plane_sigmas
+    net = res.network
+    planes = {}
+    for k, name in enumerate(res.planes):
+        rows = net.plane_index == k
+        planes[name] = {
+            "normal": [_num(v) for v in P[k, :3]], "d": _num(P[k, 3]),
+            "sigma": {"nx": _num(S[k, 0]), "ny": _num(S[k, 1]), "nz": _num(S[k, 2]), "d": _num(S[k, 3])},
+            "n_points": int(rows.sum()), "n_scans": int(len(np.unique(net.plane_scan_index[rows]))),
+        }
+    used = res.plane_used
+    v = res.plane_residuals
+    rms = {g: _num(np.sqrt(np.mean(v[used[:, c], c] ** 2))) if used[:, c].any() else None
+           for c, g in enumerate(("range_m", "hz_rad", "el_rad"))}
+    return {"planes": planes, "plane_residual_rms": rms, "n_plane_points": int(used.any(axis=1).sum())}
 
 
 def write_json(res, path, *, extra: dict | None = None, **kw) -> dict:
@@ -167,8 +189,10 @@ def summary(res, alpha: float = 0.05) -> str:
     red = res.redundancy_summary()
     out = [
         f"result: {res.result} ({res.message}); {res.iterations} iterations; datum: {res.datum}",
-        f"observations n = {res.n_observations}, unknowns u = {res.n_unknowns}, "
-        f"degrees of freedom r = n - u + d = {res.dof:.0f}",
+        f"observations n = {res.n_observations}, unknowns u = {res.n_unknowns}, " +
+        (f"degrees of freedom r = n - u + d = {res.dof:.0f}" if not getattr(res, "planes", ()) else
+         f"degrees of freedom r = conditions + constraints - u + d = {res.dof:.0f} (Gauss-Helmert, "
+         f"{len(res.planes)} planes, {int(res.plane_used.any(axis=1).sum())} plane points)"),
     ]
     if gt["statistic"] is not None:
         out.append(
@@ -177,7 +201,12 @@ def summary(res, alpha: float = 0.05) -> str:
             f"{'accepted' if gt['accepted'] else 'REJECTED'} (p = {gt['p_value']:.3f})"
         )
     groups = ", ".join(f"{g} {red[g]['mean']:.3f}" for g in ("range", "hz", "el", "levelling") if g in red)
-    out.append(f"mean redundancy numbers: {groups}")
+    if groups:
+        out.append(f"mean redundancy numbers: {groups}")
+    if "planes" in red:
+        pl = red["planes"]
+        out.append(f"mean redundancy numbers of plane observations: range {pl['range']['mean']:.3f}, hz {pl['hz']['mean']:.3f}, "
+                   f"el {pl['el']['mean']:.3f}; all {pl['all']['mean']:.3f} (at most 1/3: one condition per point)")
     for n, w, c in res.weakly_determined:
         out.append(f"warning: {n} is weakly determined: |corr| = {c:.4f} with {w}")
     for n, w, r in res.not_estimable:

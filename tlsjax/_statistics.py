@@ -349,6 +349,9 @@ def calibrate_and_test(network: Network, model: CalibrationModel | None = None, 
     model = model or CalibrationModel()
     options = options or SolverOptions(full_covariance=False)
     testing = testing or TestingOptions()
+    if network.has_planes:
+        raise ValueError(f"{network.source}: variance components and data snooping are for target networks; with "
+                         "planes the weights are held fixed (SPEC section 5); use calibrate()")
     net = network
     rw = _Reweighter(net, model, options)
     n = net.observations.shape[0]
