@@ -155,3 +155,37 @@ def test_plane_adjustment_equals_dense_gauss_helmert(network):
     s0 = np.sqrt(vtpv / dof)
     z = (x[a:] - np.array([pc.true_aps[n] for n in APS])) / (s0 * np.sqrt(np.diag(Q)[a:]))
     assert np.all(np.abs(z) < 5), z
+
+
+def test_calibrate_of_a_plane_network_equals_dense_gauss_helmert(network):
+    """The public path (make_plane_network, approximate values, calibrate) against the oracle:
+    AP estimates and a posteriori sigmas, per-observation redundancy numbers and residuals."""
+    from tlsjax._io import ObservationTable
+
+    pc, obs, sig, plane, scan = network
+    n_pl, n_s = len(pc.planes), len(pc.eops)
+    table = ObservationTable(kind="plane", source="<test>", scans=tuple(pc.scans[j] for j in scan),
+                             primitives=tuple(pc.plane_names[k] for k in plane), observations=obs, sigmas=sig,
+                             incidence=None, instruments=None, rows=np.arange(len(obs)))
+    net = tj.make_plane_network(table)
+    res = tj.calibrate(net, tj.CalibrationModel(scanner=pc.scanner), tj.SolverOptions(tolerance=1e-8))
+    assert res.ok and res.converged, res.message
+    # The oracle starts at calibrate's solution, mapped back to the oracle's plane order.
+    order = [net.planes.index(name) for name in pc.plane_names]
+    scan_order = [net.scans.index(s) for s in pc.scans]
+    x0 = np.concatenate([res.plane_params[order].reshape(-1) * (1 + 1e-7), res.eops[scan_order].reshape(-1) + 1e-5, np.zeros(4)])
+    x, Q, redund, v, vtpv, dof = _dense(obs, sig, plane, scan, x0, n_pl, n_s)
+    a = 4 * n_pl + 6 * n_s
+    assert res.dof == dof
+    np.testing.assert_allclose(res.sigma0, np.sqrt(vtpv / dof), rtol=1e-8)
+    np.testing.assert_allclose(res.ap_values, x[a:], rtol=1e-7, atol=1e-12)
+    np.testing.assert_allclose(res.ap_sigmas, np.sqrt(vtpv / dof * np.diag(Q)[a:]), rtol=1e-6)
+    np.testing.assert_allclose(res.plane_redundancy, redund, atol=1e-8)
+    np.testing.assert_allclose(res.plane_residuals, v, rtol=1e-6, atol=1e-10)
+    # Plane sigmas: the oracle's bordered inverse is the inner-constraint cofactor matrix. Along
+    # its own normal a component keeps the soft constraint's sigma 1/(2 w) = 5e-8 where the
+    # hard one has 0; every other sigma is 1e-5 or more.
+    s_pl = np.sqrt(vtpv / dof * np.diag(Q)[: 4 * n_pl]).reshape(n_pl, 4)
+    np.testing.assert_allclose(res.plane_sigmas[order], s_pl, rtol=1e-5, atol=1e-7)
+    # Three observations per point: n counts them, the dof counts one condition per point.
+    assert res.n_observations == 3 * len(obs) + n_pl
