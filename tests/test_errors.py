@@ -1,5 +1,6 @@
 """Bad input gives a clear ValueError that names the scan, target or parameter at fault."""
 
+import dataclasses
 import re
 
 import jax.numpy as jnp
@@ -179,3 +180,58 @@ def test_room_parse():
         tj.Room.parse("14x11")
     r = tj.Room.parse("20x10x4")
     assert (r.length, r.width, r.height) == (20.0, 10.0, 4.0)
+
+
+@pytest.fixture(scope="module")
+def plane_table():
+    """Plane rows of a noiseless 3 deg scan of the room, at most 30 points per plane and scan."""
+    pc = tj.simulate_point_clouds(tj.CloudDesign(angular_step=3 * np.pi / 180, noise=False), seed=0)
+    return pc.to_table(30)
+
+
+def _subset(table, keep, **changes):
+    keep = np.asarray(keep)
+    return dataclasses.replace(table, scans=tuple(np.array(table.scans)[keep]),
+                               primitives=tuple(np.array(table.primitives)[keep]),
+                               observations=table.observations[keep], sigmas=table.sigmas[keep],
+                               incidence=table.incidence[keep], rows=table.rows[keep], **changes)
+
+
+def test_plane_rows_are_validated(plane_table):
+    t = plane_table
+    assert tj.make_plane_network(t).planes
+    obs = t.observations.copy()
+    obs[7, 2] = np.nan
+    with pytest.raises(ValueError, match=rf"line {t.rows[7]}: el of scan {t.scans[7]}, plane {t.primitives[7]} is not finite"):
+        tj.make_plane_network(dataclasses.replace(t, observations=obs))
+
+
+def test_plane_with_too_few_points(plane_table):
+    t = plane_table
+    board = np.flatnonzero(np.array(t.primitives) == "board2")
+    keep = np.ones(len(t.scans), bool)
+    keep[board[3:]] = False
+    with pytest.raises(ValueError, match="plane board2 has 3 point\\(s\\); at least 4"):
+        tj.make_plane_network(_subset(t, keep))
+
+
+def test_scan_with_two_planes_only(plane_table):
+    t = plane_table
+    keep = np.array([s != "S3" or p in ("floor", "wall_x0") for s, p in zip(t.scans, t.primitives)])
+    with pytest.raises(ValueError, match="scan S3 observes 0 target\\(s\\) and 2 plane\\(s\\); at least 3 primitives"):
+        tj.make_plane_network(_subset(t, keep))
+
+
+def test_plane_and_target_names_must_differ(rows, plane_table):
+    scans, targets, obs = rows
+    t = plane_table
+    clash = dataclasses.replace(t, primitives=tuple("T001" if p == "floor" else p for p in t.primitives))
+    with pytest.raises(ValueError, match="T001 names both a target and a plane"):
+        _make(scans, targets, obs, planes=clash)
+
+
+def test_planes_must_be_a_plane_table(rows, plane_table):
+    scans, targets, obs = rows
+    wrong = dataclasses.replace(plane_table, kind="target")
+    with pytest.raises(ValueError, match="planes must be a plane ObservationTable"):
+        _make(scans, targets, obs, planes=wrong)

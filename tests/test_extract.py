@@ -1,13 +1,15 @@
 """Plane extraction and matching against the simulation's ground-truth plane labels."""
 
 import argparse
+import dataclasses
+import json
 
 import numpy as np
 import pytest
 
 pytest.importorskip("open3d", exc_type=ImportError)
 
-import tlsjax  # noqa: F401  (x64)
+import tlsjax as tj
 from tlsjax._clouds import CloudDesign, simulate_point_clouds
 from tlsjax._extract import (
     ExtractionConfig,
@@ -19,6 +21,7 @@ from tlsjax._extract import (
     read_poses,
     save_planes,
 )
+from tlsjax._cli import main
 from tlsjax._io import read_observations, write_observations
 from tlsjax._pointclouds import write_ptx
 
@@ -189,6 +192,13 @@ def test_cli_extract_planes(tmp_path, room):
     assert len(planes.planes) == 9
     table = read_observations(tmp_path / "p.csv")
     assert len(set(table.primitives)) == 9 and len(table) <= 200 * len(planes.patch_scan)
+    # The matched planes go straight into a calibration (the poses in the file are not needed:
+    # tlsjax registers the scans plane to plane for its approximate values).
+    out = tmp_path / "r.json"
+    assert main(["calibrate", "--planes", str(tmp_path / "p.npz"), "--json", str(out)]) == 0
+    js = json.loads(out.read_text())
+    assert js["n_plane_points"] == len(planes.observations) and len(js["planes"]) == 9
+    assert js["converged"] and set(js["aps"]) == {"A0", "B6", "B7", "C0"}
 
 
 def test_cli_with_poses_file(tmp_path, room, capsys):
@@ -214,6 +224,34 @@ def test_cli_with_poses_file(tmp_path, room, capsys):
     args = parser.parse_args(["extract-planes", *files, "--out", str(tmp_path / "q.npz"), "--csv", str(tmp_path / "q.csv")])
     with pytest.raises(ValueError, match="--poses"):
         args.func(args)
+
+
+def _at_most(table, n, seed):
+    """At most ``n`` random rows of each (scan, plane) of a plane table."""
+    rng = np.random.default_rng(seed)
+    key = np.unique(np.stack([table.scans, table.primitives], 1), axis=0, return_inverse=True)[1].reshape(-1)
+    keep = np.sort(np.concatenate([rng.permutation(np.flatnonzero(key == k))[:n] for k in range(key.max() + 1)]))
+    return dataclasses.replace(table, scans=tuple(np.array(table.scans)[keep]),
+                               primitives=tuple(np.array(table.primitives)[keep]),
+                               observations=table.observations[keep], incidence=table.incidence[keep], rows=table.rows[keep],
+                               sigmas=None if table.sigmas is None else table.sigmas[keep])
+
+
+def test_calibration_from_extracted_planes_agrees_with_known_planes(room, matched):
+    # The same scans, adjusted once with the simulation's plane labels and once with the planes
+    # that extraction and matching found (their own names, incidence estimated from the fitted
+    # normals). Both draw 300 points per plane and scan; the APs must agree within their sigmas.
+    model = tj.CalibrationModel(room.scanner)
+    known = tj.calibrate(room.to_network(300, seed=0), model)
+    found = tj.calibrate(tj.make_plane_network(_at_most(matched.to_table(), 300, seed=1), levelling=room.levelling), model)
+    for r in (known, found):
+        assert r.ok and r.converged, r.message
+        assert abs(r.sigma0 - 1) < 0.1  # extraction kept no outliers that would inflate sigma0
+    assert len(found.planes) == len(known.planes)
+    z = (found.ap_values - known.ap_values) / np.hypot(found.ap_sigmas, known.ap_sigmas)
+    assert np.abs(z).max() < 3, dict(zip(known.ap_names, z))
+    truth = np.array([room.true_aps[n] for n in found.ap_names])
+    assert (np.abs(found.ap_values - truth) / found.ap_sigmas).max() < 4
 
 
 def test_clutter_gives_no_false_planes(room):
