@@ -70,17 +70,24 @@ def approximate_values(net: Network):
         current = best
 
     targets = acc / cnt[:, None]
-    levelled = net.is_levelled
-    if levelled.any():
-        # Scanner z axis in object space is A_j e_z; rotate their mean onto +Z.
-        up = np.mean([A[j][:, 2] for j in np.flatnonzero(levelled)], axis=0)
-        up /= np.linalg.norm(up)
-        Rl = _rotation_between(up, np.array([0.0, 0.0, 1.0]))
-        targets = targets @ Rl.T
-        A = [Rl @ a for a in A]
-        S = [Rl @ s for s in S]
-    eops = np.array([np.concatenate([S[j], angles_from_matrix(A[j].T)]) for j in range(n_s)])
-    return targets, eops
+    Rl = _levelling_rotation(A, net.is_levelled)
+    targets = targets @ Rl.T
+    return targets, _eops(A, S, Rl)
+
+
+def _levelling_rotation(A, levelled):
+    """The rotation of the object frame that takes the mean scanner z axis of the levelled scans
+    (A_j e_z in object space) onto +Z, so that their compensator readings start near zero."""
+    if not levelled.any():
+        return np.eye(3)
+    up = np.mean([A[j][:, 2] for j in np.flatnonzero(levelled)], axis=0)
+    return _rotation_between(up / np.linalg.norm(up), np.array([0.0, 0.0, 1.0]))
+
+
+def _eops(A, S, Rl):
+    """Scan poses (s, 6) from object-from-scanner rotations A_j and positions S_j, after the
+    object-frame rotation Rl."""
+    return np.array([np.concatenate([Rl @ s, angles_from_matrix((Rl @ a).T)]) for a, s in zip(A, S)])
 
 
 def _rotation_between(a, b):
@@ -158,7 +165,6 @@ def approximate_network(net: Network):
     votes = np.zeros((n_k, 3))
 
     def place(j):
-        nonlocal obj_n, obj_d
         m = net.scan_index == j
         if m.any():
             X = local_t[m] @ A[j].T + S[j]
@@ -197,16 +203,10 @@ def approximate_network(net: Network):
 
     targets = acc / np.maximum(cnt_t, 1)[:, None]
     planes = np.concatenate([obj_n, obj_d[:, None]], axis=1)
-    levelled = net.is_levelled
-    if levelled.any():
-        up = np.mean([A[j][:, 2] for j in np.flatnonzero(levelled)], axis=0)
-        up /= np.linalg.norm(up)
-        Rl = _rotation_between(up, np.array([0.0, 0.0, 1.0]))
-        targets = targets @ Rl.T
-        planes[:, :3] = planes[:, :3] @ Rl.T
-        A = [Rl @ a for a in A]
-        S = [Rl @ s for s in S]
-    eops = np.array([np.concatenate([S[j], angles_from_matrix(A[j].T)]) for j in range(n_s)])
+    Rl = _levelling_rotation(A, net.is_levelled)
+    targets = targets @ Rl.T
+    planes[:, :3] = planes[:, :3] @ Rl.T
+    eops = _eops(A, S, Rl)
     return targets, eops, planes
 
 
