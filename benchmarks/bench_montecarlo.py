@@ -30,7 +30,6 @@ The machine is shared while this runs: ``os.getloadavg()`` is recorded before an
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -41,6 +40,7 @@ from scipy.optimize import least_squares
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import tlsjax as tj  # noqa: E402
+from _common import write_results  # noqa: E402
 from bench_point import ScipyPeer, machine_info  # noqa: E402
 from tlsjax._montecarlo import MonteCarloOptions, monte_carlo, monte_carlo_network  # noqa: E402
 
@@ -162,10 +162,7 @@ def main(argv=None):
     if a.level_study:
         print("# compatibility test level study ...", flush=True)
         results["compatibility_level_study"] = level_study(a.level_study, a.level_sims)
-    out = Path(a.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(results, indent=2, default=str) + "\n")
-    print(f"# written {out}")
+    write_results(results, a.out)
 
 
 if __name__ == "__main__":

@@ -48,7 +48,6 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 import argparse
 import json
 import resource
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -58,6 +57,8 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import least_squares
+
+from _common import loadavg, rotations, timed, write_results
 
 TWO_PI = 2.0 * np.pi
 DEG = np.pi / 180.0
@@ -103,19 +104,6 @@ def _ap_basis(name: str, rho, theta, alpha, architecture: str, U: float, U2: flo
     }
     g, b, db = table[name]
     return g, b, np.stack(db, axis=-1)
-
-
-def _rotations(om, ph, ka):
-    """R = R3(kappa) R2(phi) R1(omega), passive (SPEC section 1); (s, 3, 3)."""
-    cw, sw, cp, sp_, ck, sk = np.cos(om), np.sin(om), np.cos(ph), np.sin(ph), np.cos(ka), np.sin(ka)
-    R = np.empty(om.shape + (3, 3))
-    r0 = np.stack([cp, sp_ * sw, -sp_ * cw], -1)
-    r1 = np.stack([np.zeros_like(cw), cw, sw], -1)
-    r2 = np.stack([sp_, -cp * sw, cp * cw], -1)
-    R[..., 0, :] = ck[..., None] * r0 + sk[..., None] * r1
-    R[..., 1, :] = -sk[..., None] * r0 + ck[..., None] * r1
-    R[..., 2, :] = r2
-    return R
 
 
 def _tangent_basis(n0):
@@ -207,7 +195,7 @@ class ScipyPlanePeer:
     # -- the model --
     def conditions(self, P, E, A):
         """g (m,) [m] and its variance m = B Sigma_l B^T (m,) at planes P, poses E, APs A."""
-        R = _rotations(E[:, 3], E[:, 4], E[:, 5])
+        R = rotations(E[:, 3], E[:, 4], E[:, 5])
         Rn = np.einsum("kij,kj->ki", R[self.si], P[self.pi, :3])  # R n: n . R^T x = (R n) . x
         delta = self.basis @ A  # (3, m)
         rho = self.obs[:, 0] - delta[0]
@@ -229,7 +217,7 @@ class ScipyPlanePeer:
         return g, np.einsum("mh,mh->m", B * B, self.sig2)
 
     def levelling_residuals(self, E):
-        R = _rotations(E[:, 3], E[:, 4], E[:, 5])
+        R = rotations(E[:, 3], E[:, 4], E[:, 5])
         gv = R[:, :, 2]  # object-space vertical in scanner space (compensator, as tlsjax)
         gy = np.clip(gv[:, 1], -1.0, 1.0)
         reading = np.stack([np.arcsin(gy), np.arcsin(np.clip(-gv[:, 0] / np.sqrt(1.0 - gy * gy), -1.0, 1.0))], axis=1)
@@ -319,10 +307,6 @@ class ScipyPlanePeer:
 # Helpers
 # ---------------------------------------------------------------------------------------------
 
-def _stats(times):
-    return {"median": statistics.median(times), "min": min(times), "max": max(times), "n": len(times)}
-
-
 def _peak_mb():
     """Peak resident memory of this process [MB]: VmHWM of /proc/self/status where available.
 
@@ -353,13 +337,6 @@ def _rss_mb():
     except OSError:  # pragma: no cover
         pass
     return None
-
-
-def _loadavg():
-    try:
-        return list(os.getloadavg())
-    except OSError:  # pragma: no cover
-        return None
 
 
 def machine_info():
@@ -457,25 +434,14 @@ def child_tlsjax(a, workdir: Path) -> dict:
     t0 = time.perf_counter()
     jax.block_until_ready(compiled(*dyn))  # first call (allocation, thread pools)
     out["run_first_call_s"] = time.perf_counter() - t0
-    times = []
-    for _ in range(a.repeats):
-        t0 = time.perf_counter()
-        res_c = compiled(*dyn)
-        jax.block_until_ready(res_c)
-        times.append(time.perf_counter() - t0)
-    out["run_s"] = _stats(times)
+    out["run_s"], res_c = timed(lambda: jax.block_until_ready(compiled(*dyn)), a.repeats)
     state, _ = res_c
     out["run_iterations"] = int(state.iteration)
 
     t0 = time.perf_counter()
     res = tj.calibrate(net, model, opts)
     out["calibrate_first_call_s"] = time.perf_counter() - t0  # reuses the compilation cache
-    times = []
-    for _ in range(a.repeats):
-        t0 = time.perf_counter()
-        res = tj.calibrate(net, model, opts)
-        times.append(time.perf_counter() - t0)
-    out["calibrate_s"] = _stats(times)
+    out["calibrate_s"], res = timed(lambda: tj.calibrate(net, model, opts), a.repeats)
     out["peak_mb"] = _peak_mb()  # everything above: imports, plan, compile, runs, calibrate
     out["ru_maxrss_mb"] = _ru_maxrss_mb()
     out["machine"] = machine_info()
@@ -502,12 +468,7 @@ def child_scipy(a, workdir: Path) -> dict:
     peer.prepare()
     out["scipy_setup_s"] = time.perf_counter() - t0  # AP bases + sparsity pattern
     kw = dict(ftol=a.scipy_tol, xtol=a.scipy_tol, gtol=a.scipy_tol, tr_options=dict(atol=a.lsmr_tol, btol=a.lsmr_tol))
-    times, r = [], None
-    for _ in range(a.scipy_repeats):
-        t0 = time.perf_counter()
-        r = peer.solve(weights=a.peer_weights, max_nfev=a.scipy_max_nfev, **kw)
-        times.append(time.perf_counter() - t0)
-    out["scipy_s"] = _stats(times)
+    out["scipy_s"], r = timed(lambda: peer.solve(weights=a.peer_weights, max_nfev=a.scipy_max_nfev, **kw), a.scipy_repeats)
     out["peak_mb"] = _peak_mb()  # imports, data, sparsity pattern, the solves
     out["ru_maxrss_mb"] = _ru_maxrss_mb()
     sol = r["sol"]
@@ -578,7 +539,7 @@ def main(argv=None):
 
     results = {"benchmark": "plane-based self-calibration (Gauss-Helmert), simulated Chow 2013 room point clouds "
                             "(hybrid, tilted), tlsjax vs scipy.optimize.least_squares",
-               "repeats": a.repeats, "scipy_repeats": a.scipy_repeats, "loadavg_1_5_15_before": _loadavg()}
+               "repeats": a.repeats, "scipy_repeats": a.scipy_repeats, "loadavg_1_5_15_before": loadavg()}
     # The parent stays lean (numpy and scipy only) until the children have run: see _peak_mb.
     with tempfile.TemporaryDirectory(prefix="bench_plane_") as tmp:
         workdir = Path(tmp)
@@ -591,10 +552,10 @@ def main(argv=None):
         info = results["machine"] = tj_out.pop("machine")
         print(f"# {info['cpu_model']} | {info['cpus_available']} CPUs | jax {info['jax_version']} "
               f"{info['jax_backend']} {info['jax_devices']}", flush=True)
-        results["loadavg_1_5_15_between"] = _loadavg()
+        results["loadavg_1_5_15_between"] = loadavg()
         print("# scipy child ...", flush=True)
         sc_out = _run_child("scipy", a, workdir)
-        results["loadavg_1_5_15_after"] = _loadavg()
+        results["loadavg_1_5_15_after"] = loadavg()
         tsol = dict(np.load(workdir / "tlsjax_solution.npz"))
         ssol = dict(np.load(workdir / "scipy_solution.npz"))
         data = dict(np.load(workdir / "data.npz"))
@@ -653,10 +614,7 @@ def main(argv=None):
           f"max |dAP|/sigma {chk['max_ap_diff_sigma']:.2e} (vs fixed-scan {chk['max_ap_diff_sigma_vs_tlsjax_fixed_scan']:.2e}); "
           f"numpy vtpv at tlsjax solution {chk['numpy_vtpv_at_tlsjax_solution']:.6f} vs tlsjax {chk['tlsjax_vtpv']:.6f}")
 
-    out = Path(a.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(results, indent=2, default=str) + "\n")
-    print(f"# written {out}")
+    write_results(results, a.out)
 
 
 if __name__ == "__main__":

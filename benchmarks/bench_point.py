@@ -30,13 +30,10 @@ approximate values. AP estimates are datum invariant, so they must agree with tl
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
-import statistics
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import scipy
@@ -49,6 +46,8 @@ import jax.numpy as jnp
 import tlsjax as tj
 from tlsjax._adjust import build_plan, initial_params, _run
 from tlsjax._approx import approximate_values
+
+from _common import loadavg, rotations, timed, write_results
 
 TWO_PI = 2.0 * np.pi
 CASES = {
@@ -81,20 +80,6 @@ def _ap_basis(name: str, rho, theta, alpha, architecture: str, U: float, U2: flo
         "C9": (2, np.sin(3 * theta)), "C10": (2, np.cos(3 * theta)),
     }
     return table[name]
-
-
-def _rotations(om, ph, ka):
-    """R = R3(kappa) R2(phi) R1(omega), passive (SPEC section 1); (s, 3, 3)."""
-    cw, sw, cp, sp_, ck, sk = np.cos(om), np.sin(om), np.cos(ph), np.sin(ph), np.cos(ka), np.sin(ka)
-    R = np.empty(om.shape + (3, 3))
-    # R2 R1 rows
-    r0 = np.stack([cp, sp_ * sw, -sp_ * cw], -1)
-    r1 = np.stack([np.zeros_like(cw), cw, sw], -1)
-    r2 = np.stack([sp_, -cp * sw, cp * cw], -1)
-    R[..., 0, :] = ck[..., None] * r0 + sk[..., None] * r1
-    R[..., 1, :] = -sk[..., None] * r0 + ck[..., None] * r1
-    R[..., 2, :] = r2
-    return R
 
 
 def _wrap(a):
@@ -153,7 +138,7 @@ class ScipyPeer:
     # -- the model --
     def residual_full(self, T, E, A):
         """Whitened residuals for full (targets, eops, aps): 3 per observation + levelling."""
-        R = _rotations(E[:, 3], E[:, 4], E[:, 5])
+        R = rotations(E[:, 3], E[:, 4], E[:, 5])
         d = T[self.ti] - E[self.si, :3]
         x = np.einsum("nij,nj->ni", R[self.si], d)
         rho = np.sqrt(np.einsum("ni,ni->n", x, x))
@@ -215,10 +200,6 @@ class ScipyPeer:
 # Timing helpers
 # ---------------------------------------------------------------------------------------------
 
-def _stats(times):
-    return {"median": statistics.median(times), "min": min(times), "max": max(times), "n": len(times)}
-
-
 def machine_info():
     cpu_model = platform.processor() or ""
     try:
@@ -261,7 +242,7 @@ def _jaxlib_version():
 
 
 def bench_case(label: str, aps: str, repeats: int, scipy_repeats: int, tol: float, lsmr_tol: float, max_nfev: int):
-    load_before = _loadavg()
+    load_before = loadavg()
     sim = tj.simulate(seed=0, architecture="hybrid", tilted=True, aps=aps)
     net = sim.network
     scanner = tj.Scanner(architecture="hybrid", aps=aps)
@@ -288,13 +269,7 @@ def bench_case(label: str, aps: str, repeats: int, scipy_repeats: int, tol: floa
     out["compile_s"] = t2 - t0
     dyn = (plan.problem, p0, opts.arrays(), jnp.asarray(opts.rank_tolerance))
     jax.block_until_ready(compiled(*dyn))  # first call (allocation, thread pools)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        res_c = compiled(*dyn)
-        jax.block_until_ready(res_c)
-        times.append(time.perf_counter() - t0)
-    out["run_s"] = _stats(times)
+    out["run_s"], res_c = timed(lambda: jax.block_until_ready(compiled(*dyn)), repeats)
     state, _ = res_c
     out["run_iterations"] = int(state.iteration)
 
@@ -304,12 +279,7 @@ def bench_case(label: str, aps: str, repeats: int, scipy_repeats: int, tol: floa
     # First call after the AOT compile above: jit's dispatch path finds the executable in
     # JAX's compilation cache, so this is not a cold start (that is compile_s + calibrate_s).
     out["calibrate_first_call_s"] = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        res = tj.calibrate(net, model, opts)
-        times.append(time.perf_counter() - t0)
-    out["calibrate_s"] = _stats(times)
+    out["calibrate_s"], res = timed(lambda: tj.calibrate(net, model, opts), repeats)
     out["iterations"] = res.iterations
     out["converged"] = bool(res.converged)
     out["message"] = res.message
@@ -333,12 +303,7 @@ def bench_case(label: str, aps: str, repeats: int, scipy_repeats: int, tol: floa
     # The timed peer: tight tolerances, including LSMR's (scipy's default atol = btol = 1e-6 of
     # the inner LSMR solves stalls on the 23-AP case: hundreds of steps, chi^2 not at the minimum).
     kw = dict(ftol=tol, xtol=tol, gtol=tol, tr_options=dict(atol=lsmr_tol, btol=lsmr_tol), max_nfev=max_nfev)
-    times, sol = [], None
-    for _ in range(scipy_repeats):
-        t0 = time.perf_counter()
-        sol = peer.solve(targets0, eops0, **kw)
-        times.append(time.perf_counter() - t0)
-    out["scipy_s"] = _stats(times)
+    out["scipy_s"], sol = timed(lambda: peer.solve(targets0, eops0, **kw), scipy_repeats)
     out["scipy_options"] = {"method": "trf", "jac_sparsity": "exact pattern (targets, free EOPs, APs of the row's group)",
                             "x_scale": "jac", "tr_solver": "lsmr (default for a sparse Jacobian)",
                             "ftol": tol, "xtol": tol, "gtol": tol, "tr_options": {"atol": lsmr_tol, "btol": lsmr_tol},
@@ -381,15 +346,8 @@ def bench_case(label: str, aps: str, repeats: int, scipy_repeats: int, tol: floa
         "max_ap_diff_sigma_vs_tlsjax_fixed_scan": float(np.nanmax(np.abs((ap_d - resf.ap_values) / resf.ap_sigmas))),
     }
     out["loadavg_1_5_15_before"] = load_before
-    out["loadavg_1_5_15_after"] = _loadavg()
+    out["loadavg_1_5_15_after"] = loadavg()
     return out
-
-
-def _loadavg():
-    try:
-        return list(os.getloadavg())
-    except OSError:  # pragma: no cover
-        return None
 
 
 def main(argv=None):
@@ -425,10 +383,7 @@ def main(argv=None):
               f"{c['max_ap_diff_sigma_vs_tlsjax_fixed_scan']:10.2e}")
     print("# dAP/sig in: peer vs tlsjax (inner-constraint datum); fx: peer vs tlsjax datum='fixed-scan' S1 (the identical problem)")
 
-    out = Path(a.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(results, indent=2, default=str) + "\n")
-    print(f"# written {out}")
+    write_results(results, a.out)
 
 
 if __name__ == "__main__":
