@@ -194,8 +194,10 @@ def approximate_network(net: Network):
     place(0)
     todo = set(range(1, n_s))
     while todo:
-        best = max(sorted(todo), key=lambda k: int(shared(k)[0].sum()) + len(shared(k)[1]))
-        mt, q = shared(best)
+        # The scan sharing the most placed primitives goes next.
+        candidates = {k: shared(k) for k in sorted(todo)}
+        best = max(candidates, key=lambda k: int(candidates[k][0].sum()) + len(candidates[k][1]))
+        mt, q = candidates[best]
         A[best], S[best] = _register(net.scans[best], local_t[mt], acc[net.target_index[mt]] / cnt_t[net.target_index[mt], None],
                                      n_l[q], d_l[q], obj_n[pair_plane[q]], obj_d[pair_plane[q]])
         place(best)

@@ -31,7 +31,7 @@ from ._geometry import TWO_PI, rotation_matrix, spherical_from_cartesian
 from ._io import ObservationTable
 from ._models import Scanner, observe_points
 from ._network import DEFAULT_SIGMA_ANGLE, DEFAULT_SIGMA_LEVELLING, DEFAULT_SIGMA_RANGE, make_plane_network
-from ._simulate import DEG, Room, default_true_value, room_scans
+from ._simulate import DEG, Room, default_true_value, room_scans, simulated_levelling
 
 
 @dataclasses.dataclass(frozen=True)
@@ -315,13 +315,7 @@ def simulate_point_clouds(design: CloudDesign | None = None, *, seed: int = 0) -
     obs[:, 1] = np.mod(obs[:, 1], TWO_PI)
     obs[:, 1] = np.where(obs[:, 1] >= TWO_PI, 0.0, obs[:, 1])
 
-    lev = {}
-    if design.levelling:
-        for j in range(len(eops)):
-            if eops[j, 3] == 0.0 and eops[j, 4] == 0.0:
-                dl = rng.standard_normal(2) * design.sigma_levelling if design.noise else np.zeros(2)
-                lev[f"S{j + 1}"] = {"omega": dl[0], "phi": dl[1], "sigma_omega": design.sigma_levelling,
-                                    "sigma_phi": design.sigma_levelling}
+    lev = simulated_levelling(eops, rng, design.sigma_levelling, design.noise) if design.levelling else {}
 
     split = np.cumsum([len(p) for p in plane_all])[:-1]
     return PointClouds(

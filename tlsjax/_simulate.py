@@ -82,6 +82,17 @@ class Simulation:
     target_normals: np.ndarray
 
 
+def simulated_levelling(eops, rng: np.random.Generator, sigma: float, noise: bool) -> dict:
+    """Dual-axis compensator observations (the ``levelling`` mapping of :func:`make_network`)
+    of the levelled scans (omega = phi = 0): the true zero tilt plus noise of ``sigma`` [rad]."""
+    lev = {}
+    for j in range(len(eops)):
+        if eops[j, 3] == 0.0 and eops[j, 4] == 0.0:
+            d = rng.standard_normal(2) * sigma if noise else np.zeros(2)
+            lev[f"S{j + 1}"] = {"omega": d[0], "phi": d[1], "sigma_omega": sigma, "sigma_phi": sigma}
+    return lev
+
+
 def room_targets(room: Room, rng: np.random.Generator):
     """Targets spread evenly over the six faces, with the faces' inward normals."""
     L, W, H, m = room.length, room.width, room.height, room.margin
@@ -168,12 +179,7 @@ def simulate(
     # zero is the same direction at 2 pi, not at pi.
     obs[:, 1] = np.mod(obs[:, 1], TWO_PI)
 
-    lev = {}
-    if levelling:
-        for j in range(n_s):
-            if eops[j, 3] == 0.0 and eops[j, 4] == 0.0:
-                d = rng.standard_normal(2) * sigma_levelling if noise else np.zeros(2)
-                lev[f"S{j + 1}"] = {"omega": d[0], "phi": d[1], "sigma_omega": sigma_levelling, "sigma_phi": sigma_levelling}
+    lev = simulated_levelling(eops, rng, sigma_levelling, noise) if levelling else {}
     bars = []
     if scale_bars:
         floor = np.flatnonzero(normals[:, 2] > 0.5)
