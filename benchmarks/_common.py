@@ -27,7 +27,12 @@ def rotations(om, ph, ka):
 
 
 def stats(times):
-    return {"median": statistics.median(times), "min": min(times), "max": max(times), "n": len(times)}
+    return {
+        "median": statistics.median(times),
+        "min": min(times),
+        "max": max(times),
+        "n": len(times),
+    }
 
 
 def loadavg():

@@ -10,7 +10,7 @@ Design: ``tj.simulate(seed=0)`` (120 targets, 6 scans, tilted variant, hybrid sc
 ``A0 B6 B7 C0`` ("physical") and the 23-term ``chow2013-noscale``. Realisation k draws new
 noise (and levelling readings) from ``fold_in(PRNGKey(seed), k)``.
 
-tlsjax: :func:`tlsjax._montecarlo.monte_carlo`, one compiled vmapped chunk function (compile
+tlsjax: :func:`tlsjax._simulation._montecarlo.monte_carlo`, one compiled vmapped chunk function (compile
 time reported separately: ``compile_s``), then ``runs`` realisations in chunks (``run_s``,
 wall clock of the whole batch including the host transfer of the results). Every realisation
 starts from the simulated truth (the standard Monte Carlo choice; the estimates do not depend
@@ -39,10 +39,11 @@ import numpy as np
 from scipy.optimize import least_squares
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import tlsjax as tj  # noqa: E402
 from _common import write_results  # noqa: E402
 from bench_point import ScipyPeer, machine_info  # noqa: E402
-from tlsjax._montecarlo import MonteCarloOptions, monte_carlo, monte_carlo_network  # noqa: E402
+
+import tlsjax as tj  # noqa: E402
+from tlsjax._simulation._montecarlo import MonteCarloOptions, monte_carlo, monte_carlo_network
 
 CASES = {"physical": "A0 B6 B7 C0", "chow2013-noscale": "chow2013-noscale"}
 
@@ -55,11 +56,23 @@ def scipy_loop(sim, scanner, n, seed, tol, lsmr_tol, max_nfev):
         peer = ScipyPeer(net, scanner, fixed_scan=0)
         t0 = time.perf_counter()
         peer.prepare()
-        x0 = peer.pack(sim.true_targets, sim.true_eops, np.array([truth.get(a, 0.0) for a in scanner.aps]))
+        x0 = peer.pack(
+            sim.true_targets, sim.true_eops, np.array([truth.get(a, 0.0) for a in scanner.aps])
+        )
         peer.calls = 0
-        sol = least_squares(peer.residual, x0, args=(sim.true_eops,), method="trf", jac_sparsity=peer._sparsity,
-                            x_scale="jac", ftol=tol, xtol=tol, gtol=tol,
-                            tr_options=dict(atol=lsmr_tol, btol=lsmr_tol), max_nfev=max_nfev)
+        sol = least_squares(
+            peer.residual,
+            x0,
+            args=(sim.true_eops,),
+            method="trf",
+            jac_sparsity=peer._sparsity,
+            x_scale="jac",
+            ftol=tol,
+            xtol=tol,
+            gtol=tol,
+            tr_options=dict(atol=lsmr_tol, btol=lsmr_tol),
+            max_nfev=max_nfev,
+        )
         times.append(time.perf_counter() - t0)
         nfev.append(int(sol.nfev))
         aps.append(peer.unpack(sol.x, sim.true_eops)[2])
@@ -71,16 +84,24 @@ def bench_case(label, aps, runs, chunk, scipy_runs, seed, tol, lsmr_tol, max_nfe
     sim = tj.simulate(seed=0, aps=aps)
     scanner = sim.scanner
     out["ap_names"] = list(scanner.aps)
-    res = monte_carlo(sim, options=MonteCarloOptions(runs=runs, chunk_size=chunk, seed=seed, progress=False))
+    res = monte_carlo(
+        sim, options=MonteCarloOptions(runs=runs, chunk_size=chunk, seed=seed, progress=False)
+    )
     out["tlsjax"] = {
-        "runs": runs, "chunk_size": res.chunk_size, "devices": res.n_devices,
-        "compile_s": res.compile_s, "run_s": res.run_s, "realisations_per_s": runs / res.run_s,
+        "runs": runs,
+        "chunk_size": res.chunk_size,
+        "devices": res.n_devices,
+        "compile_s": res.compile_s,
+        "run_s": res.run_s,
+        "realisations_per_s": runs / res.run_s,
         "iterations_histogram": np.bincount(res.iterations).tolist(),
         "failures": res.failures(),
     }
     sm = res.summary()
     out["coverage"] = {
-        "sigma0_sq_mean": sm["sigma0_sq_mean"], "sigma0_sq_std": sm["sigma0_sq_std"], "dof": sm["dof"],
+        "sigma0_sq_mean": sm["sigma0_sq_mean"],
+        "sigma0_sq_std": sm["sigma0_sq_std"],
+        "dof": sm["dof"],
         "empirical_over_formal_sigma": {n: a["ratio"] for n, a in sm["aps"].items()},
         "bias_over_formal_sigma": {n: a["bias"] / a["formal_sigma"] for n, a in sm["aps"].items()},
         "ratio_sampling_sigma": 1.0 / np.sqrt(2 * (runs - 1)),
@@ -88,10 +109,20 @@ def bench_case(label, aps, runs, chunk, scipy_runs, seed, tol, lsmr_tol, max_nfe
     times, ap_sc, nfev = scipy_loop(sim, scanner, scipy_runs, seed, tol, lsmr_tol, max_nfev)
     per = float(np.mean(times))
     out["scipy"] = {
-        "runs_timed": scipy_runs, "s_per_run_mean": per, "s_per_run_median": float(np.median(times)),
-        "nfev": nfev, "extrapolated_s_for_runs": per * runs, "realisations_per_s": 1.0 / per,
-        "options": {"method": "trf", "x_scale": "jac", "jac_sparsity": "exact pattern", "ftol=xtol=gtol": tol,
-                    "lsmr atol=btol": lsmr_tol, "start": "simulated truth"},
+        "runs_timed": scipy_runs,
+        "s_per_run_mean": per,
+        "s_per_run_median": float(np.median(times)),
+        "nfev": nfev,
+        "extrapolated_s_for_runs": per * runs,
+        "realisations_per_s": 1.0 / per,
+        "options": {
+            "method": "trf",
+            "x_scale": "jac",
+            "jac_sparsity": "exact pattern",
+            "ftol=xtol=gtol": tol,
+            "lsmr atol=btol": lsmr_tol,
+            "start": "simulated truth",
+        },
     }
     d = (ap_sc - res.ap_values[:scipy_runs]) / res.ap_sigmas[:scipy_runs]
     out["max_ap_diff_sigma_scipy_vs_tlsjax"] = float(np.nanmax(np.abs(d)))
@@ -107,7 +138,7 @@ def level_study(tests, sims, shifts=(0.0, 3.0, 5.0, 8.0), seed=5):
     C0): both drawn from one truth. B6 of the second set is then shifted by ``shift`` sigma of
     the B6 difference. Each test uses ``sims`` simulations (the compiled test is reused).
     """
-    from tlsjax._compat import APSet, CompatibilityOptions, compatibility_test
+    from tlsjax._inference._compat import APSet, CompatibilityOptions, compatibility_test
 
     sim = tj.simulate(seed=0)
     mc = monte_carlo(sim, options=MonteCarloOptions(runs=2 * tests, seed=seed, progress=False))
@@ -119,13 +150,21 @@ def level_study(tests, sims, shifts=(0.0, 3.0, 5.0, 8.0), seed=5):
             a, b = 2 * k, 2 * k + 1
             v = mc.ap_values[b].copy()
             v[1] += shift * np.sqrt(mc.ap_covariance[a, 1, 1] + mc.ap_covariance[b, 1, 1])
-            r = compatibility_test(APSet(mc.ap_names, mc.ap_values[a], mc.ap_covariance[a]),
-                                   APSet(mc.ap_names, v, mc.ap_covariance[b]),
-                                   options=CompatibilityOptions(runs=sims, chunk_size=100, seed=k, progress=False))
+            r = compatibility_test(
+                APSet(mc.ap_names, mc.ap_values[a], mc.ap_covariance[a]),
+                APSet(mc.ap_names, v, mc.ap_covariance[b]),
+                options=CompatibilityOptions(runs=sims, chunk_size=100, seed=k, progress=False),
+            )
             rej.append(not r.compatible)
             naive.append(not r.naive_compatible)
-        out["rates"][f"B6 shift {shift:g} sigma"] = {"group_test": float(np.mean(rej)), "naive_chi2": float(np.mean(naive))}
-        print(f"  B6 shift {shift:g} sigma: group test rejects {np.mean(rej):.3f}, naive chi2 {np.mean(naive):.3f}", flush=True)
+        out["rates"][f"B6 shift {shift:g} sigma"] = {
+            "group_test": float(np.mean(rej)),
+            "naive_chi2": float(np.mean(naive)),
+        }
+        print(
+            f"  B6 shift {shift:g} sigma: group test rejects {np.mean(rej):.3f}, naive chi2 {np.mean(naive):.3f}",
+            flush=True,
+        )
     out["s"] = time.perf_counter() - t0
     return out
 
@@ -141,24 +180,49 @@ def main(argv=None):
     ap.add_argument("--max-nfev", type=int, default=1000)
     ap.add_argument("--cases", default=",".join(CASES))
     ap.add_argument("--out", default="benchmarks/results/montecarlo.json")
-    ap.add_argument("--level-study", type=int, default=0, metavar="TESTS",
-                    help="also measure the compatibility test's rejection rates over TESTS repeated tests per shift")
-    ap.add_argument("--level-sims", type=int, default=200, help="simulations per test in the level study")
+    ap.add_argument(
+        "--level-study",
+        type=int,
+        default=0,
+        metavar="TESTS",
+        help="also measure the compatibility test's rejection rates over TESTS repeated tests per shift",
+    )
+    ap.add_argument(
+        "--level-sims", type=int, default=200, help="simulations per test in the level study"
+    )
     a = ap.parse_args(argv)
-    results = {"benchmark": "Monte Carlo point-based self-calibration, Chow 2013 room (seed 0, hybrid, tilted)",
-               "machine": machine_info(), "cases": {}}
+    results = {
+        "benchmark": "Monte Carlo point-based self-calibration, Chow 2013 room (seed 0, hybrid, tilted)",
+        "machine": machine_info(),
+        "cases": {},
+    }
     for label in a.cases.split(","):
         label = label.strip()
         print(f"# case {label} ...", flush=True)
-        c = bench_case(label, CASES[label], a.runs, a.chunk_size, a.scipy_runs, a.seed, a.scipy_tol, a.lsmr_tol, a.max_nfev)
+        c = bench_case(
+            label,
+            CASES[label],
+            a.runs,
+            a.chunk_size,
+            a.scipy_runs,
+            a.seed,
+            a.scipy_tol,
+            a.lsmr_tol,
+            a.max_nfev,
+        )
         results["cases"][label] = c
         t = c["tlsjax"]
-        print(f"{label:18s} compile {t['compile_s']:.2f} s | {a.runs} runs {t['run_s']:.2f} s = {t['realisations_per_s']:.0f}/s | "
-              f"scipy {c['scipy']['s_per_run_mean'] * 1e3:.0f} ms/run ({a.scipy_runs} timed) -> {c['scipy']['extrapolated_s_for_runs']:.0f} s | "
-              f"speedup {c['speedup']:.0f}x | s0^2 mean {c['coverage']['sigma0_sq_mean']:.4f} | "
-              f"max |dAP|/sigma vs scipy {c['max_ap_diff_sigma_scipy_vs_tlsjax']:.1e} | load {c['loadavg_1_5_15_after'][0]:.1f}", flush=True)
+        print(
+            f"{label:18s} compile {t['compile_s']:.2f} s | {a.runs} runs {t['run_s']:.2f} s = {t['realisations_per_s']:.0f}/s | "
+            f"scipy {c['scipy']['s_per_run_mean'] * 1e3:.0f} ms/run ({a.scipy_runs} timed) -> {c['scipy']['extrapolated_s_for_runs']:.0f} s | "
+            f"speedup {c['speedup']:.0f}x | s0^2 mean {c['coverage']['sigma0_sq_mean']:.4f} | "
+            f"max |dAP|/sigma vs scipy {c['max_ap_diff_sigma_scipy_vs_tlsjax']:.1e} | load {c['loadavg_1_5_15_after'][0]:.1f}",
+            flush=True,
+        )
         ratios = c["coverage"]["empirical_over_formal_sigma"]
-        print("  emp/formal sigma: " + " ".join(f"{n} {r:.3f}" for n, r in ratios.items()), flush=True)
+        print(
+            "  emp/formal sigma: " + " ".join(f"{n} {r:.3f}" for n, r in ratios.items()), flush=True
+        )
     if a.level_study:
         print("# compatibility test level study ...", flush=True)
         results["compatibility_level_study"] = level_study(a.level_study, a.level_sims)

@@ -20,7 +20,7 @@ tlsjax is timed three ways (as in bench_point.py):
 
 The peer is what a user would otherwise write: ``scipy.optimize.least_squares(method="trf",
 jac_sparsity=<exact pattern>, x_scale="jac")`` in plain vectorised numpy, on the same
-observations, sigmas, approximate values (``tlsjax._approx.approximate_network``) and APs.
+observations, sigmas, approximate values (``tlsjax._adjustment._approx.approximate_network``) and APs.
 least_squares minimises a sum of squares (Gauss-Markov), so each point contributes its
 condition divided by its propagated standard deviation, ``g / sqrt(B Sigma_l B^T)`` (the
 weighted orthogonal distance), with ``B = dg/dl`` written out analytically. The weights are
@@ -56,9 +56,8 @@ from pathlib import Path
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.optimize import least_squares
-
 from _common import loadavg, rotations, timed, write_results
+from scipy.optimize import least_squares
 
 TWO_PI = 2.0 * np.pi
 DEG = np.pi / 180.0
@@ -68,6 +67,7 @@ FIXED_SCAN = 0  # S1
 # ---------------------------------------------------------------------------------------------
 # The scipy peer: plain numpy, written from SPEC sections 1, 3, 4 and 6 (no tlsjax inside).
 # ---------------------------------------------------------------------------------------------
+
 
 def _ap_basis(name: str, rho, theta, alpha, architecture: str, U: float, U2: float):
     """(group index, basis b(l), (db/drho, db/dtheta, db/dalpha)) of one AP term (SPEC section 3).
@@ -79,28 +79,44 @@ def _ap_basis(name: str, rho, theta, alpha, architecture: str, U: float, U2: flo
     ca, sa, ct, st = np.cos(alpha), np.sin(alpha), np.cos(theta), np.sin(theta)
     k, k2 = 4 * np.pi / U, 4 * np.pi / U2
     sec = 1.0 / ca
-    r = lambda f, df: (0, f, (df, zero, zero))   # range group, basis of rho
-    h = lambda f, df: (1, f, (zero, df, zero))   # hz group, basis of theta
+    r = lambda f, df: (0, f, (df, zero, zero))  # range group, basis of rho
+    h = lambda f, df: (1, f, (zero, df, zero))  # hz group, basis of theta
     ha = lambda f, df: (1, f, (zero, zero, df))  # hz group, basis of alpha
-    e = lambda f, df: (2, f, (zero, zero, df))   # el group, basis of alpha
+    e = lambda f, df: (2, f, (zero, zero, df))  # el group, basis of alpha
     et = lambda f, df: (2, f, (zero, df, zero))  # el group, basis of theta
     table = {
-        "A0": (0, one, (zero, zero, zero)), "A1": r(rho, one), "A2": (0, sa, (zero, zero, ca)),
-        "A3": r(np.sin(k * rho), k * np.cos(k * rho)), "A4": r(np.cos(k * rho), -k * np.sin(k * rho)),
-        "A5": r(np.sin(k2 * rho), k2 * np.cos(k2 * rho)), "A6": r(np.cos(k2 * rho), -k2 * np.sin(k2 * rho)),
+        "A0": (0, one, (zero, zero, zero)),
+        "A1": r(rho, one),
+        "A2": (0, sa, (zero, zero, ca)),
+        "A3": r(np.sin(k * rho), k * np.cos(k * rho)),
+        "A4": r(np.cos(k * rho), -k * np.sin(k * rho)),
+        "A5": r(np.sin(k2 * rho), k2 * np.cos(k2 * rho)),
+        "A6": r(np.cos(k2 * rho), -k2 * np.sin(k2 * rho)),
         "A7": (0, np.sin(4 * theta), (zero, 4 * np.cos(4 * theta), zero)),
         "A8": (0, np.cos(4 * theta), (zero, -4 * np.sin(4 * theta), zero)),
-        "B1": h(theta, one), "B2": h(st, ct), "B3": h(ct, -st),
-        "B4": h(np.sin(2 * theta), 2 * np.cos(2 * theta)), "B5": h(np.cos(2 * theta), -2 * np.sin(2 * theta)),
+        "B1": h(theta, one),
+        "B2": h(st, ct),
+        "B3": h(ct, -st),
+        "B4": h(np.sin(2 * theta), 2 * np.cos(2 * theta)),
+        "B5": h(np.cos(2 * theta), -2 * np.sin(2 * theta)),
         "B6": ha(sec - (1.0 if architecture == "hybrid" else 0.0), sec * sa * sec),
-        "B7": ha(sa * sec, sec * sec), "B8": (1, 1.0 / rho, (-1.0 / rho**2, zero, zero)),
-        "B9": ha(sa, ca), "B10": ha(ca, -sa),
-        "B11": ha(np.sin(3 * alpha), 3 * np.cos(3 * alpha)), "B12": ha(np.sin(4 * alpha), 4 * np.cos(4 * alpha)),
-        "C0": (2, one, (zero, zero, zero)), "C1": e(alpha, one), "C2": e(sa, ca), "C3": e(ca, -sa),
-        "C4": e(np.sin(2 * alpha), 2 * np.cos(2 * alpha)), "C5": e(np.cos(2 * alpha), -2 * np.sin(2 * alpha)),
+        "B7": ha(sa * sec, sec * sec),
+        "B8": (1, 1.0 / rho, (-1.0 / rho**2, zero, zero)),
+        "B9": ha(sa, ca),
+        "B10": ha(ca, -sa),
+        "B11": ha(np.sin(3 * alpha), 3 * np.cos(3 * alpha)),
+        "B12": ha(np.sin(4 * alpha), 4 * np.cos(4 * alpha)),
+        "C0": (2, one, (zero, zero, zero)),
+        "C1": e(alpha, one),
+        "C2": e(sa, ca),
+        "C3": e(ca, -sa),
+        "C4": e(np.sin(2 * alpha), 2 * np.cos(2 * alpha)),
+        "C5": e(np.cos(2 * alpha), -2 * np.sin(2 * alpha)),
         "C6": (2, 1.0 / rho, (-1.0 / rho**2, zero, zero)),
-        "C7": et(st, ct), "C8": et(ct, -st),
-        "C9": et(np.sin(3 * theta), 3 * np.cos(3 * theta)), "C10": et(np.cos(3 * theta), -3 * np.sin(3 * theta)),
+        "C7": et(st, ct),
+        "C8": et(ct, -st),
+        "C9": et(np.sin(3 * theta), 3 * np.cos(3 * theta)),
+        "C10": et(np.cos(3 * theta), -3 * np.sin(3 * theta)),
     }
     g, b, db = table[name]
     return g, b, np.stack(db, axis=-1)
@@ -123,7 +139,15 @@ class ScipyPlanePeer:
     levelling, levelling_sigma, planes0 (k, 4), eops0 (s, 6)); nothing from tlsjax.
     """
 
-    def __init__(self, data, ap_names, architecture="hybrid", unit_length=1.2, unit_length_2=0.6, fixed_scan=FIXED_SCAN):
+    def __init__(
+        self,
+        data,
+        ap_names,
+        architecture="hybrid",
+        unit_length=1.2,
+        unit_length_2=0.6,
+        fixed_scan=FIXED_SCAN,
+    ):
         self.obs = np.asarray(data["plane_observations"], dtype=np.float64)
         self.sig2 = np.asarray(data["plane_sigmas"], dtype=np.float64) ** 2
         self.pi = np.asarray(data["plane_index"]).astype(np.int64)
@@ -186,11 +210,13 @@ class ScipyPlanePeer:
         n3 = 3 * self.n_k
         nf = int(self.eop_free.sum())
         E = self.eops0.copy()
-        E[self.eop_free] = x[n3:n3 + nf]
-        return self.planes_from(x[:n3]), E, x[n3 + nf:]
+        E[self.eop_free] = x[n3 : n3 + nf]
+        return self.planes_from(x[:n3]), E, x[n3 + nf :]
 
     def x0(self):
-        return self.pack(np.concatenate([self.n0, self.d0[:, None]], axis=1), self.eops0, np.zeros(self.n_a))
+        return self.pack(
+            np.concatenate([self.n0, self.d0[:, None]], axis=1), self.eops0, np.zeros(self.n_a)
+        )
 
     # -- the model --
     def conditions(self, P, E, A):
@@ -220,7 +246,10 @@ class ScipyPlanePeer:
         R = rotations(E[:, 3], E[:, 4], E[:, 5])
         gv = R[:, :, 2]  # object-space vertical in scanner space (compensator, as tlsjax)
         gy = np.clip(gv[:, 1], -1.0, 1.0)
-        reading = np.stack([np.arcsin(gy), np.arcsin(np.clip(-gv[:, 0] / np.sqrt(1.0 - gy * gy), -1.0, 1.0))], axis=1)
+        reading = np.stack(
+            [np.arcsin(gy), np.arcsin(np.clip(-gv[:, 0] / np.sqrt(1.0 - gy * gy), -1.0, 1.0))],
+            axis=1,
+        )
         return (reading[self.lev_scan, self.lev_comp] - self.lev) * self.lev_w
 
     def residual_full(self, P, E, A, m=None):
@@ -243,20 +272,26 @@ class ScipyPlanePeer:
         r = np.arange(self.n_cond)
         rows, cols = [], []
         for c in range(3):  # the point's plane
-            rows.append(r); cols.append(3 * self.pi + c)
+            rows.append(r)
+            cols.append(3 * self.pi + c)
         for c in range(6):  # the scan's pose
             cc = eop_col[self.si, c]
             ok = cc >= 0
-            rows.append(r[ok]); cols.append(cc[ok])
+            rows.append(r[ok])
+            cols.append(cc[ok])
         for k in range(self.n_a):  # every AP enters every condition
-            rows.append(r); cols.append(np.full(self.n_cond, ap_col0 + k))
+            rows.append(r)
+            cols.append(np.full(self.n_cond, ap_col0 + k))
         r_lev = self.n_cond + np.arange(len(self.lev))
         for c in (3, 4, 5):  # a compensator reading depends on omega, phi and kappa
             c_lev = eop_col[self.lev_scan, c]
             ok = c_lev >= 0
-            rows.append(r_lev[ok]); cols.append(c_lev[ok])
+            rows.append(r_lev[ok])
+            cols.append(c_lev[ok])
         rows, cols = np.concatenate(rows), np.concatenate(cols)
-        return sp.csr_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(self.n_res, self.n_unknowns))
+        return sp.csr_matrix(
+            (np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(self.n_res, self.n_unknowns)
+        )
 
     def prepare(self):
         self._sparsity = self.jac_sparsity()
@@ -267,7 +302,7 @@ class ScipyPlanePeer:
         N = (J.T @ J).toarray() if sp.issparse(J) else np.asarray(J).T @ np.asarray(J)
         Q = np.linalg.inv(N)
         s0sq = 2 * sol.cost / (self.n_res - self.n_unknowns)
-        return np.sqrt(np.diag(Q)[-self.n_a:] * s0sq)
+        return np.sqrt(np.diag(Q)[-self.n_a :] * s0sq)
 
     def solve(self, weights="frozen", max_passes=10, ap_tol=1e-4, max_nfev=None, **kw):
         """``weights="frozen"``: m held within a least_squares call and re-evaluated at its
@@ -281,31 +316,60 @@ class ScipyPlanePeer:
         for _ in range(max_passes if weights == "frozen" else 1):
             self.frozen_m = self.conditions(*self.unpack(x))[1] if weights == "frozen" else None
             left = None if max_nfev is None else max(max_nfev - nfev, 1)
-            sol = least_squares(self.residual, x, method="trf", jac_sparsity=self._sparsity, x_scale="jac",
-                                max_nfev=left, **kw)
+            sol = least_squares(
+                self.residual,
+                x,
+                method="trf",
+                jac_sparsity=self._sparsity,
+                x_scale="jac",
+                max_nfev=left,
+                **kw,
+            )
             nfev += sol.nfev
             njev += sol.njev or 0
             dx = sol.x - x
             x = sol.x
             step = None
             if weights == "frozen":
-                step = float(np.max(np.abs(dx[-self.n_a:]) / self.ap_sigmas(sol)))
-            passes.append({"nfev": int(sol.nfev), "status": int(sol.status), "vtpv": float(2 * sol.cost),
-                           "max_ap_step_sigma": step})
-            if weights != "frozen" or sol.status <= 0 or step < ap_tol or (max_nfev is not None and nfev >= max_nfev):
+                step = float(np.max(np.abs(dx[-self.n_a :]) / self.ap_sigmas(sol)))
+            passes.append(
+                {
+                    "nfev": int(sol.nfev),
+                    "status": int(sol.status),
+                    "vtpv": float(2 * sol.cost),
+                    "max_ap_step_sigma": step,
+                }
+            )
+            if (
+                weights != "frozen"
+                or sol.status <= 0
+                or step < ap_tol
+                or (max_nfev is not None and nfev >= max_nfev)
+            ):
                 break
         self.frozen_m = None
         # The Gauss-Helmert v^T P v at the final estimate (weights evaluated there).
         r = self.residual_full(*self.unpack(x))
         converged = bool(sol.status > 0 and (weights != "frozen" or step < ap_tol))
-        return {"x": x, "sol": sol, "passes": passes, "nfev": nfev, "njev": njev, "residual_calls": self.calls,
-                "residual_time_s": self.residual_time,
-                "converged": converged, "vtpv": float(r @ r), "status": int(sol.status), "message": sol.message}
+        return {
+            "x": x,
+            "sol": sol,
+            "passes": passes,
+            "nfev": nfev,
+            "njev": njev,
+            "residual_calls": self.calls,
+            "residual_time_s": self.residual_time,
+            "converged": converged,
+            "vtpv": float(r @ r),
+            "status": int(sol.status),
+            "message": sol.message,
+        }
 
 
 # ---------------------------------------------------------------------------------------------
 # Helpers
 # ---------------------------------------------------------------------------------------------
+
 
 def _peak_mb():
     """Peak resident memory of this process [MB]: VmHWM of /proc/self/status where available.
@@ -345,7 +409,9 @@ def machine_info():
     from bench_point import machine_info as point_machine_info
 
     info = point_machine_info()
-    info.update(JAX_PLATFORMS=os.environ.get("JAX_PLATFORMS", ""), XLA_FLAGS=os.environ.get("XLA_FLAGS", ""))
+    info.update(
+        JAX_PLATFORMS=os.environ.get("JAX_PLATFORMS", ""), XLA_FLAGS=os.environ.get("XLA_FLAGS", "")
+    )
     return info
 
 
@@ -358,10 +424,12 @@ def build_data(a, workdir: Path) -> dict:
     import pickle
 
     import tlsjax as tj
-    from tlsjax._approx import approximate_network
+    from tlsjax._adjustment._approx import approximate_network
 
     t0 = time.perf_counter()
-    design = tj.CloudDesign(angular_step=a.angular_step_deg * DEG, architecture="hybrid", tilted=True, aps=a.aps)
+    design = tj.CloudDesign(
+        angular_step=a.angular_step_deg * DEG, architecture="hybrid", tilted=True, aps=a.aps
+    )
     clouds = tj.simulate_point_clouds(design, seed=a.seed)
     t1 = time.perf_counter()
     net = clouds.to_network(max_points=a.max_points, seed=a.seed, levelling=True)
@@ -370,29 +438,51 @@ def build_data(a, workdir: Path) -> dict:
     t3 = time.perf_counter()
     with open(workdir / "net.pkl", "wb") as fh:
         pickle.dump(net, fh)
-    np.savez(workdir / "data.npz", plane_observations=net.plane_observations, plane_sigmas=net.plane_sigmas,
-             plane_index=net.plane_index, plane_scan_index=net.plane_scan_index, levelling=net.levelling,
-             levelling_sigma=net.levelling_sigma, planes0=planes0, eops0=eops0)
+    np.savez(
+        workdir / "data.npz",
+        plane_observations=net.plane_observations,
+        plane_sigmas=net.plane_sigmas,
+        plane_index=net.plane_index,
+        plane_scan_index=net.plane_scan_index,
+        levelling=net.levelling,
+        levelling_sigma=net.levelling_sigma,
+        planes0=planes0,
+        eops0=eops0,
+    )
     counts = np.zeros((len(net.scans), len(net.planes)), dtype=int)
     np.add.at(counts, (net.plane_scan_index, net.plane_index), 1)
     return {
-        "design": {"angular_step_deg": a.angular_step_deg, "architecture": "hybrid", "tilted": True, "seed": a.seed,
-                   "max_points_per_plane_per_scan": a.max_points, "aps": a.aps,
-                   "true_aps": {k: float(v) for k, v in clouds.true_aps.items()}},
+        "design": {
+            "angular_step_deg": a.angular_step_deg,
+            "architecture": "hybrid",
+            "tilted": True,
+            "seed": a.seed,
+            "max_points_per_plane_per_scan": a.max_points,
+            "aps": a.aps,
+            "true_aps": {k: float(v) for k, v in clouds.true_aps.items()},
+        },
         "simulated_points": int(sum(len(o) for o in clouds.observations)),
-        "n_planes": len(net.planes), "planes": list(net.planes), "n_scans": len(net.scans), "scans": list(net.scans),
+        "n_planes": len(net.planes),
+        "planes": list(net.planes),
+        "n_scans": len(net.scans),
+        "scans": list(net.scans),
         "levelled_scans": [s for s, lv in zip(net.scans, net.is_levelled) if lv],
         "n_plane_points": int(net.plane_observations.shape[0]),
         "n_observations_network": int(net.n_observations),  # 3 per plane point
         "n_levelling_observations": int(2 * net.is_levelled.sum()),
-        "points_per_scan_and_plane": {s: dict(zip(net.planes, map(int, row))) for s, row in zip(net.scans, counts)},
-        "simulate_s": t1 - t0, "to_network_s": t2 - t1, "approximate_network_s": t3 - t2,
+        "points_per_scan_and_plane": {
+            s: dict(zip(net.planes, map(int, row))) for s, row in zip(net.scans, counts)
+        },
+        "simulate_s": t1 - t0,
+        "to_network_s": t2 - t1,
+        "approximate_network_s": t3 - t2,
     }
 
 
 # ---------------------------------------------------------------------------------------------
 # Child processes: one side each, so that ru_maxrss is that side's peak.
 # ---------------------------------------------------------------------------------------------
+
 
 def child_tlsjax(a, workdir: Path) -> dict:
     import pickle
@@ -401,7 +491,8 @@ def child_tlsjax(a, workdir: Path) -> dict:
     import jax.numpy as jnp
 
     import tlsjax as tj
-    from tlsjax._adjust import _run, build_plan, initial_params
+    from tlsjax._adjustment._calibrate import _run
+    from tlsjax._adjustment._plan import build_plan, initial_params
 
     with open(workdir / "net.pkl", "rb") as fh:
         net = pickle.load(fh)
@@ -414,7 +505,14 @@ def child_tlsjax(a, workdir: Path) -> dict:
     plan = build_plan(net, model)
     p0 = initial_params(net, plan)
     out["tlsjax_plan_s"] = time.perf_counter() - t0  # index plan + approximate values (host)
-    args = (plan.spec, plan.problem, p0, opts.arrays(), jnp.asarray(opts.rank_tolerance), opts.full_covariance)
+    args = (
+        plan.spec,
+        plan.problem,
+        p0,
+        opts.arrays(),
+        jnp.asarray(opts.rank_tolerance),
+        opts.full_covariance,
+    )
     t0 = time.perf_counter()
     lowered = _run.lower(*args)
     t1 = time.perf_counter()
@@ -426,8 +524,15 @@ def child_tlsjax(a, workdir: Path) -> dict:
     out["compile_peak_mb"] = _peak_mb()
     try:
         ma = compiled.memory_analysis()
-        out["xla_memory_analysis_mb"] = {k: getattr(ma, k) / 2**20 for k in (
-            "argument_size_in_bytes", "output_size_in_bytes", "temp_size_in_bytes", "generated_code_size_in_bytes")}
+        out["xla_memory_analysis_mb"] = {
+            k: getattr(ma, k) / 2**20
+            for k in (
+                "argument_size_in_bytes",
+                "output_size_in_bytes",
+                "temp_size_in_bytes",
+                "generated_code_size_in_bytes",
+            )
+        }
     except Exception as exc:  # pragma: no cover - backend without memory analysis
         out["xla_memory_analysis_mb"] = repr(exc)
     dyn = (plan.problem, p0, opts.arrays(), jnp.asarray(opts.rank_tolerance))
@@ -445,16 +550,39 @@ def child_tlsjax(a, workdir: Path) -> dict:
     out["peak_mb"] = _peak_mb()  # everything above: imports, plan, compile, runs, calibrate
     out["ru_maxrss_mb"] = _ru_maxrss_mb()
     out["machine"] = machine_info()
-    out.update(iterations=res.iterations, converged=bool(res.converged), message=res.message, sigma0=res.sigma0,
-               dof=res.dof, n_observations=res.n_observations, n_unknowns=res.n_unknowns,
-               vtpv=float(res.sigma0**2 * res.dof), ap_names=list(res.ap_names))
+    out.update(
+        iterations=res.iterations,
+        converged=bool(res.converged),
+        message=res.message,
+        sigma0=res.sigma0,
+        dof=res.dof,
+        n_observations=res.n_observations,
+        n_unknowns=res.n_unknowns,
+        vtpv=float(res.sigma0**2 * res.dof),
+        ap_names=list(res.ap_names),
+    )
     # The identical problem to the peer's: S1's Xs, Ys, Zs, kappa held (after the peak above).
-    resf = tj.calibrate(net, tj.CalibrationModel(scanner, datum="fixed-scan", fixed_scan=net.scans[FIXED_SCAN]), opts)
-    out.update(fixed_scan_converged=bool(resf.converged), fixed_scan_iterations=resf.iterations,
-               fixed_scan_vtpv=float(resf.sigma0**2 * resf.dof))
-    np.savez(workdir / "tlsjax_solution.npz", planes=res.plane_params, eops=res.eops, aps=res.ap_values,
-             ap_sigmas=res.ap_sigmas, planes_f=resf.plane_params, eops_f=resf.eops, aps_f=resf.ap_values,
-             ap_sigmas_f=resf.ap_sigmas)
+    resf = tj.calibrate(
+        net,
+        tj.CalibrationModel(scanner, datum="fixed-scan", fixed_scan=net.scans[FIXED_SCAN]),
+        opts,
+    )
+    out.update(
+        fixed_scan_converged=bool(resf.converged),
+        fixed_scan_iterations=resf.iterations,
+        fixed_scan_vtpv=float(resf.sigma0**2 * resf.dof),
+    )
+    np.savez(
+        workdir / "tlsjax_solution.npz",
+        planes=res.plane_params,
+        eops=res.eops,
+        aps=res.ap_values,
+        ap_sigmas=res.ap_sigmas,
+        planes_f=resf.plane_params,
+        eops_f=resf.eops,
+        aps_f=resf.ap_values,
+        ap_sigmas_f=resf.ap_sigmas,
+    )
     return out
 
 
@@ -467,17 +595,33 @@ def child_scipy(a, workdir: Path) -> dict:
     peer = ScipyPlanePeer(data, a.aps.split())
     peer.prepare()
     out["scipy_setup_s"] = time.perf_counter() - t0  # AP bases + sparsity pattern
-    kw = dict(ftol=a.scipy_tol, xtol=a.scipy_tol, gtol=a.scipy_tol, tr_options=dict(atol=a.lsmr_tol, btol=a.lsmr_tol))
-    out["scipy_s"], r = timed(lambda: peer.solve(weights=a.peer_weights, max_nfev=a.scipy_max_nfev, **kw), a.scipy_repeats)
+    kw = dict(
+        ftol=a.scipy_tol,
+        xtol=a.scipy_tol,
+        gtol=a.scipy_tol,
+        tr_options=dict(atol=a.lsmr_tol, btol=a.lsmr_tol),
+    )
+    out["scipy_s"], r = timed(
+        lambda: peer.solve(weights=a.peer_weights, max_nfev=a.scipy_max_nfev, **kw), a.scipy_repeats
+    )
     out["peak_mb"] = _peak_mb()  # imports, data, sparsity pattern, the solves
     out["ru_maxrss_mb"] = _ru_maxrss_mb()
     sol = r["sol"]
     P, E, A = peer.unpack(r["x"])
     out.update(
-        weights=a.peer_weights, converged=r["converged"], status=r["status"], message=r["message"], nfev=r["nfev"],
-        njev=r["njev"], residual_calls=r["residual_calls"], residual_time_s=r["residual_time_s"], passes=r["passes"],
+        weights=a.peer_weights,
+        converged=r["converged"],
+        status=r["status"],
+        message=r["message"],
+        nfev=r["nfev"],
+        njev=r["njev"],
+        residual_calls=r["residual_calls"],
+        residual_time_s=r["residual_time_s"],
+        passes=r["passes"],
         jac_groups=int((r["residual_calls"] - r["nfev"]) / max(r["njev"], 1)),
-        n_unknowns=peer.n_unknowns, n_residuals=peer.n_res, vtpv=r["vtpv"],
+        n_unknowns=peer.n_unknowns,
+        n_residuals=peer.n_res,
+        vtpv=r["vtpv"],
         sigma0=float(np.sqrt(r["vtpv"] / (peer.n_res - peer.n_unknowns))),
         jac_nnz=int(peer._sparsity.nnz),
     )
@@ -488,17 +632,45 @@ def child_scipy(a, workdir: Path) -> dict:
         t0 = time.perf_counter()
         rc = peer.solve(weights="current", max_nfev=a.scipy_max_nfev, **kw)
         dt = time.perf_counter() - t0
-        out["current_weights"] = {"s": dt, "nfev": rc["nfev"], "status": rc["status"], "converged": rc["converged"],
-                                  "vtpv": rc["vtpv"], "aps": peer.unpack(rc["x"])[2].tolist()}
+        out["current_weights"] = {
+            "s": dt,
+            "nfev": rc["nfev"],
+            "status": rc["status"],
+            "converged": rc["converged"],
+            "vtpv": rc["vtpv"],
+            "aps": peer.unpack(rc["x"])[2].tolist(),
+        }
     return out
 
 
 def _run_child(side: str, a, workdir: Path) -> dict:
     res = workdir / f"{side}.json"
-    cmd = [sys.executable, os.path.abspath(__file__), "--child", side, "--workdir", str(workdir),
-           "--angular-step-deg", repr(a.angular_step_deg), "--max-points", str(a.max_points), "--seed", str(a.seed),
-           "--aps", a.aps, "--repeats", str(a.repeats), "--scipy-repeats", str(a.scipy_repeats),
-           "--scipy-tol", repr(a.scipy_tol), "--lsmr-tol", repr(a.lsmr_tol), "--peer-weights", a.peer_weights]
+    cmd = [
+        sys.executable,
+        os.path.abspath(__file__),
+        "--child",
+        side,
+        "--workdir",
+        str(workdir),
+        "--angular-step-deg",
+        repr(a.angular_step_deg),
+        "--max-points",
+        str(a.max_points),
+        "--seed",
+        str(a.seed),
+        "--aps",
+        a.aps,
+        "--repeats",
+        str(a.repeats),
+        "--scipy-repeats",
+        str(a.scipy_repeats),
+        "--scipy-tol",
+        repr(a.scipy_tol),
+        "--lsmr-tol",
+        repr(a.lsmr_tol),
+        "--peer-weights",
+        a.peer_weights,
+    ]
     if a.scipy_max_nfev is not None:
         cmd += ["--scipy-max-nfev", str(a.scipy_max_nfev)]
     rss_parent = _rss_mb()
@@ -512,46 +684,79 @@ def _run_child(side: str, a, workdir: Path) -> dict:
 
 # ---------------------------------------------------------------------------------------------
 
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="benchmarks/results/plane.json")
     ap.add_argument("--angular-step-deg", type=float, default=0.5, help="scanning grid step [deg]")
-    ap.add_argument("--max-points", type=int, default=730, help="points kept per plane and scan (random)")
+    ap.add_argument(
+        "--max-points", type=int, default=730, help="points kept per plane and scan (random)"
+    )
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--aps", default="A0 B6 B7 C0")
-    ap.add_argument("--repeats", type=int, default=20, help="timed runs of the compiled adjustment and of calibrate")
+    ap.add_argument(
+        "--repeats",
+        type=int,
+        default=20,
+        help="timed runs of the compiled adjustment and of calibrate",
+    )
     ap.add_argument("--scipy-repeats", type=int, default=3, help="timed runs of the scipy peer")
-    ap.add_argument("--scipy-tol", type=float, default=1e-10, help="ftol = xtol = gtol of least_squares")
-    ap.add_argument("--lsmr-tol", type=float, default=1e-12, help="atol = btol of the LSMR trust-region solves")
-    ap.add_argument("--scipy-max-nfev", type=int, default=200, help="max function evaluations of the peer (all passes)")
-    ap.add_argument("--peer-weights", choices=("frozen", "current"), default="frozen",
-                    help="frozen: weights held per least_squares call, re-evaluated until the APs settle "
-                         "(Gauss-Helmert estimate); current: re-evaluated in every residual call")
+    ap.add_argument(
+        "--scipy-tol", type=float, default=1e-10, help="ftol = xtol = gtol of least_squares"
+    )
+    ap.add_argument(
+        "--lsmr-tol", type=float, default=1e-12, help="atol = btol of the LSMR trust-region solves"
+    )
+    ap.add_argument(
+        "--scipy-max-nfev",
+        type=int,
+        default=200,
+        help="max function evaluations of the peer (all passes)",
+    )
+    ap.add_argument(
+        "--peer-weights",
+        choices=("frozen", "current"),
+        default="frozen",
+        help="frozen: weights held per least_squares call, re-evaluated until the APs settle "
+        "(Gauss-Helmert estimate); current: re-evaluated in every residual call",
+    )
     ap.add_argument("--child", choices=("data", "tlsjax", "scipy"), help=argparse.SUPPRESS)
     ap.add_argument("--workdir", help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
 
     if a.child:
         workdir = Path(a.workdir)
-        out = {"data": build_data, "tlsjax": child_tlsjax, "scipy": child_scipy}[a.child](a, workdir)
+        out = {"data": build_data, "tlsjax": child_tlsjax, "scipy": child_scipy}[a.child](
+            a, workdir
+        )
         (workdir / f"{a.child}.json").write_text(json.dumps(out, indent=2, default=str))
         return
 
-    results = {"benchmark": "plane-based self-calibration (Gauss-Helmert), simulated Chow 2013 room point clouds "
-                            "(hybrid, tilted), tlsjax vs scipy.optimize.least_squares",
-               "repeats": a.repeats, "scipy_repeats": a.scipy_repeats, "loadavg_1_5_15_before": loadavg()}
+    results = {
+        "benchmark": "plane-based self-calibration (Gauss-Helmert), simulated Chow 2013 room point clouds "
+        "(hybrid, tilted), tlsjax vs scipy.optimize.least_squares",
+        "repeats": a.repeats,
+        "scipy_repeats": a.scipy_repeats,
+        "loadavg_1_5_15_before": loadavg(),
+    }
     # The parent stays lean (numpy and scipy only) until the children have run: see _peak_mb.
     with tempfile.TemporaryDirectory(prefix="bench_plane_") as tmp:
         workdir = Path(tmp)
         print("# simulating the point clouds (child) ...", flush=True)
         nw = results["network"] = _run_child("data", a, workdir)
-        print(f"# {nw['n_plane_points']} plane points = {nw['n_observations_network']} observations "
-              f"(+{nw['n_levelling_observations']} levelling), {nw['n_planes']} planes, {nw['n_scans']} scans", flush=True)
+        print(
+            f"# {nw['n_plane_points']} plane points = {nw['n_observations_network']} observations "
+            f"(+{nw['n_levelling_observations']} levelling), {nw['n_planes']} planes, {nw['n_scans']} scans",
+            flush=True,
+        )
         print("# tlsjax child ...", flush=True)
         tj_out = _run_child("tlsjax", a, workdir)
         info = results["machine"] = tj_out.pop("machine")
-        print(f"# {info['cpu_model']} | {info['cpus_available']} CPUs | jax {info['jax_version']} "
-              f"{info['jax_backend']} {info['jax_devices']}", flush=True)
+        print(
+            f"# {info['cpu_model']} | {info['cpus_available']} CPUs | jax {info['jax_version']} "
+            f"{info['jax_backend']} {info['jax_devices']}",
+            flush=True,
+        )
         results["loadavg_1_5_15_between"] = loadavg()
         print("# scipy child ...", flush=True)
         sc_out = _run_child("scipy", a, workdir)
@@ -563,13 +768,20 @@ def main(argv=None):
     results["tlsjax"] = tj_out
     results["scipy"] = sc_out
     results["scipy_options"] = {
-        "method": "trf", "x_scale": "jac", "tr_solver": "lsmr (default for a sparse Jacobian)",
+        "method": "trf",
+        "x_scale": "jac",
+        "tr_solver": "lsmr (default for a sparse Jacobian)",
         "jac": "2-point finite differences grouped by the exact jac_sparsity "
-               "(plane (a, b, d) of the point, free EOPs of its scan, all APs; levelling rows: omega, phi, kappa)",
-        "ftol": a.scipy_tol, "xtol": a.scipy_tol, "gtol": a.scipy_tol,
-        "tr_options": {"atol": a.lsmr_tol, "btol": a.lsmr_tol}, "max_nfev_all_passes": a.scipy_max_nfev,
-        "weights": a.peer_weights, "plane_parametrisation": "n = (n0 + a u0 + b v0) / |.|, d (minimal, about the "
-        "approximate normal n0 with tangents u0, v0)", "datum": "Xs, Ys, Zs, kappa of S1 held at approximate values",
+        "(plane (a, b, d) of the point, free EOPs of its scan, all APs; levelling rows: omega, phi, kappa)",
+        "ftol": a.scipy_tol,
+        "xtol": a.scipy_tol,
+        "gtol": a.scipy_tol,
+        "tr_options": {"atol": a.lsmr_tol, "btol": a.lsmr_tol},
+        "max_nfev_all_passes": a.scipy_max_nfev,
+        "weights": a.peer_weights,
+        "plane_parametrisation": "n = (n0 + a u0 + b v0) / |.|, d (minimal, about the "
+        "approximate normal n0 with tangents u0, v0)",
+        "datum": "Xs, Ys, Zs, kappa of S1 held at approximate values",
     }
 
     # ---- checks ----
@@ -581,7 +793,8 @@ def main(argv=None):
         "tlsjax_vtpv": tj_out["vtpv"],
         "scipy_vtpv": sc_out["vtpv"],
         "tlsjax_fixed_scan_vtpv": tj_out["fixed_scan_vtpv"],
-        "dof_tlsjax": tj_out["dof"], "dof_scipy": sc_out["n_residuals"] - sc_out["n_unknowns"],
+        "dof_tlsjax": tj_out["dof"],
+        "dof_scipy": sc_out["n_residuals"] - sc_out["n_unknowns"],
     }
     diff = (ssol["aps"] - tsol["aps"]) / tsol["ap_sigmas"]
     diff_f = (ssol["aps"] - tsol["aps_f"]) / tsol["ap_sigmas_f"]
@@ -593,26 +806,43 @@ def main(argv=None):
     chk["max_ap_diff_sigma"] = float(np.nanmax(np.abs(diff)))
     chk["max_ap_diff_name"] = names[int(np.nanargmax(np.abs(diff)))]
     chk["max_ap_diff_sigma_vs_tlsjax_fixed_scan"] = float(np.nanmax(np.abs(diff_f)))
-    chk["max_ap_diff_sigma_tlsjax_inner_vs_fixed_scan"] = float(np.nanmax(np.abs((tsol["aps"] - tsol["aps_f"]) / tsol["ap_sigmas"])))
-    chk["max_ap_sigma_ratio_scipy_over_tlsjax"] = float(np.max(np.abs(np.array(sc_out["ap_sigmas_scipy"]) / tsol["ap_sigmas"] - 1)) + 1)
+    chk["max_ap_diff_sigma_tlsjax_inner_vs_fixed_scan"] = float(
+        np.nanmax(np.abs((tsol["aps"] - tsol["aps_f"]) / tsol["ap_sigmas"]))
+    )
+    chk["max_ap_sigma_ratio_scipy_over_tlsjax"] = float(
+        np.max(np.abs(np.array(sc_out["ap_sigmas_scipy"]) / tsol["ap_sigmas"] - 1)) + 1
+    )
     if "current_weights" in sc_out:
         ac = np.array(sc_out["current_weights"]["aps"])
-        chk["max_ap_diff_sigma_current_weights_vs_tlsjax"] = float(np.nanmax(np.abs((ac - tsol["aps"]) / tsol["ap_sigmas"])))
+        chk["max_ap_diff_sigma_current_weights_vs_tlsjax"] = float(
+            np.nanmax(np.abs((ac - tsol["aps"]) / tsol["ap_sigmas"]))
+        )
     results["checks"] = chk
     results["speedup"] = sc_out["scipy_s"]["median"] / tj_out["run_s"]["median"]
     results["speedup_vs_calibrate"] = sc_out["scipy_s"]["median"] / tj_out["calibrate_s"]["median"]
-    results["target"] = {"calibrate_s_max": 2.0, "peak_mb_max": 2048.0,
-                         "met": bool(tj_out["calibrate_s"]["median"] <= 2.0 and tj_out["peak_mb"] <= 2048.0)}
+    results["target"] = {
+        "calibrate_s_max": 2.0,
+        "peak_mb_max": 2048.0,
+        "met": bool(tj_out["calibrate_s"]["median"] <= 2.0 and tj_out["peak_mb"] <= 2048.0),
+    }
 
     t, s = tj_out, sc_out
-    print(f"{'':10s} {'compile s':>9s} {'run s':>7s} {'(min)':>7s} {'calib s':>8s} {'it':>3s} {'peak MB':>8s} {'vtpv':>10s}")
-    print(f"{'tlsjax':10s} {t['compile_s']:9.2f} {t['run_s']['median']:7.3f} {t['run_s']['min']:7.3f} "
-          f"{t['calibrate_s']['median']:8.3f} {t['iterations']:3d} {t['peak_mb']:8.0f} {t['vtpv']:10.2f}")
-    print(f"{'scipy':10s} {'':9s} {s['scipy_s']['median']:7.2f} {s['scipy_s']['min']:7.2f} {'':8s} "
-          f"{s['nfev']:3d} {s['peak_mb']:8.0f} {s['vtpv']:10.2f}  (nfev; converged={s['converged']})")
-    print(f"# speedup {results['speedup']:.1f}x (vs calibrate {results['speedup_vs_calibrate']:.1f}x); "
-          f"max |dAP|/sigma {chk['max_ap_diff_sigma']:.2e} (vs fixed-scan {chk['max_ap_diff_sigma_vs_tlsjax_fixed_scan']:.2e}); "
-          f"numpy vtpv at tlsjax solution {chk['numpy_vtpv_at_tlsjax_solution']:.6f} vs tlsjax {chk['tlsjax_vtpv']:.6f}")
+    print(
+        f"{'':10s} {'compile s':>9s} {'run s':>7s} {'(min)':>7s} {'calib s':>8s} {'it':>3s} {'peak MB':>8s} {'vtpv':>10s}"
+    )
+    print(
+        f"{'tlsjax':10s} {t['compile_s']:9.2f} {t['run_s']['median']:7.3f} {t['run_s']['min']:7.3f} "
+        f"{t['calibrate_s']['median']:8.3f} {t['iterations']:3d} {t['peak_mb']:8.0f} {t['vtpv']:10.2f}"
+    )
+    print(
+        f"{'scipy':10s} {'':9s} {s['scipy_s']['median']:7.2f} {s['scipy_s']['min']:7.2f} {'':8s} "
+        f"{s['nfev']:3d} {s['peak_mb']:8.0f} {s['vtpv']:10.2f}  (nfev; converged={s['converged']})"
+    )
+    print(
+        f"# speedup {results['speedup']:.1f}x (vs calibrate {results['speedup_vs_calibrate']:.1f}x); "
+        f"max |dAP|/sigma {chk['max_ap_diff_sigma']:.2e} (vs fixed-scan {chk['max_ap_diff_sigma_vs_tlsjax_fixed_scan']:.2e}); "
+        f"numpy vtpv at tlsjax solution {chk['numpy_vtpv_at_tlsjax_solution']:.6f} vs tlsjax {chk['tlsjax_vtpv']:.6f}"
+    )
 
     write_results(results, a.out)
 

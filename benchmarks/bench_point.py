@@ -20,7 +20,7 @@ tlsjax is timed three ways:
 
 The peer is what a user would otherwise write: ``scipy.optimize.least_squares(method="trf",
 jac_sparsity=..., x_scale="jac")`` on the same observations, the same approximate values
-(``tlsjax._approx.approximate_values``), the same unknowns (targets, 6 EOPs per scan, APs) and
+(``tlsjax._adjustment._approx.approximate_values``), the same unknowns (targets, 6 EOPs per scan, APs) and
 the same whitened residuals ``wrap(F + Delta - l) / sigma`` plus the levelling
 pseudo-observations, in plain vectorised numpy. The 4-dof datum defect (3 translations and
 rotation about Z with levelling) is fixed by holding Xs, Ys, Zs, kappa of scan S1 at their
@@ -35,19 +35,18 @@ import platform
 import sys
 import time
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import scipy
 import scipy.sparse as sp
+from _common import loadavg, rotations, timed, write_results
 from scipy.optimize import least_squares
 
-import jax
-import jax.numpy as jnp
-
 import tlsjax as tj
-from tlsjax._adjust import build_plan, initial_params, _run
-from tlsjax._approx import approximate_values
-
-from _common import loadavg, rotations, timed, write_results
+from tlsjax._adjustment._approx import approximate_values
+from tlsjax._adjustment._calibrate import _run
+from tlsjax._adjustment._plan import build_plan, initial_params
 
 TWO_PI = 2.0 * np.pi
 CASES = {
@@ -60,24 +59,43 @@ CASES = {
 # The scipy peer: plain numpy, written from SPEC sections 1-3 (independent of tlsjax internals).
 # ---------------------------------------------------------------------------------------------
 
+
 def _ap_basis(name: str, rho, theta, alpha, architecture: str, U: float, U2: float):
     """(group index, basis values) of one AP term (SPEC section 3), evaluated at observations."""
     one = np.ones_like(rho)
     table = {
-        "A0": (0, one), "A1": (0, rho), "A2": (0, np.sin(alpha)),
-        "A3": (0, np.sin(4 * np.pi * rho / U)), "A4": (0, np.cos(4 * np.pi * rho / U)),
-        "A5": (0, np.sin(4 * np.pi * rho / U2)), "A6": (0, np.cos(4 * np.pi * rho / U2)),
-        "A7": (0, np.sin(4 * theta)), "A8": (0, np.cos(4 * theta)),
-        "B1": (1, theta), "B2": (1, np.sin(theta)), "B3": (1, np.cos(theta)),
-        "B4": (1, np.sin(2 * theta)), "B5": (1, np.cos(2 * theta)),
+        "A0": (0, one),
+        "A1": (0, rho),
+        "A2": (0, np.sin(alpha)),
+        "A3": (0, np.sin(4 * np.pi * rho / U)),
+        "A4": (0, np.cos(4 * np.pi * rho / U)),
+        "A5": (0, np.sin(4 * np.pi * rho / U2)),
+        "A6": (0, np.cos(4 * np.pi * rho / U2)),
+        "A7": (0, np.sin(4 * theta)),
+        "A8": (0, np.cos(4 * theta)),
+        "B1": (1, theta),
+        "B2": (1, np.sin(theta)),
+        "B3": (1, np.cos(theta)),
+        "B4": (1, np.sin(2 * theta)),
+        "B5": (1, np.cos(2 * theta)),
         "B6": (1, 1.0 / np.cos(alpha) - (1.0 if architecture == "hybrid" else 0.0)),
-        "B7": (1, np.tan(alpha)), "B8": (1, 1.0 / rho),
-        "B9": (1, np.sin(alpha)), "B10": (1, np.cos(alpha)),
-        "B11": (1, np.sin(3 * alpha)), "B12": (1, np.sin(4 * alpha)),
-        "C0": (2, one), "C1": (2, alpha), "C2": (2, np.sin(alpha)), "C3": (2, np.cos(alpha)),
-        "C4": (2, np.sin(2 * alpha)), "C5": (2, np.cos(2 * alpha)), "C6": (2, 1.0 / rho),
-        "C7": (2, np.sin(theta)), "C8": (2, np.cos(theta)),
-        "C9": (2, np.sin(3 * theta)), "C10": (2, np.cos(3 * theta)),
+        "B7": (1, np.tan(alpha)),
+        "B8": (1, 1.0 / rho),
+        "B9": (1, np.sin(alpha)),
+        "B10": (1, np.cos(alpha)),
+        "B11": (1, np.sin(3 * alpha)),
+        "B12": (1, np.sin(4 * alpha)),
+        "C0": (2, one),
+        "C1": (2, alpha),
+        "C2": (2, np.sin(alpha)),
+        "C3": (2, np.cos(alpha)),
+        "C4": (2, np.sin(2 * alpha)),
+        "C5": (2, np.cos(2 * alpha)),
+        "C6": (2, 1.0 / rho),
+        "C7": (2, np.sin(theta)),
+        "C8": (2, np.cos(theta)),
+        "C9": (2, np.sin(3 * theta)),
+        "C10": (2, np.cos(3 * theta)),
     }
     return table[name]
 
@@ -103,7 +121,15 @@ class ScipyPeer:
         self.basis = np.zeros((3, len(rho), self.n_a))  # per group
         self.ap_group = np.zeros(self.n_a, dtype=int)
         for k, name in enumerate(self.ap_names):
-            g, b = _ap_basis(name, rho, theta, alpha, scanner.architecture, scanner.unit_length, scanner.unit_length_2)
+            g, b = _ap_basis(
+                name,
+                rho,
+                theta,
+                alpha,
+                scanner.architecture,
+                scanner.unit_length,
+                scanner.unit_length_2,
+            )
             self.basis[g, :, k] = b
             self.ap_group[k] = g
         lev_sigma = np.asarray(net.levelling_sigma, dtype=np.float64)
@@ -127,8 +153,8 @@ class ScipyPeer:
         nf = int(self.eop_free.sum())
         T = x[:n3].reshape(self.n_t, 3)
         E = np.array(eops0, dtype=np.float64, copy=True)
-        E[self.eop_free] = x[n3:n3 + nf]
-        A = x[n3 + nf:]
+        E[self.eop_free] = x[n3 : n3 + nf]
+        A = x[n3 + nf :]
         return T, E, A
 
     @property
@@ -145,15 +171,26 @@ class ScipyPeer:
         theta = np.mod(np.arctan2(x[:, 1], x[:, 0]), TWO_PI)
         alpha = np.arctan2(x[:, 2], np.hypot(x[:, 0], x[:, 1]))
         delta = self.basis @ A  # (3, n)
-        f = np.stack([rho + delta[0] - self.obs[:, 0],
-                      _wrap(theta + delta[1] - self.obs[:, 1]),
-                      _wrap(alpha + delta[2] - self.obs[:, 2])], axis=1) * self.w
+        f = (
+            np.stack(
+                [
+                    rho + delta[0] - self.obs[:, 0],
+                    _wrap(theta + delta[1] - self.obs[:, 1]),
+                    _wrap(alpha + delta[2] - self.obs[:, 2]),
+                ],
+                axis=1,
+            )
+            * self.w
+        )
         # Levelling as tlsjax models it: the dual-axis compensator reads the object-space
         # vertical in scanner space, g = R e3: omega_c = asin(g_y), phi_c = asin(-g_x / cos omega_c)
         # (it depends on kappa too, unlike the Cardan omega and phi).
         g = R[:, :, 2]
         gy = np.clip(g[:, 1], -1.0, 1.0)
-        reading = np.stack([np.arcsin(gy), np.arcsin(np.clip(-g[:, 0] / np.sqrt(1.0 - gy * gy), -1.0, 1.0))], axis=1)
+        reading = np.stack(
+            [np.arcsin(gy), np.arcsin(np.clip(-g[:, 0] / np.sqrt(1.0 - gy * gy), -1.0, 1.0))],
+            axis=1,
+        )
         lev = (reading[self.lev_scan, self.lev_comp] - self.lev) * self.lev_w
         return np.concatenate([f.ravel(), lev])
 
@@ -171,26 +208,39 @@ class ScipyPeer:
         for g in range(3):
             r = 3 * np.arange(n) + g
             for c in range(3):  # target
-                rows.append(r); cols.append(3 * self.ti + c)
+                rows.append(r)
+                cols.append(3 * self.ti + c)
             for c in range(6):  # scan pose
                 cc = eop_col[self.si, c]
                 ok = cc >= 0
-                rows.append(r[ok]); cols.append(cc[ok])
+                rows.append(r[ok])
+                cols.append(cc[ok])
             for k in np.flatnonzero(self.ap_group == g):  # APs of this group only
-                rows.append(r); cols.append(np.full(n, ap_col0 + k))
+                rows.append(r)
+                cols.append(np.full(n, ap_col0 + k))
         r_lev = 3 * n + np.arange(len(self.lev))
         for c in (3, 4, 5):  # a compensator reading depends on omega, phi and kappa
             c_lev = eop_col[self.lev_scan, c]
             ok = c_lev >= 0
-            rows.append(r_lev[ok]); cols.append(c_lev[ok])
+            rows.append(r_lev[ok])
+            cols.append(c_lev[ok])
         rows, cols = np.concatenate(rows), np.concatenate(cols)
-        return sp.csr_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(self.n_obs, self.n_unknowns))
+        return sp.csr_matrix(
+            (np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(self.n_obs, self.n_unknowns)
+        )
 
     def solve(self, targets0, eops0, **kw):
         x0 = self.pack(targets0, eops0, np.zeros(self.n_a))
         self.calls = 0
-        return least_squares(self.residual, x0, args=(eops0,), method="trf", jac_sparsity=self._sparsity,
-                             x_scale="jac", **kw)
+        return least_squares(
+            self.residual,
+            x0,
+            args=(eops0,),
+            method="trf",
+            jac_sparsity=self._sparsity,
+            x_scale="jac",
+            **kw,
+        )
 
     def prepare(self):
         self._sparsity = self.jac_sparsity()
@@ -199,6 +249,7 @@ class ScipyPeer:
 # ---------------------------------------------------------------------------------------------
 # Timing helpers
 # ---------------------------------------------------------------------------------------------
+
 
 def machine_info():
     cpu_model = platform.processor() or ""
@@ -236,21 +287,35 @@ def machine_info():
 def _jaxlib_version():
     try:
         import jaxlib
+
         return jaxlib.__version__
     except Exception:  # pragma: no cover
         return None
 
 
-def bench_case(label: str, aps: str, repeats: int, scipy_repeats: int, tol: float, lsmr_tol: float, max_nfev: int):
+def bench_case(
+    label: str,
+    aps: str,
+    repeats: int,
+    scipy_repeats: int,
+    tol: float,
+    lsmr_tol: float,
+    max_nfev: int,
+):
     load_before = loadavg()
     sim = tj.simulate(seed=0, architecture="hybrid", tilted=True, aps=aps)
     net = sim.network
     scanner = tj.Scanner(architecture="hybrid", aps=aps)
     model = tj.CalibrationModel(scanner)
     opts = tj.SolverOptions(full_covariance=False)
-    out = {"aps": aps, "ap_names": list(scanner.aps), "n_aps": len(scanner.aps),
-           "n_targets": len(net.targets), "n_scans": len(net.scans),
-           "n_target_observations": int(net.observations.shape[0])}
+    out = {
+        "aps": aps,
+        "ap_names": list(scanner.aps),
+        "n_aps": len(scanner.aps),
+        "n_targets": len(net.targets),
+        "n_scans": len(net.scans),
+        "n_target_observations": int(net.observations.shape[0]),
+    }
 
     # ---- tlsjax: host-side plan, AOT compile, compiled runs ----
     t0 = time.perf_counter()
@@ -258,7 +323,14 @@ def bench_case(label: str, aps: str, repeats: int, scipy_repeats: int, tol: floa
     p0 = initial_params(net, plan)
     t1 = time.perf_counter()
     out["tlsjax_plan_s"] = t1 - t0  # index plan + approximate values (host)
-    args = (plan.spec, plan.problem, p0, opts.arrays(), jnp.asarray(opts.rank_tolerance), opts.full_covariance)
+    args = (
+        plan.spec,
+        plan.problem,
+        p0,
+        opts.arrays(),
+        jnp.asarray(opts.rank_tolerance),
+        opts.full_covariance,
+    )
     t0 = time.perf_counter()
     lowered = _run.lower(*args)
     t1 = time.perf_counter()
@@ -299,15 +371,28 @@ def bench_case(label: str, aps: str, repeats: int, scipy_repeats: int, tol: floa
     # Consistency of the two models: numpy residuals at tlsjax's estimate reproduce v^T P v.
     r_tj = peer.residual_full(res.target_xyz, res.eops, np.nan_to_num(res.ap_values))
     out["numpy_vtpv_at_tlsjax_solution"] = float(r_tj @ r_tj)
-    out["tlsjax_vtpv"] = float(res.sigma0 ** 2 * res.dof)
+    out["tlsjax_vtpv"] = float(res.sigma0**2 * res.dof)
     # The timed peer: tight tolerances, including LSMR's (scipy's default atol = btol = 1e-6 of
     # the inner LSMR solves stalls on the 23-AP case: hundreds of steps, chi^2 not at the minimum).
-    kw = dict(ftol=tol, xtol=tol, gtol=tol, tr_options=dict(atol=lsmr_tol, btol=lsmr_tol), max_nfev=max_nfev)
+    kw = dict(
+        ftol=tol,
+        xtol=tol,
+        gtol=tol,
+        tr_options=dict(atol=lsmr_tol, btol=lsmr_tol),
+        max_nfev=max_nfev,
+    )
     out["scipy_s"], sol = timed(lambda: peer.solve(targets0, eops0, **kw), scipy_repeats)
-    out["scipy_options"] = {"method": "trf", "jac_sparsity": "exact pattern (targets, free EOPs, APs of the row's group)",
-                            "x_scale": "jac", "tr_solver": "lsmr (default for a sparse Jacobian)",
-                            "ftol": tol, "xtol": tol, "gtol": tol, "tr_options": {"atol": lsmr_tol, "btol": lsmr_tol},
-                            "max_nfev": max_nfev}
+    out["scipy_options"] = {
+        "method": "trf",
+        "jac_sparsity": "exact pattern (targets, free EOPs, APs of the row's group)",
+        "x_scale": "jac",
+        "tr_solver": "lsmr (default for a sparse Jacobian)",
+        "ftol": tol,
+        "xtol": tol,
+        "gtol": tol,
+        "tr_options": {"atol": lsmr_tol, "btol": lsmr_tol},
+        "max_nfev": max_nfev,
+    }
     out["scipy_nfev"] = int(sol.nfev)
     out["scipy_njev"] = int(sol.njev) if sol.njev is not None else None
     out["scipy_residual_calls"] = peer.calls  # incl. the finite-difference Jacobian evaluations
@@ -327,11 +412,15 @@ def bench_case(label: str, aps: str, repeats: int, scipy_repeats: int, tol: floa
     out["ap_agree_1e-3_sigma"] = bool(out["max_ap_diff_sigma"] <= 1e-3)
     # The identical problem in tlsjax: datum "fixed-scan" holds S1's Xs, Ys, Zs, kappa at the same
     # approximate values, as the peer does.
-    resf = tj.calibrate(net, tj.CalibrationModel(scanner, datum="fixed-scan", fixed_scan=net.scans[0]), opts)
+    resf = tj.calibrate(
+        net, tj.CalibrationModel(scanner, datum="fixed-scan", fixed_scan=net.scans[0]), opts
+    )
     diff_f = (ap_peer - resf.ap_values) / resf.ap_sigmas
-    out["tlsjax_fixed_scan_vtpv"] = float(resf.sigma0 ** 2 * resf.dof)
+    out["tlsjax_fixed_scan_vtpv"] = float(resf.sigma0**2 * resf.dof)
     out["max_ap_diff_sigma_vs_tlsjax_fixed_scan"] = float(np.nanmax(np.abs(diff_f)))
-    out["max_ap_diff_sigma_tlsjax_inner_vs_fixed_scan"] = float(np.nanmax(np.abs((res.ap_values - resf.ap_values) / res.ap_sigmas)))
+    out["max_ap_diff_sigma_tlsjax_inner_vs_fixed_scan"] = float(
+        np.nanmax(np.abs((res.ap_values - resf.ap_values) / res.ap_sigmas))
+    )
     out["speedup"] = out["scipy_s"]["median"] / out["run_s"]["median"]
     out["speedup_vs_calibrate"] = out["scipy_s"]["median"] / out["calibrate_s"]["median"]
 
@@ -341,9 +430,14 @@ def bench_case(label: str, aps: str, repeats: int, scipy_repeats: int, tol: floa
     dt = time.perf_counter() - t0
     _, _, ap_d = peer.unpack(sol_d.x, eops0)
     out["scipy_default_tolerances"] = {
-        "s": dt, "nfev": int(sol_d.nfev), "residual_calls": peer.calls, "status": int(sol_d.status),
+        "s": dt,
+        "nfev": int(sol_d.nfev),
+        "residual_calls": peer.calls,
+        "status": int(sol_d.status),
         "vtpv": float(2 * sol_d.cost),
-        "max_ap_diff_sigma_vs_tlsjax_fixed_scan": float(np.nanmax(np.abs((ap_d - resf.ap_values) / resf.ap_sigmas))),
+        "max_ap_diff_sigma_vs_tlsjax_fixed_scan": float(
+            np.nanmax(np.abs((ap_d - resf.ap_values) / resf.ap_sigmas))
+        ),
     }
     out["loadavg_1_5_15_before"] = load_before
     out["loadavg_1_5_15_after"] = loadavg()
@@ -353,35 +447,64 @@ def bench_case(label: str, aps: str, repeats: int, scipy_repeats: int, tol: floa
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="benchmarks/results/point.json")
-    ap.add_argument("--repeats", type=int, default=30, help="timed runs of the compiled adjustment and of calibrate (>= 20)")
-    ap.add_argument("--scipy-repeats", type=int, default=3, help="timed runs of the scipy peer (>= 3)")
-    ap.add_argument("--scipy-tol", type=float, default=1e-10, help="ftol = xtol = gtol of least_squares")
-    ap.add_argument("--lsmr-tol", type=float, default=1e-12, help="atol = btol of the LSMR trust-region solves")
+    ap.add_argument(
+        "--repeats",
+        type=int,
+        default=30,
+        help="timed runs of the compiled adjustment and of calibrate (>= 20)",
+    )
+    ap.add_argument(
+        "--scipy-repeats", type=int, default=3, help="timed runs of the scipy peer (>= 3)"
+    )
+    ap.add_argument(
+        "--scipy-tol", type=float, default=1e-10, help="ftol = xtol = gtol of least_squares"
+    )
+    ap.add_argument(
+        "--lsmr-tol", type=float, default=1e-12, help="atol = btol of the LSMR trust-region solves"
+    )
     ap.add_argument("--max-nfev", type=int, default=1000, help="max_nfev of least_squares")
-    ap.add_argument("--cases", default=",".join(CASES), help=f"comma-separated subset of {list(CASES)}")
+    ap.add_argument(
+        "--cases", default=",".join(CASES), help=f"comma-separated subset of {list(CASES)}"
+    )
     a = ap.parse_args(argv)
 
     info = machine_info()
-    results = {"benchmark": "point-based self-calibration, Chow 2013 room (seed 0, hybrid, tilted)",
-               "machine": info, "repeats": a.repeats, "scipy_repeats": a.scipy_repeats, "cases": {}}
-    print(f"# {info['cpu_model']} | {info['cpus_available']} CPUs | jax {info['jax_version']} "
-          f"{info['jax_backend']} {info['jax_devices']}", flush=True)
+    results = {
+        "benchmark": "point-based self-calibration, Chow 2013 room (seed 0, hybrid, tilted)",
+        "machine": info,
+        "repeats": a.repeats,
+        "scipy_repeats": a.scipy_repeats,
+        "cases": {},
+    }
+    print(
+        f"# {info['cpu_model']} | {info['cpus_available']} CPUs | jax {info['jax_version']} "
+        f"{info['jax_backend']} {info['jax_devices']}",
+        flush=True,
+    )
     for label in a.cases.split(","):
         label = label.strip()
         print(f"# case {label} ...", flush=True)
-        results["cases"][label] = bench_case(label, CASES[label], a.repeats, a.scipy_repeats, a.scipy_tol, a.lsmr_tol, a.max_nfev)
+        results["cases"][label] = bench_case(
+            label, CASES[label], a.repeats, a.scipy_repeats, a.scipy_tol, a.lsmr_tol, a.max_nfev
+        )
 
-    hdr = (f"{'case':18s} {'n_obs':>6s} {'n_unk':>6s} {'compile s':>9s} {'run ms':>8s} {'(min)':>7s} "
-           f"{'calib ms':>8s} {'it':>3s} {'scipy s':>8s} {'nfev':>5s} {'speedup':>8s} {'dAP/sig in':>10s} {'dAP/sig fx':>10s}")
+    hdr = (
+        f"{'case':18s} {'n_obs':>6s} {'n_unk':>6s} {'compile s':>9s} {'run ms':>8s} {'(min)':>7s} "
+        f"{'calib ms':>8s} {'it':>3s} {'scipy s':>8s} {'nfev':>5s} {'speedup':>8s} {'dAP/sig in':>10s} {'dAP/sig fx':>10s}"
+    )
     print(hdr)
     print("-" * len(hdr))
     for label, c in results["cases"].items():
-        print(f"{label:18s} {c['n_observations']:6d} {c['n_unknowns']:6d} {c['compile_s']:9.2f} "
-              f"{1e3 * c['run_s']['median']:8.2f} {1e3 * c['run_s']['min']:7.2f} "
-              f"{1e3 * c['calibrate_s']['median']:8.2f} {c['iterations']:3d} {c['scipy_s']['median']:8.3f} "
-              f"{c['scipy_nfev']:5d} {c['speedup']:7.1f}x {c['max_ap_diff_sigma']:10.2e} "
-              f"{c['max_ap_diff_sigma_vs_tlsjax_fixed_scan']:10.2e}")
-    print("# dAP/sig in: peer vs tlsjax (inner-constraint datum); fx: peer vs tlsjax datum='fixed-scan' S1 (the identical problem)")
+        print(
+            f"{label:18s} {c['n_observations']:6d} {c['n_unknowns']:6d} {c['compile_s']:9.2f} "
+            f"{1e3 * c['run_s']['median']:8.2f} {1e3 * c['run_s']['min']:7.2f} "
+            f"{1e3 * c['calibrate_s']['median']:8.2f} {c['iterations']:3d} {c['scipy_s']['median']:8.3f} "
+            f"{c['scipy_nfev']:5d} {c['speedup']:7.1f}x {c['max_ap_diff_sigma']:10.2e} "
+            f"{c['max_ap_diff_sigma_vs_tlsjax_fixed_scan']:10.2e}"
+        )
+    print(
+        "# dAP/sig in: peer vs tlsjax (inner-constraint datum); fx: peer vs tlsjax datum='fixed-scan' S1 (the identical problem)"
+    )
 
     write_results(results, a.out)
 

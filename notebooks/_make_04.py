@@ -64,7 +64,7 @@ mc = tj.monte_carlo(design, MODEL, tj.MonteCarloOptions(runs=1000, seed=1, progr
 print(f"compile {mc.compile_s:.1f} s, 1,000 self-calibrations {mc.run_s:.2f} s "
       f"({mc.runs / mc.run_s:.0f} per second), iterations {np.bincount(mc.iterations).tolist()}")
 print(mc.table())
-fig = mc.plot()
+fig = tj.plot_monte_carlo(mc)
 plt.show()
 """)
 

@@ -25,14 +25,22 @@ class Builder:
 
     def notebook(self):
         nb = new_notebook(cells=self.cells)
-        nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
+        nb.metadata["kernelspec"] = {
+            "name": "python3",
+            "display_name": "Python 3",
+            "language": "python",
+        }
         nb.metadata["language_info"] = {"name": "python"}
         return nb
 
     def run(self, timeout=900):
         nb = self.notebook()
         t0 = time.perf_counter()
-        nbclient.NotebookClient(nb, timeout=timeout, kernel_name="python3",
-                                resources={"metadata": {"path": str(HERE.parent)}}).execute()
+        nbclient.NotebookClient(
+            nb,
+            timeout=timeout,
+            kernel_name="python3",
+            resources={"metadata": {"path": str(HERE.parent)}},
+        ).execute()
         nbformat.write(nb, self.out)
         print(f"executed and wrote {self.out} in {time.perf_counter() - t0:.0f} s", file=sys.stderr)

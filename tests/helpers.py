@@ -107,7 +107,13 @@ def perturbed_start(res, target_scale, eop_shift=0.0, ap_factor=1.0, seed=0):
     G = np.zeros((X.size, 6))
     for t in range(X.shape[0]):
         G[3 * t : 3 * t + 3, :3] = np.eye(3)
-        G[3 * t : 3 * t + 3, 3:] = [[0, X[t, 2], -X[t, 1]], [-X[t, 2], 0, X[t, 0]], [X[t, 1], -X[t, 0], 0]]
+        G[3 * t : 3 * t + 3, 3:] = [
+            [0, X[t, 2], -X[t, 1]],
+            [-X[t, 2], 0, X[t, 0]],
+            [X[t, 1], -X[t, 0], 0],
+        ]
     d = np.random.default_rng(seed).normal(scale=target_scale, size=X.size)
     d -= G @ np.linalg.lstsq(G, d, rcond=None)[0]
-    return np.concatenate([X.reshape(-1) + d, res.eops.reshape(-1) + eop_shift, res.ap_values * ap_factor])
+    return np.concatenate(
+        [X.reshape(-1) + d, res.eops.reshape(-1) + eop_shift, res.ap_values * ap_factor]
+    )

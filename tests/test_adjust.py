@@ -2,9 +2,9 @@
 
 import numpy as np
 import pytest
+from helpers import dense_oracle, perturbed_start
 
 import tlsjax as tj
-from helpers import dense_oracle, perturbed_start
 
 APS = ("A0", "B6", "B7", "C0")
 
@@ -32,13 +32,17 @@ def test_structured_equals_dense_bordered_solve(small):
     np.testing.assert_allclose(res.eops.reshape(-1), x[n_p : n_p + 6 * ns], rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(res.target_xyz.reshape(-1), x[:n_p], rtol=1e-8, atol=1e-10)
     # Covariance (inner constraints on the targets), sigmas and correlations.
-    np.testing.assert_allclose(res.covariance, Q * s0sq, rtol=1e-7, atol=1e-8 * np.abs(Q * s0sq).max())
+    np.testing.assert_allclose(
+        res.covariance, Q * s0sq, rtol=1e-7, atol=1e-8 * np.abs(Q * s0sq).max()
+    )
     np.testing.assert_allclose(res.ap_sigmas, np.sqrt(np.diag(Q)[n_p + 6 * ns :] * s0sq), rtol=1e-8)
     s = np.sqrt(np.diag(Q))
     C = Q / np.outer(s, s)
     np.testing.assert_allclose(res.correlation(), C, atol=1e-7)
     # Redundancy numbers of the observations, in network row order.
-    np.testing.assert_allclose(res.redundancy.reshape(-1), r[: res.redundancy.size], rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(
+        res.redundancy.reshape(-1), r[: res.redundancy.size], rtol=1e-7, atol=1e-9
+    )
 
 
 def test_redundancy_sum_equals_dof(small):
@@ -62,7 +66,9 @@ def test_max_correlation_names_the_partner(small):
 
 @pytest.mark.parametrize("architecture", ["hybrid", "panoramic"])
 def test_noiseless_recovers_truth(architecture):
-    sim = tj.simulate(seed=5, architecture=architecture, tilted=True, noise=False, aps="chow2013-noscale")
+    sim = tj.simulate(
+        seed=5, architecture=architecture, tilted=True, noise=False, aps="chow2013-noscale"
+    )
     res = tj.calibrate(sim.network, tj.CalibrationModel(sim.scanner))
     assert res.result == 0, res.message
     truth = np.array([sim.true_aps[n] for n in res.ap_names])
@@ -101,7 +107,9 @@ def test_fixed_aps_equal_the_model_without_them():
     model without them: the rank-revealing factorisation drops their columns exactly."""
     sim = tj.simulate(tj.Room(n_targets=36), seed=12, aps=" ".join(APS))
     small = tj.calibrate(sim.network, tj.CalibrationModel(tj.Scanner(aps="A0 B7")))
-    wide = tj.calibrate(sim.network, tj.CalibrationModel(tj.Scanner(aps=APS), fixed_aps=("B6", "C0")))
+    wide = tj.calibrate(
+        sim.network, tj.CalibrationModel(tj.Scanner(aps=APS), fixed_aps=("B6", "C0"))
+    )
     assert wide.result == small.result == 0 and wide.ap_fixed == ("B6", "C0")
     assert wide.dof == small.dof and wide.n_unknowns == small.n_unknowns
     assert np.isclose(wide.sigma0, small.sigma0, rtol=1e-10)

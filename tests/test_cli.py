@@ -8,27 +8,72 @@ import scipy.stats
 
 import tlsjax as tj
 from tlsjax._cli import main
-from tlsjax._io import read_observations, write_observations
-from tlsjax._report import chi2_quantile, global_test
+from tlsjax._inference._statistics import global_test
+from tlsjax._io._tables import read_observations, write_observations
+from tlsjax._stats import chi2_quantile
 
 ROOM = ["--room", "14x11x3", "--targets", "36"]
-CONTRACT = {"sigma0", "dof", "n_observations", "n_unknowns", "converged", "iterations", "aps", "eops",
-            "redundancy", "outliers", "variance_components", "not_estimable"}
+CONTRACT = {
+    "sigma0",
+    "dof",
+    "n_observations",
+    "n_unknowns",
+    "converged",
+    "iterations",
+    "aps",
+    "eops",
+    "redundancy",
+    "outliers",
+    "variance_components",
+    "not_estimable",
+}
 
 
 @pytest.fixture(scope="module")
 def simulated(tmp_path_factory):
     d = tmp_path_factory.mktemp("sim")
     obs, scans, truth = d / "obs.csv", d / "scans.csv", d / "truth.json"
-    assert main(["simulate", "--out", str(obs), "--scans-out", str(scans), "--truth", str(truth),
-                 "--seed", "4", "--aps", "A0 B6 B7 C0", *ROOM]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--out",
+                str(obs),
+                "--scans-out",
+                str(scans),
+                "--truth",
+                str(truth),
+                "--seed",
+                "4",
+                "--aps",
+                "A0 B6 B7 C0",
+                *ROOM,
+            ]
+        )
+        == 0
+    )
     return d, obs, scans, truth
 
 
 def test_calibrate_json_matches_the_api(simulated, capsys):
     d, obs, scans, truth = simulated
     out = d / "res.json"
-    assert main(["calibrate", str(obs), "--scans", str(scans), "--aps", "A0 B6 B7 C0", "--no-vce", "--json", str(out)]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                str(obs),
+                "--scans",
+                str(scans),
+                "--aps",
+                "A0 B6 B7 C0",
+                "--no-vce",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     assert "B6" in printed and "mm" in printed and '"' in printed
     js = json.loads(out.read_text())
@@ -46,7 +91,11 @@ def test_calibrate_json_matches_the_api(simulated, capsys):
         assert np.isclose(a["sigma"], res.ap_sigmas[i], rtol=1e-8)
         assert a["unit"] == res.ap_units[i] and a["max_corr_with"] == res.ap_max_corr_with[i]
     cov = np.array(js["ap_covariance"])
-    np.testing.assert_allclose(np.sqrt(np.diag(cov)), [js["aps"][n]["sigma"] for n in js["ap_covariance_names"]], rtol=1e-12)
+    np.testing.assert_allclose(
+        np.sqrt(np.diag(cov)),
+        [js["aps"][n]["sigma"] for n in js["ap_covariance_names"]],
+        rtol=1e-12,
+    )
     assert np.isclose(js["redundancy"]["total"]["sum"], js["dof"], rtol=1e-9)
     assert set(js["eops"]) == set(res.scans) and js["not_estimable"] == []
     true = json.loads(truth.read_text())["aps"]
@@ -64,10 +113,26 @@ def test_vce_and_snooping_through_the_cli(simulated, tmp_path, capsys):
     bad = tmp_path / "blunder.csv"
     bad.write_text("\n".join(lines) + "\n")
     out = tmp_path / "tested.json"
-    assert main(["calibrate", str(bad), "--scans", str(scans), "--snoop", "--bonferroni", "--json", str(out)]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                str(bad),
+                "--scans",
+                str(scans),
+                "--snoop",
+                "--bonferroni",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     js = json.loads(out.read_text())
     scan, target = cells[0], cells[1]
-    assert [(o["scan"], o["target"], o["group"]) for o in js["outliers"]] == [(scan, target, "range")]
+    assert [(o["scan"], o["target"], o["group"]) for o in js["outliers"]] == [
+        (scan, target, "range")
+    ]
     vc = js["variance_components"]
     assert {"range", "hz", "el"} <= set(vc if isinstance(vc, dict) else [v["group"] for v in vc])
     # The removed observation leaves the degrees of freedom.
@@ -79,21 +144,40 @@ def test_vce_and_snooping_through_the_cli(simulated, tmp_path, capsys):
 def test_units_do_not_change_the_result(simulated, tmp_path, length_unit, angle_unit):
     d, obs, scans, _ = simulated
     other = tmp_path / "obs.csv"
-    write_observations(other, read_observations(obs), length_unit=length_unit, angle_unit=angle_unit)
+    write_observations(
+        other, read_observations(obs), length_unit=length_unit, angle_unit=angle_unit
+    )
     assert f"range_{length_unit}" in other.read_text().splitlines()[0]
     a, b = tmp_path / "a.json", tmp_path / "b.json"
     assert main(["calibrate", str(obs), "--scans", str(scans), "--json", str(a)]) == 0
     assert main(["calibrate", str(other), "--scans", str(scans), "--json", str(b)]) == 0
     ja, jb = json.loads(a.read_text()), json.loads(b.read_text())
     for name in ja["aps"]:
-        assert abs(ja["aps"][name]["value"] - jb["aps"][name]["value"]) < 1e-6 * ja["aps"][name]["sigma"]
+        assert (
+            abs(ja["aps"][name]["value"] - jb["aps"][name]["value"])
+            < 1e-6 * ja["aps"][name]["sigma"]
+        )
 
 
 def test_not_estimable_scale_is_named_not_numbered(simulated, tmp_path):
     _, obs, scans, _ = simulated
     out = tmp_path / "a1.json"
     # A1 without scale bars or control: a result, not a number (exit 0: the rest is estimated).
-    assert main(["calibrate", str(obs), "--scans", str(scans), "--aps", "A0 A1 B6 B7 C0", "--json", str(out)]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                str(obs),
+                "--scans",
+                str(scans),
+                "--aps",
+                "A0 A1 B6 B7 C0",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     js = json.loads(out.read_text())
     assert js["aps"]["A1"]["value"] is None and js["aps"]["A1"]["sigma"] is None
     assert [e["name"] for e in js["not_estimable"]] == ["A1"]
@@ -115,7 +199,9 @@ def test_target_seen_once_is_refused_then_dropped_on_request(simulated, tmp_path
     _, obs, scans, _ = simulated
     lines = obs.read_text().splitlines()
     # Keep target T001 in its first scan only.
-    keep = [lines[0]] + [ln for ln in lines[1:] if not (",T001," in ln and not ln.startswith("S1,"))]
+    keep = [lines[0]] + [
+        ln for ln in lines[1:] if not (",T001," in ln and not ln.startswith("S1,"))
+    ]
     f = tmp_path / "once.csv"
     f.write_text("\n".join(keep) + "\n")
     assert main(["calibrate", str(f), "--scans", str(scans)]) == 2
@@ -126,7 +212,14 @@ def test_target_seen_once_is_refused_then_dropped_on_request(simulated, tmp_path
 
 def test_demo_writes_report_and_plots(tmp_path):
     assert main(["demo", "--out", str(tmp_path), "--aps", "physical"]) == 0
-    for name in ("report.json", "residuals.png", "ap_correlations.png", "observations.csv", "scans.csv", "truth.json"):
+    for name in (
+        "report.json",
+        "residuals.png",
+        "ap_correlations.png",
+        "observations.csv",
+        "scans.csv",
+        "truth.json",
+    ):
         assert (tmp_path / name).stat().st_size > 0
     js = json.loads((tmp_path / "report.json").read_text())
     assert set(js["aps"]) == {"A0", "B6", "B7", "C0"} and js["converged"]

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 import tlsjax  # noqa: F401  (x64)
-from tlsjax._clouds import Board, CloudDesign, PointClouds, simulate_point_clouds
-from tlsjax._io import read_observations, write_observations
-from tlsjax._simulate import Room
+from tlsjax._io._tables import read_observations, write_observations
+from tlsjax._simulation._point_clouds import Board, CloudDesign, PointClouds, simulate_point_clouds
+from tlsjax._simulation._room import Room
 
 DEG = np.pi / 180
 ARCSEC = DEG / 3600
@@ -59,7 +59,11 @@ def test_noiseless_points_satisfy_plane_condition(noiseless: PointClouds):
     # The APs are really in the data: without the reduction the same condition fails by mm.
     l = pc.observations[0]
     r, t, a = l.T
-    X = np.stack([r * np.cos(a) * np.cos(t), r * np.cos(a) * np.sin(t), r * np.sin(a)], axis=1) @ _R(*pc.eops[0, 3:]) + pc.eops[0, :3]
+    X = (
+        np.stack([r * np.cos(a) * np.cos(t), r * np.cos(a) * np.sin(t), r * np.sin(a)], axis=1)
+        @ _R(*pc.eops[0, 3:])
+        + pc.eops[0, :3]
+    )
     P = pc.planes[pc.plane_ids[0]]
     assert np.abs(np.einsum("mi,mi->m", P[:, :3], X) - P[:, 3]).max() > 5e-3
 
@@ -84,7 +88,9 @@ def test_box_faces_and_nearest_board():
     # One board 1 m in front of the wall x = L, facing the station: rays through it stop on it.
     room = Room(8.0, 6.0, 3.0, stations=((3.0, 3.0, 1.5), (5.0, 2.0, 1.5)))
     board = Board((7.0, 2.0, 0.5), (0.0, 2.0, 0.0), (0.0, 0.0, 1.5))
-    design = CloudDesign(room=room, boards=(board,), angular_step=2 * DEG, noise=False, aps=(), tilted=False)
+    design = CloudDesign(
+        room=room, boards=(board,), angular_step=2 * DEG, noise=False, aps=(), tilted=False
+    )
     pc = simulate_point_clouds(design, seed=0)
     bounds = {0: (0, 0.0), 1: (0, 8.0), 2: (1, 0.0), 3: (1, 6.0), 4: (2, 0.0), 5: (2, 3.0)}
     for j, (X, ids) in enumerate(zip(pc.true_points, pc.plane_ids)):
@@ -117,12 +123,27 @@ def test_noise_levels_and_seeds():
     z = []
     for j, l in enumerate(pc.observations):
         x = (pc.true_points[j] - pc.eops[j, :3]) @ _R(*pc.eops[j, 3:]).T
-        F = np.stack([np.linalg.norm(x, axis=1), np.mod(np.arctan2(x[:, 1], x[:, 0]), 2 * np.pi),
-                      np.arctan2(x[:, 2], np.hypot(x[:, 0], x[:, 1]))], axis=1)
+        F = np.stack(
+            [
+                np.linalg.norm(x, axis=1),
+                np.mod(np.arctan2(x[:, 1], x[:, 0]), 2 * np.pi),
+                np.arctan2(x[:, 2], np.hypot(x[:, 0], x[:, 1])),
+            ],
+            axis=1,
+        )
         e = l - F
         e[:, 1:] = np.arctan2(np.sin(e[:, 1:]), np.cos(e[:, 1:]))
-        z.append(e / np.stack([0.5e-3 / np.cos(pc.incidence[j]), np.full(len(l), 20 * ARCSEC),
-                               np.full(len(l), 20 * ARCSEC)], axis=1))
+        z.append(
+            e
+            / np.stack(
+                [
+                    0.5e-3 / np.cos(pc.incidence[j]),
+                    np.full(len(l), 20 * ARCSEC),
+                    np.full(len(l), 20 * ARCSEC),
+                ],
+                axis=1,
+            )
+        )
     z = np.concatenate(z)
     assert len(z) > 20000
     np.testing.assert_allclose(z.std(axis=0), 1.0, atol=0.03)
@@ -134,12 +155,20 @@ def test_noise_levels_and_seeds():
 
 
 def test_grid_and_field_of_view():
-    design = CloudDesign(angular_step=5 * DEG, elevation_limits=(-30 * DEG, 60 * DEG), noise=False, aps=(), tilted=False)
+    design = CloudDesign(
+        angular_step=5 * DEG,
+        elevation_limits=(-30 * DEG, 60 * DEG),
+        noise=False,
+        aps=(),
+        tilted=False,
+    )
     pc = simulate_point_clouds(design, seed=0)
     # 72 directions x 19 elevations per scan; all hit the closed box.
     assert [len(o) for o in pc.observations] == [72 * 19] * 6
     al = pc.observations[0][:, 2]
-    assert al.min() == pytest.approx(-30 * DEG, abs=1e-12) and al.max() == pytest.approx(60 * DEG, abs=1e-12)
+    assert al.min() == pytest.approx(-30 * DEG, abs=1e-12) and al.max() == pytest.approx(
+        60 * DEG, abs=1e-12
+    )
 
 
 def test_to_table_round_trip(tmp_path, noiseless):
@@ -147,7 +176,9 @@ def test_to_table_round_trip(tmp_path, noiseless):
     path = tmp_path / "planes.csv"
     write_observations(path, table, angle_unit="rad")
     back = read_observations(path)
-    assert back.kind == "plane" and back.scans == table.scans and back.primitives == table.primitives
+    assert (
+        back.kind == "plane" and back.scans == table.scans and back.primitives == table.primitives
+    )
     np.testing.assert_allclose(back.observations, table.observations, rtol=0, atol=1e-12)
     assert set(back.primitives) == set(noiseless.plane_names)
 
@@ -167,17 +198,29 @@ def test_fixed_point_matches_point_simulation():
     # The looped, chunked fixed point reproduces the target simulation's construction.
     import jax.numpy as jnp
 
-    from tlsjax._models import simulate_point_observations
+    from tlsjax._model._points import simulate_point_observations
 
-    design = CloudDesign(angular_step=6 * DEG, architecture="panoramic", noise=False, aps="A0 B6 B7 C0 B8")
+    design = CloudDesign(
+        angular_step=6 * DEG, architecture="panoramic", noise=False, aps="A0 B6 B7 C0 B8"
+    )
     pc = simulate_point_clouds(design, seed=5)
     j, names = 4, pc.scanner.aps
     coeffs = jnp.asarray([pc.true_aps[n] for n in names])
     for i in (0, len(pc.observations[j]) // 2, len(pc.observations[j]) - 1):
         l = pc.observations[j][i]
-        ref = np.asarray(simulate_point_observations(
-            jnp.asarray(pc.true_points[j][i]), jnp.asarray(pc.eops[j]), coeffs, (pc.scanner,), (names,),
-            ((0, len(names)),), 0, jnp.zeros(3), bool(l[2] > np.pi / 2)))
+        ref = np.asarray(
+            simulate_point_observations(
+                jnp.asarray(pc.true_points[j][i]),
+                jnp.asarray(pc.eops[j]),
+                coeffs,
+                (pc.scanner,),
+                (names,),
+                ((0, len(names)),),
+                0,
+                jnp.zeros(3),
+                bool(l[2] > np.pi / 2),
+            )
+        )
         diff = ref - l
         diff[1:] = np.arctan2(np.sin(diff[1:]), np.cos(diff[1:]))
         assert np.abs(diff).max() < 1e-12

@@ -51,7 +51,9 @@ def test_non_positive_range(rows, value):
     obs = obs.copy()
     i = 60
     obs[i, 0] = value
-    with pytest.raises(ValueError, match=rf"range of scan {scans[i]}, target {targets[i]} must be positive"):
+    with pytest.raises(
+        ValueError, match=rf"range of scan {scans[i]}, target {targets[i]} must be positive"
+    ):
         _make(scans, targets, obs)
 
 
@@ -60,7 +62,9 @@ def test_duplicate_rows(rows):
     s = np.append(scans, scans[10])
     t = np.append(targets, targets[10])
     o = np.vstack([obs, obs[10]])
-    with pytest.raises(ValueError, match=rf"duplicate observation of target {targets[10]} in scan {scans[10]}"):
+    with pytest.raises(
+        ValueError, match=rf"duplicate observation of target {targets[10]} in scan {scans[10]}"
+    ):
         _make(s, t, o)
 
 
@@ -191,10 +195,16 @@ def plane_table():
 
 def _subset(table, keep, **changes):
     keep = np.asarray(keep)
-    return dataclasses.replace(table, scans=tuple(np.array(table.scans)[keep]),
-                               primitives=tuple(np.array(table.primitives)[keep]),
-                               observations=table.observations[keep], sigmas=table.sigmas[keep],
-                               incidence=table.incidence[keep], rows=table.rows[keep], **changes)
+    return dataclasses.replace(
+        table,
+        scans=tuple(np.array(table.scans)[keep]),
+        primitives=tuple(np.array(table.primitives)[keep]),
+        observations=table.observations[keep],
+        sigmas=table.sigmas[keep],
+        incidence=table.incidence[keep],
+        rows=table.rows[keep],
+        **changes,
+    )
 
 
 def test_plane_rows_are_validated(plane_table):
@@ -202,7 +212,10 @@ def test_plane_rows_are_validated(plane_table):
     assert tj.make_plane_network(t).planes
     obs = t.observations.copy()
     obs[7, 2] = np.nan
-    with pytest.raises(ValueError, match=rf"line {t.rows[7]}: el of scan {t.scans[7]}, plane {t.primitives[7]} is not finite"):
+    with pytest.raises(
+        ValueError,
+        match=rf"line {t.rows[7]}: el of scan {t.scans[7]}, plane {t.primitives[7]} is not finite",
+    ):
         tj.make_plane_network(dataclasses.replace(t, observations=obs))
 
 
@@ -218,14 +231,19 @@ def test_plane_with_too_few_points(plane_table):
 def test_scan_with_two_planes_only(plane_table):
     t = plane_table
     keep = np.array([s != "S3" or p in ("floor", "wall_x0") for s, p in zip(t.scans, t.primitives)])
-    with pytest.raises(ValueError, match="scan S3 observes 0 target\\(s\\) and 2 plane\\(s\\); at least 3 primitives"):
+    with pytest.raises(
+        ValueError,
+        match="scan S3 observes 0 target\\(s\\) and 2 plane\\(s\\); at least 3 primitives",
+    ):
         tj.make_plane_network(_subset(t, keep))
 
 
 def test_plane_and_target_names_must_differ(rows, plane_table):
     scans, targets, obs = rows
     t = plane_table
-    clash = dataclasses.replace(t, primitives=tuple("T001" if p == "floor" else p for p in t.primitives))
+    clash = dataclasses.replace(
+        t, primitives=tuple("T001" if p == "floor" else p for p in t.primitives)
+    )
     with pytest.raises(ValueError, match="T001 names both a target and a plane"):
         _make(scans, targets, obs, planes=clash)
 

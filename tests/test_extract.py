@@ -10,20 +10,14 @@ import pytest
 pytest.importorskip("open3d", exc_type=ImportError)
 
 import tlsjax as tj
-from tlsjax._clouds import CloudDesign, simulate_point_clouds
-from tlsjax._extract import (
-    ExtractionConfig,
-    MatchingConfig,
-    add_extract_parser,
-    extract_planes,
-    load_planes,
-    match_planes,
-    read_poses,
-    save_planes,
-)
 from tlsjax._cli import main
-from tlsjax._io import read_observations, write_observations
-from tlsjax._pointclouds import write_ptx
+from tlsjax._cli._extract import add_extract_parser
+from tlsjax._clouds._extract import ExtractionConfig, extract_planes
+from tlsjax._clouds._match import MatchingConfig, match_planes
+from tlsjax._io._plane_files import load_planes, read_poses, save_planes
+from tlsjax._io._point_clouds import write_ptx
+from tlsjax._io._tables import read_observations, write_observations
+from tlsjax._simulation._point_clouds import CloudDesign, simulate_point_clouds
 
 DEG = np.pi / 180
 MIN_FOUND = 0.95  # fraction of a plane's points in a scan that extraction must find
@@ -48,7 +42,9 @@ def small(room):
 
 
 def _true_labels(pc, planes):
-    return np.concatenate([pc.plane_ids[j][planes.point_index[planes.point_scan == j]] for j in range(len(pc.scans))])
+    return np.concatenate(
+        [pc.plane_ids[j][planes.point_index[planes.point_scan == j]] for j in range(len(pc.scans))]
+    )
 
 
 def test_every_plane_found_in_every_scan(room, matched):
@@ -62,7 +58,11 @@ def test_every_plane_found_in_every_scan(room, matched):
             if n_k < 2 * cfg.min_points:
                 continue  # too few points in this scan to be a patch at all
             n_checked += 1
-            assert found[ids == k].mean() >= MIN_FOUND, (room.scans[j], room.plane_names[k], found[ids == k].mean())
+            assert found[ids == k].mean() >= MIN_FOUND, (
+                room.scans[j],
+                room.plane_names[k],
+                found[ids == k].mean(),
+            )
     assert n_checked >= 45  # 6 scans x 9 planes, less the boards seen by fewer than 60 points
 
 
@@ -85,7 +85,9 @@ def test_matching_gives_one_global_plane_per_true_plane(room, matched):
 
 def test_incidence_and_refinement(room, matched):
     true = _true_labels(room, matched)
-    inc_true = np.concatenate([room.incidence[j][matched.point_index[matched.point_scan == j]] for j in range(6)])
+    inc_true = np.concatenate(
+        [room.incidence[j][matched.point_index[matched.point_scan == j]] for j in range(6)]
+    )
     confusion = np.zeros((len(matched.planes), len(room.planes)), dtype=int)
     np.add.at(confusion, (matched.point_plane, true), 1)
     # Points on the right plane (the few edge points of a neighbour plane have its incidence).
@@ -127,7 +129,9 @@ def test_disjoint_coplanar_patches_and_overlap():
     wall = _plane_points(rng, np.array([4.0, 0.0, 0.0]), ey, ez, 1.0, 2000)
     x = np.concatenate([floor1, floor2, wall])
     rho = np.linalg.norm(x, axis=1)
-    obs = np.stack([rho, np.mod(np.arctan2(x[:, 1], x[:, 0]), 2 * np.pi), np.arcsin(x[:, 2] / rho)], axis=1)
+    obs = np.stack(
+        [rho, np.mod(np.arctan2(x[:, 1], x[:, 0]), 2 * np.pi), np.arcsin(x[:, 2] / rho)], axis=1
+    )
     ex = extract_planes([obs], ExtractionConfig(min_points=50), seed=0)
     assert len(ex.patch_scan) == 3
     normals = np.round(np.abs(ex.patch_normal), 6)
@@ -178,14 +182,24 @@ def test_read_poses(tmp_path):
 
 def test_cli_extract_planes(tmp_path, room):
     # Two scans of different stations as one PTX file with their poses; CSV and npz out.
-    from tlsjax._geometry import cartesian_from_spherical
+    from tlsjax._model._geometry import cartesian_from_spherical
 
     scans = [(cartesian_from_spherical(room.observations[j], xp=np), room.eops[j]) for j in (0, 3)]
     write_ptx(tmp_path / "room.ptx", scans)
     parser = argparse.ArgumentParser()
     add_extract_parser(parser.add_subparsers())
-    args = parser.parse_args(["extract-planes", str(tmp_path / "room.ptx"), "--out", str(tmp_path / "p.npz"),
-                              "--csv", str(tmp_path / "p.csv"), "--budget", "200"])
+    args = parser.parse_args(
+        [
+            "extract-planes",
+            str(tmp_path / "room.ptx"),
+            "--out",
+            str(tmp_path / "p.npz"),
+            "--csv",
+            str(tmp_path / "p.csv"),
+            "--budget",
+            "200",
+        ]
+    )
     assert args.func(args) == 0
     planes = load_planes(tmp_path / "p.npz")
     assert planes.scans == ("room_1", "room_2")
@@ -202,26 +216,47 @@ def test_cli_extract_planes(tmp_path, room):
 
 
 def test_cli_with_poses_file(tmp_path, room, capsys):
-    from tlsjax._geometry import cartesian_from_spherical
-    from tlsjax._pointclouds import write_xyz
+    from tlsjax._io._point_clouds import write_xyz
+    from tlsjax._model._geometry import cartesian_from_spherical
 
     rows = ["scan,x_m,y_m,z_m,omega_rad,phi_rad,kappa_rad"]
     files = []
     for j in (1, 4):
-        write_xyz(tmp_path / f"{room.scans[j]}.xyz", cartesian_from_spherical(room.observations[j], xp=np))
+        write_xyz(
+            tmp_path / f"{room.scans[j]}.xyz", cartesian_from_spherical(room.observations[j], xp=np)
+        )
         files.append(str(tmp_path / f"{room.scans[j]}.xyz"))
         rows.append(",".join([room.scans[j]] + [f"{v:.17g}" for v in room.eops[j]]))
     (tmp_path / "poses.csv").write_text("\n".join(rows) + "\n")
     parser = argparse.ArgumentParser()
     add_extract_parser(parser.add_subparsers())
-    args = parser.parse_args(["extract-planes", *files, "--out", str(tmp_path / "p.npz"),
-                              "--poses", str(tmp_path / "poses.csv"), "--budget", "50"])
+    args = parser.parse_args(
+        [
+            "extract-planes",
+            *files,
+            "--out",
+            str(tmp_path / "p.npz"),
+            "--poses",
+            str(tmp_path / "poses.csv"),
+            "--budget",
+            "50",
+        ]
+    )
     assert args.func(args) == 0
     assert "9 planes" in capsys.readouterr().out
     planes = load_planes(tmp_path / "p.npz")
     np.testing.assert_allclose(planes.poses, room.eops[[1, 4]], rtol=0, atol=1e-15)
     # Without poses two scans cannot be matched; asking for the CSV then is an error.
-    args = parser.parse_args(["extract-planes", *files, "--out", str(tmp_path / "q.npz"), "--csv", str(tmp_path / "q.csv")])
+    args = parser.parse_args(
+        [
+            "extract-planes",
+            *files,
+            "--out",
+            str(tmp_path / "q.npz"),
+            "--csv",
+            str(tmp_path / "q.csv"),
+        ]
+    )
     with pytest.raises(ValueError, match="--poses"):
         args.func(args)
 
@@ -229,12 +264,23 @@ def test_cli_with_poses_file(tmp_path, room, capsys):
 def _at_most(table, n, seed):
     """At most ``n`` random rows of each (scan, plane) of a plane table."""
     rng = np.random.default_rng(seed)
-    key = np.unique(np.stack([table.scans, table.primitives], 1), axis=0, return_inverse=True)[1].reshape(-1)
-    keep = np.sort(np.concatenate([rng.permutation(np.flatnonzero(key == k))[:n] for k in range(key.max() + 1)]))
-    return dataclasses.replace(table, scans=tuple(np.array(table.scans)[keep]),
-                               primitives=tuple(np.array(table.primitives)[keep]),
-                               observations=table.observations[keep], incidence=table.incidence[keep], rows=table.rows[keep],
-                               sigmas=None if table.sigmas is None else table.sigmas[keep])
+    key = np.unique(np.stack([table.scans, table.primitives], 1), axis=0, return_inverse=True)[
+        1
+    ].reshape(-1)
+    keep = np.sort(
+        np.concatenate(
+            [rng.permutation(np.flatnonzero(key == k))[:n] for k in range(key.max() + 1)]
+        )
+    )
+    return dataclasses.replace(
+        table,
+        scans=tuple(np.array(table.scans)[keep]),
+        primitives=tuple(np.array(table.primitives)[keep]),
+        observations=table.observations[keep],
+        incidence=table.incidence[keep],
+        rows=table.rows[keep],
+        sigmas=None if table.sigmas is None else table.sigmas[keep],
+    )
 
 
 def test_calibration_from_extracted_planes_agrees_with_known_planes(room, matched):
@@ -243,7 +289,10 @@ def test_calibration_from_extracted_planes_agrees_with_known_planes(room, matche
     # normals). Both draw 300 points per plane and scan; the APs must agree within their sigmas.
     model = tj.CalibrationModel(room.scanner)
     known = tj.calibrate(room.to_network(300, seed=0), model)
-    found = tj.calibrate(tj.make_plane_network(_at_most(matched.to_table(), 300, seed=1), levelling=room.levelling), model)
+    found = tj.calibrate(
+        tj.make_plane_network(_at_most(matched.to_table(), 300, seed=1), levelling=room.levelling),
+        model,
+    )
     for r in (known, found):
         assert r.ok and r.converged, r.message
         assert abs(r.sigma0 - 1) < 0.1  # extraction kept no outliers that would inflate sigma0
@@ -263,24 +312,31 @@ def test_clutter_gives_no_false_planes(room):
 
     def observe(x):
         rho = np.linalg.norm(x, axis=1)
-        return np.stack([rho, np.mod(np.arctan2(x[:, 1], x[:, 0]), 2 * np.pi), np.arcsin(x[:, 2] / rho)], axis=1)
+        return np.stack(
+            [rho, np.mod(np.arctan2(x[:, 1], x[:, 0]), 2 * np.pi), np.arcsin(x[:, 2] / rho)], axis=1
+        )
 
-    assert len(extract_planes([observe(u * rng.uniform(2, 10, 20000)[:, None])], seed=0).patch_scan) == 0
-    from tlsjax._geometry import rotation_matrix
+    assert (
+        len(extract_planes([observe(u * rng.uniform(2, 10, 20000)[:, None])], seed=0).patch_scan)
+        == 0
+    )
+    from tlsjax._model._geometry import rotation_matrix
 
     j = 3
     X = rng.uniform([0.5, 0.5, 0.2], [13.5, 10.5, 2.8], size=(20000, 3))
     clutter = (X - room.eops[j, :3]) @ rotation_matrix(*room.eops[j, 3:], xp=np).T
     obs = np.concatenate([room.observations[j], observe(clutter)])
     label = np.concatenate([room.plane_ids[j], np.full(20000, -1)])
-    ex = match_planes(extract_planes([obs], seed=0), room.eops[j:j + 1])
+    ex = match_planes(extract_planes([obs], seed=0), room.eops[j : j + 1])
     counts = np.bincount(room.plane_ids[j], minlength=len(room.planes))
     visible = np.flatnonzero(counts >= 2 * ExtractionConfig().min_points)
     assert len(ex.planes) == len(visible)
     for g in range(len(ex.planes)):
         lab = label[ex.point_index[ex.point_plane == g]]
         majority = np.bincount(lab[lab >= 0]).argmax()
-        assert (lab == majority).mean() > 0.97  # a clutter point or two inside a board's 3-sigma slab
+        assert (
+            lab == majority
+        ).mean() > 0.97  # a clutter point or two inside a board's 3-sigma slab
     found = np.zeros(len(label), dtype=bool)
     found[ex.point_index] = True
     for k in visible:

@@ -8,15 +8,24 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
-from tlsjax._aps import _REGISTRY
-from tlsjax._geometry import rotation_matrix, spherical_from_cartesian
+from tlsjax._model._aps import _REGISTRY
+from tlsjax._model._geometry import rotation_matrix, spherical_from_cartesian
 
 
 @pytest.fixture(scope="module", autouse=True)
 def extra_terms():
     # The full collimation model sec(alpha) on a hybrid scanner, and a copy of B7's basis.
-    tj.register_ap("B6full", "hz", lambda r, t, a, s: 1.0 / jnp.cos(a), "rad", "full collimation", overwrite=True)
-    tj.register_ap("B7copy", "hz", lambda r, t, a, s: jnp.tan(a), "rad", "same basis as B7", overwrite=True)
+    tj.register_ap(
+        "B6full",
+        "hz",
+        lambda r, t, a, s: 1.0 / jnp.cos(a),
+        "rad",
+        "full collimation",
+        overwrite=True,
+    )
+    tj.register_ap(
+        "B7copy", "hz", lambda r, t, a, s: jnp.tan(a), "rad", "same basis as B7", overwrite=True
+    )
     yield
     for name in ("B6full", "B7copy"):
         _REGISTRY.pop(name, None)
@@ -29,7 +38,9 @@ def _flat_network(noise_seed=0):
     rng = np.random.default_rng(noise_seed)
     ang = rng.uniform(0, 2 * np.pi, 30)
     X = np.stack([7 + 6 * np.cos(ang), 5.5 + 5 * np.sin(ang), np.full(30, 1.6)], axis=1)
-    eops = np.array([[4.5, 4.0, 1.6, 0, 0, 0.3], [9.5, 7.0, 1.6, 0, 0, 1.4], [6.0, 6.0, 1.6, 0, 0, 2.5]])
+    eops = np.array(
+        [[4.5, 4.0, 1.6, 0, 0, 0.3], [9.5, 7.0, 1.6, 0, 0, 1.4], [6.0, 6.0, 1.6, 0, 0, 2.5]]
+    )
     scans, targets, obs = [], [], []
     for j, e in enumerate(eops):
         R = np.asarray(rotation_matrix(*e[3:], xp=np))
@@ -39,14 +50,19 @@ def _flat_network(noise_seed=0):
         scans += [f"S{j + 1}"] * len(X)
         targets += [f"T{i}" for i in range(len(X))]
         obs.append(l)
-    lev = {f"S{j + 1}": {"omega": 0.0, "phi": 0.0, "sigma_omega": 5e-5, "sigma_phi": 5e-5} for j in range(3)}
-    return tj.make_network(scans, targets, np.concatenate(obs), levelling=lev, sigma_hz=1e-4, sigma_el=1e-4)
+    lev = {
+        f"S{j + 1}": {"omega": 0.0, "phi": 0.0, "sigma_omega": 5e-5, "sigma_phi": 5e-5}
+        for j in range(3)
+    }
+    return tj.make_network(
+        scans, targets, np.concatenate(obs), levelling=lev, sigma_hz=1e-4, sigma_el=1e-4
+    )
 
 
 def test_full_collimation_at_one_elevation_is_confounded_with_kappa():
     res = tj.calibrate(_flat_network(), tj.CalibrationModel(tj.Scanner(aps="A0 B6full")))
     assert res.result == 2, res.message
-    (name, partner, reason), = res.not_estimable
+    ((name, partner, reason),) = res.not_estimable
     assert name == "B6full" and partner.startswith("kappa[")
     assert "B6full is not estimable" in res.message and partner in res.message
     i = res.ap_names.index("B6full")

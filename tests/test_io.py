@@ -6,7 +6,8 @@ import re
 import numpy as np
 import pytest
 
-from tlsjax._io import ObservationTable, parse_unit_column, read_observations, read_scans, write_observations
+from tlsjax._adjustment._network import ObservationTable
+from tlsjax._io._tables import parse_unit_column, read_observations, read_scans, write_observations
 
 DEG = math.pi / 180.0
 GON = math.pi / 200.0
@@ -36,16 +37,20 @@ S2,T1,11.0,180.0,100.0
 # Units
 # --------------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("header, expected", [
-    ("hz_deg", ("hz", "deg", DEG)),
-    ("el_rad", ("el", "rad", 1.0)),
-    ("hz_gon", ("hz", "gon", GON)),
-    ("sigma_hz_arcsec", ("sigma_hz", "arcsec", ARCSEC)),
-    ("range_mm", ("range", "mm", 1e-3)),
-    ("sigma_range_m", ("sigma_range", "m", 1.0)),
-    ("incidence_deg", ("incidence", "deg", DEG)),
-    ("sigma_omega_arcsec", ("sigma_omega", "arcsec", ARCSEC)),
-])
+
+@pytest.mark.parametrize(
+    "header, expected",
+    [
+        ("hz_deg", ("hz", "deg", DEG)),
+        ("el_rad", ("el", "rad", 1.0)),
+        ("hz_gon", ("hz", "gon", GON)),
+        ("sigma_hz_arcsec", ("sigma_hz", "arcsec", ARCSEC)),
+        ("range_mm", ("range", "mm", 1e-3)),
+        ("sigma_range_m", ("sigma_range", "m", 1.0)),
+        ("incidence_deg", ("incidence", "deg", DEG)),
+        ("sigma_omega_arcsec", ("sigma_omega", "arcsec", ARCSEC)),
+    ],
+)
 def test_parse_unit_column(header, expected):
     q, u, f = parse_unit_column(header)
     assert (q, u) == expected[:2]
@@ -59,21 +64,27 @@ def test_unit_factors_against_hand_values():
     assert 180.0 * parse_unit_column("el_deg")[2] == pytest.approx(math.pi, rel=1e-15)
 
 
-@pytest.mark.parametrize("header, message", [
-    ("hz", "missing unit suffix"),
-    ("range_km", "unknown unit suffix '_km'"),
-    ("range_deg", "length"),
-    ("hz_mm", "angle"),
-])
+@pytest.mark.parametrize(
+    "header, message",
+    [
+        ("hz", "missing unit suffix"),
+        ("range_km", "unknown unit suffix '_km'"),
+        ("range_deg", "length"),
+        ("hz_mm", "angle"),
+    ],
+)
 def test_parse_unit_column_errors(header, message):
     with pytest.raises(ValueError, match=message):
         parse_unit_column(header)
 
 
 def test_read_converts_units(tmp_path):
-    path = write(tmp_path, "scan,target,range_mm,hz_gon,el_arcsec,sigma_range_mm,sigma_hz_arcsec,sigma_el_deg,"
-                           "incidence_deg\n"
-                           "S1,T1,1500,200,3600,0.5,20,0.01,30\n")
+    path = write(
+        tmp_path,
+        "scan,target,range_mm,hz_gon,el_arcsec,sigma_range_mm,sigma_hz_arcsec,sigma_el_deg,"
+        "incidence_deg\n"
+        "S1,T1,1500,200,3600,0.5,20,0.01,30\n",
+    )
     t = read_observations(path)
     np.testing.assert_allclose(t.observations, [[1.5, math.pi, DEG]], rtol=1e-15)
     np.testing.assert_allclose(t.sigmas, [[0.5e-3, 20 * ARCSEC, 0.01 * DEG]], rtol=1e-15)
@@ -92,16 +103,23 @@ def test_read_basic_table(tmp_path):
     assert t.sigmas is None and t.incidence is None and t.instruments is None
     np.testing.assert_array_equal(t.rows, [2, 3, 4])
     np.testing.assert_allclose(t.observations[:, 0], [10.0, 12.5, 11.0])
-    np.testing.assert_allclose(t.observations[:, 1], np.array([45.0, 90.0, 180.0]) * DEG, rtol=1e-15)
+    np.testing.assert_allclose(
+        t.observations[:, 1], np.array([45.0, 90.0, 180.0]) * DEG, rtol=1e-15
+    )
     # el is not wrapped: panoramic elevations live in [-pi/2, 3pi/2).
-    np.testing.assert_allclose(t.observations[:, 2], np.array([10.0, -5.0, 100.0]) * DEG, rtol=1e-15)
+    np.testing.assert_allclose(
+        t.observations[:, 2], np.array([10.0, -5.0, 100.0]) * DEG, rtol=1e-15
+    )
 
 
 def test_names_stripped_quoting_and_blank_lines(tmp_path):
-    path = write(tmp_path, ' scan , target ,range_m,hz_deg,el_deg,instrument\n'
-                           '  S 1 ,"T,1",10,0,0, scanner A \n'
-                           '\n'
-                           'S2,T2,10,0,0,B\n')
+    path = write(
+        tmp_path,
+        " scan , target ,range_m,hz_deg,el_deg,instrument\n"
+        '  S 1 ,"T,1",10,0,0, scanner A \n'
+        "\n"
+        "S2,T2,10,0,0,B\n",
+    )
     t = read_observations(path)
     assert t.scans == ("S 1", "S2")
     assert t.primitives == ("T,1", "T2")
@@ -110,16 +128,24 @@ def test_names_stripped_quoting_and_blank_lines(tmp_path):
 
 
 def test_hz_wrapping(tmp_path):
-    path = write(tmp_path, "scan,target,range_m,hz_deg,el_deg\nS1,T1,10,-10,-10\nS1,T2,10,370,0\n"
-                           "S1,T3,10,360,0\nS1,T4,10,-1e-30,0\n")
+    path = write(
+        tmp_path,
+        "scan,target,range_m,hz_deg,el_deg\nS1,T1,10,-10,-10\nS1,T2,10,370,0\n"
+        "S1,T3,10,360,0\nS1,T4,10,-1e-30,0\n",
+    )
     t = read_observations(path)
-    np.testing.assert_allclose(t.observations[:3, 1], np.array([350.0, 10.0, 0.0]) * DEG, rtol=1e-14, atol=1e-15)
+    np.testing.assert_allclose(
+        t.observations[:3, 1], np.array([350.0, 10.0, 0.0]) * DEG, rtol=1e-14, atol=1e-15
+    )
     assert np.all((t.observations[:, 1] >= 0) & (t.observations[:, 1] < 2 * math.pi))
     assert t.observations[0, 2] == pytest.approx(-10 * DEG)
 
 
 def test_partial_sigma_columns_are_nan(tmp_path):
-    path = write(tmp_path, "scan,target,range_m,hz_deg,el_deg,sigma_hz_arcsec\nS1,T1,10,0,0,15\nS1,T2,10,0,0,\n")
+    path = write(
+        tmp_path,
+        "scan,target,range_m,hz_deg,el_deg,sigma_hz_arcsec\nS1,T1,10,0,0,15\nS1,T2,10,0,0,\n",
+    )
     t = read_observations(path)
     assert t.sigmas.shape == (2, 3)
     assert np.isnan(t.sigmas[:, 0]).all() and np.isnan(t.sigmas[:, 2]).all()
@@ -138,9 +164,13 @@ def test_header_case_and_bom(tmp_path):
 # Planes
 # --------------------------------------------------------------------------------------------
 
+
 def test_plane_file(tmp_path):
-    path = write(tmp_path, "scan,plane,range_m,hz_rad,el_rad\nS1,P1,5,0.1,0.2\nS1,P1,5.1,0.15,0.2\nS2,P1,4,1,0\n",
-                 "planes.csv")
+    path = write(
+        tmp_path,
+        "scan,plane,range_m,hz_rad,el_rad\nS1,P1,5,0.1,0.2\nS1,P1,5.1,0.15,0.2\nS2,P1,4,1,0\n",
+        "planes.csv",
+    )
     t = read_observations(path)
     assert t.kind == "plane"
     assert t.primitives == ("P1", "P1", "P1")  # many points per (scan, plane) are fine
@@ -149,7 +179,9 @@ def test_plane_file(tmp_path):
 
 def test_mixed_targets_and_planes(tmp_path):
     path = write(tmp_path, "scan,target,plane,range_m,hz_deg,el_deg\nS1,T1,P1,1,0,0\n")
-    with pytest.raises(ValueError, match=where(path, 1, "plane") + ".*may not mix targets and planes"):
+    with pytest.raises(
+        ValueError, match=where(path, 1, "plane") + ".*may not mix targets and planes"
+    ):
         read_observations(path)
 
 
@@ -157,20 +189,34 @@ def test_mixed_targets_and_planes(tmp_path):
 # Round trips
 # --------------------------------------------------------------------------------------------
 
+
 def random_table(kind="target", n=40, with_extras=True, seed=0):
     rng = np.random.default_rng(seed)
-    obs = np.column_stack([rng.uniform(0.5, 80.0, n), rng.uniform(0, 2 * np.pi, n),
-                           rng.uniform(-np.pi / 2, 3 * np.pi / 2, n)])
-    sig = np.column_stack([rng.uniform(1e-4, 2e-3, n), rng.uniform(1, 30, n) * ARCSEC,
-                           rng.uniform(1, 30, n) * ARCSEC])
+    obs = np.column_stack(
+        [
+            rng.uniform(0.5, 80.0, n),
+            rng.uniform(0, 2 * np.pi, n),
+            rng.uniform(-np.pi / 2, 3 * np.pi / 2, n),
+        ]
+    )
+    sig = np.column_stack(
+        [rng.uniform(1e-4, 2e-3, n), rng.uniform(1, 30, n) * ARCSEC, rng.uniform(1, 30, n) * ARCSEC]
+    )
     sig[3, 1] = np.nan  # a missing cell round-trips as NaN
     prims = tuple(f"{kind[0].upper()}{i}" for i in range(n))
     return ObservationTable(
-        kind=kind, source="mem", scans=tuple(f"S{i % 3}" for i in range(n)), primitives=prims,
-        observations=obs, sigmas=sig if with_extras else None,
+        kind=kind,
+        source="mem",
+        scans=tuple(f"S{i % 3}" for i in range(n)),
+        primitives=prims,
+        observations=obs,
+        sigmas=sig if with_extras else None,
         incidence=rng.uniform(0, 1.4, n) if with_extras else None,
-        instruments=tuple("scanner, A" if i % 2 else "B" for i in range(n)) if with_extras else None,
-        rows=np.arange(2, n + 2))
+        instruments=tuple("scanner, A" if i % 2 else "B" for i in range(n))
+        if with_extras
+        else None,
+        rows=np.arange(2, n + 2),
+    )
 
 
 @pytest.mark.parametrize("length_unit", ["m", "mm"])
@@ -215,37 +261,83 @@ def test_write_rejects_bad_units(tmp_path):
 HEAD = "scan,target,range_m,hz_deg,el_deg\n"
 
 
-@pytest.mark.parametrize("text, line, column, message", [
-    # header problems
-    ("scan,target,range,hz_deg,el_deg\nS1,T1,1,0,0\n", 1, "range", "missing unit suffix.*_m, _mm"),
-    ("scan,target,range_km,hz_deg,el_deg\nS1,T1,1,0,0\n", 1, "range_km", "unknown unit suffix '_km'.*_m, _mm"),
-    ("scan,target,range_m,hz_furlong,el_deg\nS1,T1,1,0,0\n", 1, "hz_furlong", "_rad, _deg, _gon, _arcsec"),
-    ("scan,target,range_deg,hz_deg,el_deg\nS1,T1,1,0,0\n", 1, "range_deg", "length.*angle"),
-    ("scan,target,range_m,hz_deg,el_m\nS1,T1,1,0,0\n", 1, "el_m", "angle.*length"),
-    ("scan,target,range_m,hz_deg\nS1,T1,1,0\n", 1, "el_<unit>", "missing required column"),
-    ("target,range_m,hz_deg,el_deg\nT1,1,0,0\n", 1, "scan", "missing required column"),
-    ("scan,range_m,hz_deg,el_deg\nS1,1,0,0\n", 1, "target", "missing required column.*plane"),
-    ("scan,target,range_m,hz_deg,hz_rad,el_deg\nS1,T1,1,0,0,0\n", 1, "hz_rad", "given twice"),
-    # row problems
-    (HEAD + "S1,T1,1,0,0\nS1,T2,1,0\n", 3, None, "expected 5 fields, found 4"),
-    (HEAD + "S1,T1,1,0,0,7\n", 2, None, "expected 5 fields, found 6"),
-    (HEAD + "S1,T1,1,0,0\nS1,T2,1,abc,0\n", 3, "hz_deg", "'abc' is not a number"),
-    (HEAD + "S1,T1,1,0,nan\n", 2, "el_deg", "not a finite number"),
-    (HEAD + "S1,T1,inf,0,0\n", 2, "range_m", "not a finite number"),
-    (HEAD + "S1,T1,1,,0\n", 2, "hz_deg", "empty value"),
-    (HEAD + "S1,T1,0,0,0\n", 2, "range_m", "range must be positive"),
-    (HEAD + "S1,T1,-2,0,0\n", 2, "range_m", "range must be positive"),
-    (HEAD + " ,T1,1,0,0\n", 2, "scan", "empty scan name"),
-    (HEAD + "S1,,1,0,0\n", 2, "target", "empty target name"),
-    (HEAD + "S1,T1,1,0,0\nS2,T1,1,0,0\nS1,T1,2,0,0\n", 4, "target", r"duplicate.*lines 2 and 4"),
-    ("scan,target,range_m,hz_deg,el_deg,sigma_range_mm\nS1,T1,1,0,0,0\n", 2, "sigma_range_mm",
-     "sigma must be positive"),
-    ("scan,target,range_m,hz_deg,el_deg,sigma_hz_arcsec\nS1,T1,1,0,0,-3\n", 2, "sigma_hz_arcsec",
-     "sigma must be positive"),
-    ("scan,target,range_m,hz_deg,el_deg,sigma_el_arcsec\nS1,T1,1,0,0,x\n", 2, "sigma_el_arcsec", "not a number"),
-    ("scan,target,range_m,hz_deg,el_deg,incidence_deg\nS1,T1,1,0,0,inf\n", 2, "incidence_deg", "not a finite"),
-    ("scan,target,range_m,hz_deg,el_deg,instrument\nS1,T1,1,0,0,\n", 2, "instrument", "empty instrument"),
-])
+@pytest.mark.parametrize(
+    "text, line, column, message",
+    [
+        # header problems
+        (
+            "scan,target,range,hz_deg,el_deg\nS1,T1,1,0,0\n",
+            1,
+            "range",
+            "missing unit suffix.*_m, _mm",
+        ),
+        (
+            "scan,target,range_km,hz_deg,el_deg\nS1,T1,1,0,0\n",
+            1,
+            "range_km",
+            "unknown unit suffix '_km'.*_m, _mm",
+        ),
+        (
+            "scan,target,range_m,hz_furlong,el_deg\nS1,T1,1,0,0\n",
+            1,
+            "hz_furlong",
+            "_rad, _deg, _gon, _arcsec",
+        ),
+        ("scan,target,range_deg,hz_deg,el_deg\nS1,T1,1,0,0\n", 1, "range_deg", "length.*angle"),
+        ("scan,target,range_m,hz_deg,el_m\nS1,T1,1,0,0\n", 1, "el_m", "angle.*length"),
+        ("scan,target,range_m,hz_deg\nS1,T1,1,0\n", 1, "el_<unit>", "missing required column"),
+        ("target,range_m,hz_deg,el_deg\nT1,1,0,0\n", 1, "scan", "missing required column"),
+        ("scan,range_m,hz_deg,el_deg\nS1,1,0,0\n", 1, "target", "missing required column.*plane"),
+        ("scan,target,range_m,hz_deg,hz_rad,el_deg\nS1,T1,1,0,0,0\n", 1, "hz_rad", "given twice"),
+        # row problems
+        (HEAD + "S1,T1,1,0,0\nS1,T2,1,0\n", 3, None, "expected 5 fields, found 4"),
+        (HEAD + "S1,T1,1,0,0,7\n", 2, None, "expected 5 fields, found 6"),
+        (HEAD + "S1,T1,1,0,0\nS1,T2,1,abc,0\n", 3, "hz_deg", "'abc' is not a number"),
+        (HEAD + "S1,T1,1,0,nan\n", 2, "el_deg", "not a finite number"),
+        (HEAD + "S1,T1,inf,0,0\n", 2, "range_m", "not a finite number"),
+        (HEAD + "S1,T1,1,,0\n", 2, "hz_deg", "empty value"),
+        (HEAD + "S1,T1,0,0,0\n", 2, "range_m", "range must be positive"),
+        (HEAD + "S1,T1,-2,0,0\n", 2, "range_m", "range must be positive"),
+        (HEAD + " ,T1,1,0,0\n", 2, "scan", "empty scan name"),
+        (HEAD + "S1,,1,0,0\n", 2, "target", "empty target name"),
+        (
+            HEAD + "S1,T1,1,0,0\nS2,T1,1,0,0\nS1,T1,2,0,0\n",
+            4,
+            "target",
+            r"duplicate.*lines 2 and 4",
+        ),
+        (
+            "scan,target,range_m,hz_deg,el_deg,sigma_range_mm\nS1,T1,1,0,0,0\n",
+            2,
+            "sigma_range_mm",
+            "sigma must be positive",
+        ),
+        (
+            "scan,target,range_m,hz_deg,el_deg,sigma_hz_arcsec\nS1,T1,1,0,0,-3\n",
+            2,
+            "sigma_hz_arcsec",
+            "sigma must be positive",
+        ),
+        (
+            "scan,target,range_m,hz_deg,el_deg,sigma_el_arcsec\nS1,T1,1,0,0,x\n",
+            2,
+            "sigma_el_arcsec",
+            "not a number",
+        ),
+        (
+            "scan,target,range_m,hz_deg,el_deg,incidence_deg\nS1,T1,1,0,0,inf\n",
+            2,
+            "incidence_deg",
+            "not a finite",
+        ),
+        (
+            "scan,target,range_m,hz_deg,el_deg,instrument\nS1,T1,1,0,0,\n",
+            2,
+            "instrument",
+            "empty instrument",
+        ),
+    ],
+)
 def test_observation_errors(tmp_path, text, line, column, message):
     path = write(tmp_path, text)
     with pytest.raises(ValueError, match=where(path, line, column) + ".*" + message):
@@ -253,8 +345,12 @@ def test_observation_errors(tmp_path, text, line, column, message):
 
 
 def test_unknown_columns_are_named(tmp_path):
-    path = write(tmp_path, "scan,target,range_m,hz_deg,el_deg,sigma_rnage_mm,comment\nS1,T1,1,0,0,1,x\n")
-    with pytest.raises(ValueError, match=where(path, 1) + ".*unknown column.*'sigma_rnage_mm', 'comment'"):
+    path = write(
+        tmp_path, "scan,target,range_m,hz_deg,el_deg,sigma_rnage_mm,comment\nS1,T1,1,0,0,1,x\n"
+    )
+    with pytest.raises(
+        ValueError, match=where(path, 1) + ".*unknown column.*'sigma_rnage_mm', 'comment'"
+    ):
         read_observations(path)
 
 
@@ -300,11 +396,16 @@ def test_line_numbers_after_multiline_field(tmp_path):
 # Scans file
 # --------------------------------------------------------------------------------------------
 
+
 def test_read_scans(tmp_path):
-    path = write(tmp_path, "scan,omega_deg,phi_gon,sigma_omega_arcsec,sigma_phi_arcsec\n"
-                           "S1,0.01,-0.02,10,12\n"
-                           "S2,,,5,5\n"
-                           "S3,0.5,0.5,,\n", "scans.csv")
+    path = write(
+        tmp_path,
+        "scan,omega_deg,phi_gon,sigma_omega_arcsec,sigma_phi_arcsec\n"
+        "S1,0.01,-0.02,10,12\n"
+        "S2,,,5,5\n"
+        "S3,0.5,0.5,,\n",
+        "scans.csv",
+    )
     scans = read_scans(path)
     assert set(scans) == {"S1", "S2"}  # S3 is not levelled
     assert scans["S1"]["omega"] == pytest.approx(0.01 * DEG, rel=1e-15)
@@ -321,19 +422,62 @@ def test_read_scans_without_sigmas_levels_nothing(tmp_path):
     assert read_scans(path) == {}
 
 
-@pytest.mark.parametrize("text, line, column, message", [
-    ("scan,sigma_omega_arcsec,sigma_phi_arcsec\nS1,1,1\nS2,1,1\nS1,2,2\n", 4, "scan", "duplicate scan.*lines 2 and 4"),
-    ("scan,omega,sigma_omega_arcsec,sigma_phi_arcsec\nS1,0,1,1\n", 1, "omega", "missing unit suffix"),
-    ("scan,omega_mm,sigma_omega_arcsec,sigma_phi_arcsec\nS1,0,1,1\n", 1, "omega_mm", "angle"),
-    ("scan,omega_deg,sigma_omega_arcsec,sigma_phi_arcsec\nS1,x,1,1\n", 2, "omega_deg", "'x' is not a number"),
-    ("scan,sigma_omega_arcsec,sigma_phi_arcsec\nS1,0,1\n", 2, "sigma_omega_arcsec", "sigma must be positive"),
-    ("scan,sigma_omega_arcsec,sigma_phi_arcsec\nS1,1,nan\n", 2, "sigma_phi_arcsec", "not a finite"),
-    ("scan,sigma_omega_arcsec,sigma_phi_arcsec\nS1,1,\n", 2, "sigma_phi_arcsec", "both or neither"),
-    ("scan,sigma_omega_arcsec\nS1,1\n", 1, "sigma_omega_arcsec", "sigma_phi_<unit>"),
-    ("scan,sigma_omega_arcsec,sigma_phi_arcsec\n,1,1\n", 2, "scan", "empty scan name"),
-    ("scan,sigma_omega_arcsec,sigma_phi_arcsec\nS1,1,1,1\n", 2, None, "expected 3 fields, found 4"),
-    ("omega_deg,sigma_omega_arcsec,sigma_phi_arcsec\n0,1,1\n", 1, "scan", "missing required column"),
-])
+@pytest.mark.parametrize(
+    "text, line, column, message",
+    [
+        (
+            "scan,sigma_omega_arcsec,sigma_phi_arcsec\nS1,1,1\nS2,1,1\nS1,2,2\n",
+            4,
+            "scan",
+            "duplicate scan.*lines 2 and 4",
+        ),
+        (
+            "scan,omega,sigma_omega_arcsec,sigma_phi_arcsec\nS1,0,1,1\n",
+            1,
+            "omega",
+            "missing unit suffix",
+        ),
+        ("scan,omega_mm,sigma_omega_arcsec,sigma_phi_arcsec\nS1,0,1,1\n", 1, "omega_mm", "angle"),
+        (
+            "scan,omega_deg,sigma_omega_arcsec,sigma_phi_arcsec\nS1,x,1,1\n",
+            2,
+            "omega_deg",
+            "'x' is not a number",
+        ),
+        (
+            "scan,sigma_omega_arcsec,sigma_phi_arcsec\nS1,0,1\n",
+            2,
+            "sigma_omega_arcsec",
+            "sigma must be positive",
+        ),
+        (
+            "scan,sigma_omega_arcsec,sigma_phi_arcsec\nS1,1,nan\n",
+            2,
+            "sigma_phi_arcsec",
+            "not a finite",
+        ),
+        (
+            "scan,sigma_omega_arcsec,sigma_phi_arcsec\nS1,1,\n",
+            2,
+            "sigma_phi_arcsec",
+            "both or neither",
+        ),
+        ("scan,sigma_omega_arcsec\nS1,1\n", 1, "sigma_omega_arcsec", "sigma_phi_<unit>"),
+        ("scan,sigma_omega_arcsec,sigma_phi_arcsec\n,1,1\n", 2, "scan", "empty scan name"),
+        (
+            "scan,sigma_omega_arcsec,sigma_phi_arcsec\nS1,1,1,1\n",
+            2,
+            None,
+            "expected 3 fields, found 4",
+        ),
+        (
+            "omega_deg,sigma_omega_arcsec,sigma_phi_arcsec\n0,1,1\n",
+            1,
+            "scan",
+            "missing required column",
+        ),
+    ],
+)
 def test_scan_errors(tmp_path, text, line, column, message):
     path = write(tmp_path, text, "scans.csv")
     with pytest.raises(ValueError, match=where(path, line, column) + ".*" + message):
@@ -341,7 +485,9 @@ def test_scan_errors(tmp_path, text, line, column, message):
 
 
 def test_scan_unknown_column(tmp_path):
-    path = write(tmp_path, "scan,kappa_deg,sigma_omega_arcsec,sigma_phi_arcsec\nS1,0,1,1\n", "scans.csv")
+    path = write(
+        tmp_path, "scan,kappa_deg,sigma_omega_arcsec,sigma_phi_arcsec\nS1,0,1,1\n", "scans.csv"
+    )
     with pytest.raises(ValueError, match=where(path, 1) + ".*unknown column.*'kappa_deg'"):
         read_scans(path)
     path = write(tmp_path, "", "empty.csv")

@@ -10,14 +10,28 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
-from tlsjax._aps import GROUPS, PRESETS, ap_corrections, get_ap, register_ap, registered_aps, resolve_aps
-from tlsjax._approx import rigid_fit
-from tlsjax._datum import move_eop, move_points, null_space_columns
-from tlsjax._geometry import (
-    angles_from_matrix, cartesian_from_spherical, is_face2, rotation_matrix, spherical_from_cartesian, wrap_angle,
+from tlsjax._adjustment._linalg import rank_revealing_cholesky, spd_inverse
+from tlsjax._model._aps import (
+    GROUPS,
+    PRESETS,
+    ap_corrections,
+    get_ap,
+    register_ap,
+    registered_aps,
+    resolve_aps,
 )
-from tlsjax._linalg import rank_revealing_cholesky, spd_inverse
-from tlsjax._models import Scanner, point_geometry, point_misclosure, simulate_point_observations
+from tlsjax._model._datum import move_eop, move_points, null_space_columns
+from tlsjax._model._geometry import (
+    angles_from_matrix,
+    cartesian_from_spherical,
+    is_face2,
+    rigid_fit,
+    rotation_matrix,
+    spherical_from_cartesian,
+    wrap_angle,
+)
+from tlsjax._model._points import point_geometry, point_misclosure, simulate_point_observations
+from tlsjax._model._scanner import Scanner
 
 DEG = np.pi / 180
 ARCSEC = DEG / 3600
@@ -27,6 +41,7 @@ FULL_APS = resolve_aps("chow2013") + ("A5", "A6", "A7", "A8", "B11", "B12", "C9"
 # --------------------------------------------------------------------------------------------
 # Rotations (SPEC section 1)
 # --------------------------------------------------------------------------------------------
+
 
 def _R1(w):
     return np.array([[1, 0, 0], [0, np.cos(w), np.sin(w)], [0, -np.sin(w), np.cos(w)]])
@@ -41,9 +56,14 @@ def _R3(k):
 
 
 def _random_angles(rng, n):
-    return np.stack([
-        rng.uniform(-80, 80, n) * DEG, rng.uniform(-80, 80, n) * DEG, rng.uniform(-179, 179, n) * DEG,
-    ], axis=1)
+    return np.stack(
+        [
+            rng.uniform(-80, 80, n) * DEG,
+            rng.uniform(-80, 80, n) * DEG,
+            rng.uniform(-179, 179, n) * DEG,
+        ],
+        axis=1,
+    )
 
 
 def test_rotation_matrix_is_R3_R2_R1():
@@ -60,12 +80,21 @@ def test_rotation_matrix_is_R3_R2_R1():
 
 def test_rotation_matrix_hand_values():
     # Each elementary rotation at 90 deg, from the SPEC matrices by hand.
-    np.testing.assert_allclose(np.asarray(rotation_matrix(0.0, 0.0, np.pi / 2)),
-                               [[0, 1, 0], [-1, 0, 0], [0, 0, 1]], atol=1e-15)
-    np.testing.assert_allclose(np.asarray(rotation_matrix(np.pi / 2, 0.0, 0.0)),
-                               [[1, 0, 0], [0, 0, 1], [0, -1, 0]], atol=1e-15)
-    np.testing.assert_allclose(np.asarray(rotation_matrix(0.0, np.pi / 2, 0.0)),
-                               [[0, 0, -1], [0, 1, 0], [1, 0, 0]], atol=1e-15)
+    np.testing.assert_allclose(
+        np.asarray(rotation_matrix(0.0, 0.0, np.pi / 2)),
+        [[0, 1, 0], [-1, 0, 0], [0, 0, 1]],
+        atol=1e-15,
+    )
+    np.testing.assert_allclose(
+        np.asarray(rotation_matrix(np.pi / 2, 0.0, 0.0)),
+        [[1, 0, 0], [0, 0, 1], [0, -1, 0]],
+        atol=1e-15,
+    )
+    np.testing.assert_allclose(
+        np.asarray(rotation_matrix(0.0, np.pi / 2, 0.0)),
+        [[0, 0, -1], [0, 1, 0], [1, 0, 0]],
+        atol=1e-15,
+    )
 
 
 def test_angles_from_matrix_round_trip():
@@ -79,20 +108,33 @@ def test_angles_from_matrix_round_trip():
 # Spherical observations, faces, wrapping
 # --------------------------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("xp", [np, jnp])
 def test_spherical_hand_values(xp):
-    pts = np.array([[0.0, 1.0, 1.0], [1.0, 0.0, 0.0], [-2.0, 0.0, 0.0], [0.0, -3.0, 0.0], [1.0, 1.0, -np.sqrt(2.0)]])
-    expected = np.array([
-        [np.sqrt(2.0), 90 * DEG, 45 * DEG],
-        [1.0, 0.0, 0.0],
-        [2.0, np.pi, 0.0],
-        [3.0, 270 * DEG, 0.0],
-        [2.0, 45 * DEG, -45 * DEG],
-    ])
+    pts = np.array(
+        [
+            [0.0, 1.0, 1.0],
+            [1.0, 0.0, 0.0],
+            [-2.0, 0.0, 0.0],
+            [0.0, -3.0, 0.0],
+            [1.0, 1.0, -np.sqrt(2.0)],
+        ]
+    )
+    expected = np.array(
+        [
+            [np.sqrt(2.0), 90 * DEG, 45 * DEG],
+            [1.0, 0.0, 0.0],
+            [2.0, np.pi, 0.0],
+            [3.0, 270 * DEG, 0.0],
+            [2.0, 45 * DEG, -45 * DEG],
+        ]
+    )
     got = np.asarray(spherical_from_cartesian(xp.asarray(pts), xp=xp))
     np.testing.assert_allclose(got, expected, atol=1e-15)
     # Panoramic face 2 of (0, -1, 1): hybrid (270 deg, 45 deg) -> (90 deg, 135 deg).
-    got2 = np.asarray(spherical_from_cartesian(xp.asarray([0.0, -1.0, 1.0]), xp.asarray(True), xp=xp))
+    got2 = np.asarray(
+        spherical_from_cartesian(xp.asarray([0.0, -1.0, 1.0]), xp.asarray(True), xp=xp)
+    )
     np.testing.assert_allclose(got2, [np.sqrt(2.0), 90 * DEG, 135 * DEG], atol=1e-15)
 
 
@@ -116,15 +158,27 @@ def test_spherical_cartesian_round_trip_both_faces():
     # SPEC ranges of a panoramic scanner: theta in [0, pi), alpha in [-pi/2, 3pi/2).
     assert np.all((lp[:, 1] >= 0) & (lp[:, 1] < np.pi))
     assert np.all((lp[:, 2] >= -np.pi / 2) & (lp[:, 2] < 1.5 * np.pi))
-    np.testing.assert_array_equal(np.asarray(is_face2(jnp.asarray(lp[:, 2]))), face2 & (np.abs(l[:, 2]) < np.pi / 2))
+    np.testing.assert_array_equal(
+        np.asarray(is_face2(jnp.asarray(lp[:, 2]))), face2 & (np.abs(l[:, 2]) < np.pi / 2)
+    )
     np.testing.assert_allclose(np.asarray(cartesian_from_spherical(jnp.asarray(lp))), x, atol=1e-13)
 
 
 def test_wrap_angle():
     cases = {
-        0.0: 0.0, np.pi: np.pi, -np.pi: np.pi, 3 * np.pi: np.pi, -3 * np.pi: np.pi,
-        2 * np.pi: 0.0, 2 * np.pi - 1e-3: -1e-3, 2 * np.pi + 1e-3: 1e-3, -2 * np.pi + 1e-3: 1e-3,
-        np.pi + 1e-9: -np.pi + 1e-9, -np.pi + 1e-9: -np.pi + 1e-9, 1.0: 1.0, -1.0: -1.0,
+        0.0: 0.0,
+        np.pi: np.pi,
+        -np.pi: np.pi,
+        3 * np.pi: np.pi,
+        -3 * np.pi: np.pi,
+        2 * np.pi: 0.0,
+        2 * np.pi - 1e-3: -1e-3,
+        2 * np.pi + 1e-3: 1e-3,
+        -2 * np.pi + 1e-3: 1e-3,
+        np.pi + 1e-9: -np.pi + 1e-9,
+        -np.pi + 1e-9: -np.pi + 1e-9,
+        1.0: 1.0,
+        -1.0: -1.0,
     }
     a = np.array(list(cases))
     got = np.asarray(wrap_angle(jnp.asarray(a)))
@@ -140,6 +194,7 @@ def test_wrap_angle():
 # --------------------------------------------------------------------------------------------
 # Jacobian blocks of the point model vs central finite differences
 # --------------------------------------------------------------------------------------------
+
 
 def _central_fd(f, x, step):
     x = np.asarray(x, dtype=float)
@@ -168,11 +223,17 @@ def test_point_misclosure_jacobian_matches_finite_differences(architecture):
     names = scanner.aps
     sl = ((0, len(names)),)
     f = jax.jit(lambda X, eop, c, l: point_misclosure(X, eop, c, l, (scanner,), (names,), sl, 0))
-    jac = jax.jit(jax.jacfwd(lambda X, eop, c, l: point_misclosure(X, eop, c, l, (scanner,), (names,), sl, 0),
-                             argnums=(0, 1, 2)))
+    jac = jax.jit(
+        jax.jacfwd(
+            lambda X, eop, c, l: point_misclosure(X, eop, c, l, (scanner,), (names,), sl, 0),
+            argnums=(0, 1, 2),
+        )
+    )
     seen_face2 = False
     for trial in range(8):
-        eop = np.concatenate([rng.uniform(-2, 2, 3), rng.uniform(-0.5, 0.5, 2), rng.uniform(-3, 3, 1)])
+        eop = np.concatenate(
+            [rng.uniform(-2, 2, 3), rng.uniform(-0.5, 0.5, 2), rng.uniform(-3, 3, 1)]
+        )
         R = rotation_matrix(*eop[3:], xp=np)
         # A scanner-space direction away from the wrap lines and the poles; every other trial
         # behind the scanner (hybrid theta >= pi: face 2 of a panoramic scanner).
@@ -183,7 +244,11 @@ def test_point_misclosure_jacobian_matches_finite_differences(architecture):
         X = R.T @ x + eop[:3]
         face2 = architecture == "panoramic" and th >= np.pi
         seen_face2 |= face2
-        l_geo = np.asarray(spherical_from_cartesian(jnp.asarray(x), jnp.asarray(face2) if architecture == "panoramic" else None))
+        l_geo = np.asarray(
+            spherical_from_cartesian(
+                jnp.asarray(x), jnp.asarray(face2) if architecture == "panoramic" else None
+            )
+        )
         l_obs = l_geo + np.array([1e-3, 50 * ARCSEC, -50 * ARCSEC])
         c = _coefficients(rng, names)
         JX, Je, Jc = (np.asarray(J) for J in jac(X, eop, c, l_obs))
@@ -207,7 +272,13 @@ def test_point_misclosure_selects_instrument_block():
     eop = np.array([0.1, -0.2, 0.3, 0.01, -0.02, 0.5])
     l = np.asarray(spherical_from_cartesian(point_geometry(jnp.asarray(X), jnp.asarray(eop))))
     c = np.array([1e-3, 2e-4, 3e-4, 4e-3, 5e-4])
-    jac = jax.jit(jax.jacfwd(lambda c, inst: point_misclosure(X, eop, c, l, (s1, s2), (s1.aps, s2.aps), ((0, 3), (3, 5)), inst)))
+    jac = jax.jit(
+        jax.jacfwd(
+            lambda c, inst: point_misclosure(
+                X, eop, c, l, (s1, s2), (s1.aps, s2.aps), ((0, 3), (3, 5)), inst
+            )
+        )
+    )
     for inst, other in ((0, slice(3, 5)), (1, slice(0, 3))):
         J = np.asarray(jac(c, inst))
         assert np.all(J[:, other] == 0)
@@ -231,16 +302,38 @@ SPEC_GROUPS = {
 def _spec_basis(name, r, t, a, arch, U, U2):
     """The basis functions of SPEC section 3, written out independently (numpy)."""
     table = {
-        "A0": np.ones_like(r), "A1": r, "A2": np.sin(a),
-        "A3": np.sin(4 * np.pi * r / U), "A4": np.cos(4 * np.pi * r / U),
-        "A5": np.sin(4 * np.pi * r / U2), "A6": np.cos(4 * np.pi * r / U2),
-        "A7": np.sin(4 * t), "A8": np.cos(4 * t),
-        "B1": t, "B2": np.sin(t), "B3": np.cos(t), "B4": np.sin(2 * t), "B5": np.cos(2 * t),
-        "B6": 1 / np.cos(a) - (1.0 if arch == "hybrid" else 0.0), "B7": np.tan(a), "B8": 1 / r,
-        "B9": np.sin(a), "B10": np.cos(a), "B11": np.sin(3 * a), "B12": np.sin(4 * a),
-        "C0": np.ones_like(r), "C1": a, "C2": np.sin(a), "C3": np.cos(a), "C4": np.sin(2 * a),
-        "C5": np.cos(2 * a), "C6": 1 / r, "C7": np.sin(t), "C8": np.cos(t),
-        "C9": np.sin(3 * t), "C10": np.cos(3 * t),
+        "A0": np.ones_like(r),
+        "A1": r,
+        "A2": np.sin(a),
+        "A3": np.sin(4 * np.pi * r / U),
+        "A4": np.cos(4 * np.pi * r / U),
+        "A5": np.sin(4 * np.pi * r / U2),
+        "A6": np.cos(4 * np.pi * r / U2),
+        "A7": np.sin(4 * t),
+        "A8": np.cos(4 * t),
+        "B1": t,
+        "B2": np.sin(t),
+        "B3": np.cos(t),
+        "B4": np.sin(2 * t),
+        "B5": np.cos(2 * t),
+        "B6": 1 / np.cos(a) - (1.0 if arch == "hybrid" else 0.0),
+        "B7": np.tan(a),
+        "B8": 1 / r,
+        "B9": np.sin(a),
+        "B10": np.cos(a),
+        "B11": np.sin(3 * a),
+        "B12": np.sin(4 * a),
+        "C0": np.ones_like(r),
+        "C1": a,
+        "C2": np.sin(a),
+        "C3": np.cos(a),
+        "C4": np.sin(2 * a),
+        "C5": np.cos(2 * a),
+        "C6": 1 / r,
+        "C7": np.sin(t),
+        "C8": np.cos(t),
+        "C9": np.sin(3 * t),
+        "C10": np.cos(3 * t),
     }
     return table[name]
 
@@ -262,7 +355,10 @@ def test_ap_corrections_single_terms(architecture):
     r = rng.uniform(1, 20, n)
     t = rng.uniform(0, np.pi if architecture == "panoramic" else 2 * np.pi, n)
     if architecture == "panoramic":
-        a = np.where(rng.uniform(size=n) < 0.5, rng.uniform(-80, 80, n), rng.uniform(100, 260, n)) * DEG
+        a = (
+            np.where(rng.uniform(size=n) < 0.5, rng.uniform(-80, 80, n), rng.uniform(100, 260, n))
+            * DEG
+        )
     else:
         a = rng.uniform(-80, 80, n) * DEG
     l = np.stack([r, t, a], axis=1)
@@ -281,14 +377,18 @@ def test_ap_corrections_single_terms(architecture):
     got = np.asarray(ap_corrections(jnp.asarray(coeffs), names, jnp.asarray(l), scanner))
     expected = np.zeros((n, 3))
     for name, c in zip(names, coeffs):
-        expected[:, GROUPS.index(SPEC_GROUPS[name])] += c * _spec_basis(name, r, t, a, architecture, 1.3, 0.7)
+        expected[:, GROUPS.index(SPEC_GROUPS[name])] += c * _spec_basis(
+            name, r, t, a, architecture, 1.3, 0.7
+        )
     np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-15)
 
 
 def test_presets_and_parsing():
     chow = PRESETS["chow2013"]
     assert len(chow) == 24
-    assert set(chow) == {f"A{i}" for i in range(5)} | {f"B{i}" for i in range(1, 11)} | {f"C{i}" for i in range(9)}
+    assert set(chow) == {f"A{i}" for i in range(5)} | {f"B{i}" for i in range(1, 11)} | {
+        f"C{i}" for i in range(9)
+    }
     assert resolve_aps("chow2013") == chow
     assert resolve_aps("A0, B6 C0") == ("A0", "B6", "C0")
     assert resolve_aps(["C0", "A0"]) == ("C0", "A0")
@@ -308,6 +408,7 @@ def test_presets_and_parsing():
 # Simulated observations are consistent with the model
 # --------------------------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("architecture", ["hybrid", "panoramic"])
 def test_simulated_observations_close_the_model(architecture):
     rng = np.random.default_rng(6)
@@ -315,18 +416,42 @@ def test_simulated_observations_close_the_model(architecture):
     scanner = Scanner(architecture=architecture, aps=aps, unit_length=0.9)
     names = scanner.aps
     # The papers' true values (SPEC section 8): 10 mm range terms, 3' angular terms, B8/C6 10 mm.
-    c = jnp.asarray([tj._simulate.default_true_value(n) * s for n, s in zip(names, rng.choice([-1.0, 1.0], len(names)))])
+    c = jnp.asarray(
+        [
+            tj._simulation._room.default_true_value(n) * s
+            for n, s in zip(names, rng.choice([-1.0, 1.0], len(names)))
+        ]
+    )
     sl = ((0, len(names)),)
     eop = np.array([1.0, 2.0, 1.5, 0.05, -0.03, 0.7])
     u = rng.normal(size=(40, 3))
-    X = np.asarray(eop[:3]) + u / np.linalg.norm(u, axis=1, keepdims=True) * rng.uniform(1.5, 20, (40, 1))
+    X = np.asarray(eop[:3]) + u / np.linalg.norm(u, axis=1, keepdims=True) * rng.uniform(
+        1.5, 20, (40, 1)
+    )
     x = np.asarray(jax.vmap(lambda p: point_geometry(p, jnp.asarray(eop)))(jnp.asarray(X)))
     hyb = spherical_from_cartesian(x, xp=np)
     face2 = hyb[:, 1] >= np.pi if architecture == "panoramic" else np.zeros(len(X), bool)
-    sim = jax.vmap(lambda Xi, f2: simulate_point_observations(Xi, jnp.asarray(eop), c, (scanner,), (names,), sl, 0,
-                                                              jnp.zeros(3), f2 if architecture == "panoramic" else None))
+    sim = jax.vmap(
+        lambda Xi, f2: simulate_point_observations(
+            Xi,
+            jnp.asarray(eop),
+            c,
+            (scanner,),
+            (names,),
+            sl,
+            0,
+            jnp.zeros(3),
+            f2 if architecture == "panoramic" else None,
+        )
+    )
     l = sim(jnp.asarray(X), jnp.asarray(face2))
-    mis = np.asarray(jax.vmap(lambda Xi, li: point_misclosure(Xi, jnp.asarray(eop), c, li, (scanner,), (names,), sl, 0))(jnp.asarray(X), l))
+    mis = np.asarray(
+        jax.vmap(
+            lambda Xi, li: point_misclosure(
+                Xi, jnp.asarray(eop), c, li, (scanner,), (names,), sl, 0
+            )
+        )(jnp.asarray(X), l)
+    )
     assert np.abs(mis).max() < 1e-12
     # The APs really moved the observations away from the geometry (cyclic range terms included).
     l_geo = spherical_from_cartesian(x, face2 if architecture == "panoramic" else None, xp=np)
@@ -337,7 +462,9 @@ def test_simulated_observations_close_the_model(architecture):
     cc = np.asarray(c)
     expected_range = np.linalg.norm(x, axis=1) + sum(
         cc[k] * _spec_basis(n, lo[:, 0], lo[:, 1], lo[:, 2], architecture, 0.9, 0.6)
-        for k, n in enumerate(names) if SPEC_GROUPS[n] == "range")
+        for k, n in enumerate(names)
+        if SPEC_GROUPS[n] == "range"
+    )
     np.testing.assert_allclose(lo[:, 0], expected_range, atol=1e-12)
 
 
@@ -371,7 +498,10 @@ def test_null_space_columns_of_points():
 
 def test_move_eop_columns_keep_scanner_coordinates():
     rng = np.random.default_rng(8)
-    eops = np.concatenate([rng.normal(size=(4, 3)) * 3, rng.uniform(-0.6, 0.6, (4, 2)), rng.uniform(-3, 3, (4, 1))], axis=1)
+    eops = np.concatenate(
+        [rng.normal(size=(4, 3)) * 3, rng.uniform(-0.6, 0.6, (4, 2)), rng.uniform(-3, 3, (4, 1))],
+        axis=1,
+    )
     He = np.asarray(_null_space(move_eop, jnp.asarray(eops), tuple(range(6))))  # (4, 6, 6)
     X = rng.normal(size=(6, 3)) * 5
     Hx = np.asarray(_null_space(move_points, jnp.asarray(X), tuple(range(6))))  # (6, 3, 6)
@@ -380,13 +510,15 @@ def test_move_eop_columns_keep_scanner_coordinates():
     def changes(eps):
         """|x(X + eps dX, eop + eps deop) - x(X, eop)| for every scan, motion column and point,
         and the same with the pose left alone (shape (2, scans, 6, points))."""
+
         def one(eop, He_j, X_i, Hx_i, col, move_pose):
             base = point_geometry(X_i, eop)
             moved = point_geometry(X_i + eps * Hx_i[:, col], eop + move_pose * eps * He_j[:, col])
             return jnp.linalg.norm(moved - base)
-        f = jax.vmap(one, in_axes=(None, None, 0, 0, None, None))          # points
-        f = jax.vmap(f, in_axes=(None, None, None, None, 0, None))         # columns
-        f = jax.vmap(f, in_axes=(0, 0, None, None, None, None))            # scans
+
+        f = jax.vmap(one, in_axes=(None, None, 0, 0, None, None))  # points
+        f = jax.vmap(f, in_axes=(None, None, None, None, 0, None))  # columns
+        f = jax.vmap(f, in_axes=(0, 0, None, None, None, None))  # scans
         cols = jnp.arange(6)
         return jnp.stack([f(eops, He, X, Hx, cols, 1.0), f(eops, He, X, Hx, cols, 0.0)])
 
@@ -404,13 +536,16 @@ def test_move_eop_columns_keep_scanner_coordinates():
 # Small linear algebra and the approximate values
 # --------------------------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("p", [3, 4, 6])
 def test_spd_inverse_matches_numpy(p):
     rng = np.random.default_rng(10 + p)
     M = rng.normal(size=(7, p, p))
     A = M @ np.swapaxes(M, -1, -2) + 0.1 * np.eye(p)
     got = np.asarray(spd_inverse(jnp.asarray(A)))
-    np.testing.assert_allclose(got, np.linalg.inv(A), rtol=1e-9, atol=1e-9 * np.abs(np.linalg.inv(A)).max())
+    np.testing.assert_allclose(
+        got, np.linalg.inv(A), rtol=1e-9, atol=1e-9 * np.abs(np.linalg.inv(A)).max()
+    )
     np.testing.assert_allclose(got @ A, np.broadcast_to(np.eye(p), A.shape), atol=1e-9)
 
 
@@ -428,9 +563,13 @@ def test_rank_revealing_cholesky_flags_dependent_column():
     np.testing.assert_allclose((L @ L.T)[np.ix_(ind, ind)], A[np.ix_(ind, ind)], atol=1e-13)
     np.testing.assert_array_equal(np.triu(L, 1), 0)
     # The Cholesky factor of the independent block is the textbook one.
-    np.testing.assert_allclose(L[np.ix_(ind, ind)], np.linalg.cholesky(A[np.ix_(ind, ind)]), atol=1e-13)
+    np.testing.assert_allclose(
+        L[np.ix_(ind, ind)], np.linalg.cholesky(A[np.ix_(ind, ind)]), atol=1e-13
+    )
     # A fixed parameter is treated like a dependent one.
-    _, dep_f, _ = rank_revealing_cholesky(jnp.asarray(A), jnp.asarray([False, True, False, False, False, False]), 1e-8)
+    _, dep_f, _ = rank_revealing_cholesky(
+        jnp.asarray(A), jnp.asarray([False, True, False, False, False, False]), 1e-8
+    )
     np.testing.assert_array_equal(np.asarray(dep_f), [False, True, False, True, False, False])
 
 
@@ -453,8 +592,16 @@ def test_rigid_fit_recovers_rotation_and_translation():
 # A user-registered term behaves exactly like a built-in one
 # --------------------------------------------------------------------------------------------
 
+
 def test_user_term_equals_builtin_in_calibration():
-    term = register_ap("Zuser1", "el", lambda r, t, a, s: jnp.ones_like(a), "rad", "user copy of C0", overwrite=True)
+    term = register_ap(
+        "Zuser1",
+        "el",
+        lambda r, t, a, s: jnp.ones_like(a),
+        "rad",
+        "user copy of C0",
+        overwrite=True,
+    )
     assert term.group == "el" and "Zuser1" in registered_aps()
     assert resolve_aps("A0 Zuser1") == ("A0", "Zuser1")
     sim = tj.simulate(tj.Room(n_targets=24), seed=3, aps="A0 B6 B7 C0", tilted=True)
@@ -474,11 +621,18 @@ def test_user_term_equals_builtin_in_calibration():
 
 @pytest.mark.parametrize("r", [5, 40, 59])
 def test_forward_substitution_and_cholesky_inverse_match_numpy(r):
-    from tlsjax._linalg import cholesky_inverse, forward_substitution
+    from tlsjax._adjustment._linalg import cholesky_inverse, forward_substitution
 
     A = np.random.default_rng(r).normal(size=(r, r))
     A = A @ A.T + r * np.eye(r)
     L = np.linalg.cholesky(A)
     B = np.random.default_rng(1).normal(size=(r, 7))
-    np.testing.assert_allclose(np.asarray(forward_substitution(jnp.asarray(L), jnp.asarray(B))), np.linalg.solve(L, B), rtol=1e-10, atol=1e-12)
-    np.testing.assert_allclose(np.asarray(cholesky_inverse(jnp.asarray(L))), np.linalg.inv(A), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(forward_substitution(jnp.asarray(L), jnp.asarray(B))),
+        np.linalg.solve(L, B),
+        rtol=1e-10,
+        atol=1e-12,
+    )
+    np.testing.assert_allclose(
+        np.asarray(cholesky_inverse(jnp.asarray(L))), np.linalg.inv(A), rtol=1e-9, atol=1e-12
+    )

@@ -7,8 +7,8 @@ import pytest
 from scipy import stats
 
 import tlsjax as tj
-from tlsjax._compat import APSet, CompatibilityOptions, compatibility_test
-from tlsjax._montecarlo import MonteCarloOptions, monte_carlo, monte_carlo_network
+from tlsjax._inference._compat import APSet, CompatibilityOptions, compatibility_test
+from tlsjax._simulation._montecarlo import MonteCarloOptions, monte_carlo, monte_carlo_network
 
 ROOM = tj.Room(n_targets=30)
 N = 300
@@ -27,16 +27,22 @@ def model():
 
 @pytest.fixture(scope="module")
 def mc(design, model):
-    return monte_carlo(design, model, MonteCarloOptions(runs=N, chunk_size=50, seed=3, progress=False))
+    return monte_carlo(
+        design, model, MonteCarloOptions(runs=N, chunk_size=50, seed=3, progress=False)
+    )
 
 
 def test_realisation_equals_calibrate(design, model, mc):
     for k in (0, 17, N - 1):
         net, truth = monte_carlo_network(design, k, seed=3)
-        assert truth == pytest.approx({n: design.true_aps[n] for n in design.scanner.aps}, rel=0, abs=0)
+        assert truth == pytest.approx(
+            {n: design.true_aps[n] for n in design.scanner.aps}, rel=0, abs=0
+        )
         ref = tj.calibrate(net, model, tj.SolverOptions(tolerance=1e-10, full_covariance=False))
         assert ref.result == 0 and mc.result[k] == 0
-        np.testing.assert_allclose(mc.ap_values[k], ref.ap_values, rtol=0, atol=1e-8 * ref.ap_sigmas.min())
+        np.testing.assert_allclose(
+            mc.ap_values[k], ref.ap_values, rtol=0, atol=1e-8 * ref.ap_sigmas.min()
+        )
         np.testing.assert_allclose(mc.ap_sigmas[k], ref.ap_sigmas, rtol=1e-8)
         assert mc.sigma0_sq[k] == pytest.approx(ref.sigma0**2, rel=1e-8)
         assert mc.dof == ref.dof
@@ -64,21 +70,25 @@ def test_power_of_absent_term_is_the_size(mc):
 def test_table_and_plot(mc, tmp_path):
     text = mc.table()
     assert "mm" in text and '"' in text and "B7" in text
-    fig = mc.plot(tmp_path / "mc.png")
+    fig = tj.plot_monte_carlo(mc, tmp_path / "mc.png")
     assert (tmp_path / "mc.png").stat().st_size > 1000
     labels = [ax.get_xlabel() for ax in fig.axes]
     assert any("[mm]" in s for s in labels) and any('["]' in s for s in labels)
 
 
 def test_failed_realisations_report_codes_and_do_not_stop_the_batch(design, model):
-    r = monte_carlo(design, model, MonteCarloOptions(runs=7, chunk_size=4, max_iterations=1, progress=False))
+    r = monte_carlo(
+        design, model, MonteCarloOptions(runs=7, chunk_size=4, max_iterations=1, progress=False)
+    )
     assert r.runs == 7 and np.all(r.result == 1) and np.all(np.isnan(r.ap_values))
     assert r.failures() == {tj.RESULT_MESSAGES[1]: 7}
 
 
 def test_true_aps_drawn_from_distribution(design, model):
     s = 1e-3
-    r = monte_carlo(design, model, MonteCarloOptions(runs=60, chunk_size=60, ap_sigma={"A0": s}, progress=False))
+    r = monte_carlo(
+        design, model, MonteCarloOptions(runs=60, chunk_size=60, ap_sigma={"A0": s}, progress=False)
+    )
     a0 = r.true_aps[:, 0]
     assert np.std(a0, ddof=1) == pytest.approx(s, rel=4 / np.sqrt(2 * 59))
     assert np.all(r.true_aps[:, 1] == design.true_aps["B6"])
@@ -95,7 +105,9 @@ def test_true_aps_drawn_from_distribution(design, model):
 @pytest.fixture(scope="module")
 def sets(mc):
     n = mc.ap_names
-    return APSet(n, mc.ap_values[0], mc.ap_covariance[0]), APSet(n, mc.ap_values[1], mc.ap_covariance[1])
+    return APSet(n, mc.ap_values[0], mc.ap_covariance[0]), APSet(
+        n, mc.ap_values[1], mc.ap_covariance[1]
+    )
 
 
 def test_null_distribution_has_the_nominal_size(sets):
@@ -103,7 +115,9 @@ def test_null_distribution_has_the_nominal_size(sets):
     # point is significant with probability alpha: the mean null share is alpha. This checks
     # the autodiff covariance propagation through correction, conversion and the rigid fit.
     s1, s2 = sets
-    r = compatibility_test(s1, s2, ROOM, options=CompatibilityOptions(runs=400, chunk_size=100, progress=False))
+    r = compatibility_test(
+        s1, s2, ROOM, options=CompatibilityOptions(runs=400, chunk_size=100, progress=False)
+    )
     assert r.n_failed == 0
     # Shares of one simulation are strongly correlated: their sd is at most sqrt(alpha(1-alpha)).
     assert abs(np.mean(r.null_shares) - 0.05) < 4 * np.sqrt(0.05 * 0.95 / 400)
@@ -134,14 +148,21 @@ def test_absent_terms_are_zero_with_zero_variance(sets):
     sub = APSet(("A0", "C0"), s1.values[[0, 3]], s1.covariance[np.ix_([0, 3], [0, 3])])
     v, C = sub.on(("A0", "B6", "B7", "C0"))
     assert v[1] == v[2] == 0 and np.all(C[1:3] == 0) and C[0, 0] == s1.covariance[0, 0]
-    r = compatibility_test(s1, sub, ROOM, options=CompatibilityOptions(runs=20, chunk_size=20, progress=False))
+    r = compatibility_test(
+        s1, sub, ROOM, options=CompatibilityOptions(runs=20, chunk_size=20, progress=False)
+    )
     assert r.ap_names == ("A0", "B6", "B7", "C0") and r.n_failed == 0
 
 
 def test_json_input(tmp_path, sets):
     s1, _ = sets
-    doc = {"sigma0": 1.0, "aps": {n: {"value": float(v), "sigma": float(np.sqrt(s1.covariance[k, k])), "unit": "m"}
-                                  for k, (n, v) in enumerate(zip(s1.names, s1.values))}}
+    doc = {
+        "sigma0": 1.0,
+        "aps": {
+            n: {"value": float(v), "sigma": float(np.sqrt(s1.covariance[k, k])), "unit": "m"}
+            for k, (n, v) in enumerate(zip(s1.names, s1.values))
+        },
+    }
     p = tmp_path / "a.json"
     p.write_text(json.dumps(doc))
     a = APSet.from_json(p)

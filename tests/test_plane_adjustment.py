@@ -10,11 +10,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import _R
 
 import tlsjax as tj
-from tlsjax._solver import Family, Options, Params, Problem, Spec, adjust
-from tlsjax._quality import quality
-from helpers import _R
+from tlsjax._adjustment._families import Family, Options, Params, Problem, Spec
+from tlsjax._adjustment._quality import quality
+from tlsjax._adjustment._solver import adjust
 
 DEG = np.pi / 180
 APS = ("A0", "B6", "B7", "C0")
@@ -22,7 +23,11 @@ APS = ("A0", "B6", "B7", "C0")
 
 def _g_by_hand(plane, eop, aps, l):
     """g = n.(R^T x + S) - d with the hybrid AP corrections A0, B6 (sec - 1), B7, C0."""
-    rho, th, al = l[0] - aps[0], l[1] - aps[1] * (1 / jnp.cos(l[2]) - 1) - aps[2] * jnp.tan(l[2]), l[2] - aps[3]
+    rho, th, al = (
+        l[0] - aps[0],
+        l[1] - aps[1] * (1 / jnp.cos(l[2]) - 1) - aps[2] * jnp.tan(l[2]),
+        l[2] - aps[3],
+    )
     x = rho * jnp.array([jnp.cos(al) * jnp.cos(th), jnp.cos(al) * jnp.sin(th), jnp.sin(al)])
     return plane[:3] @ (_R(*eop[3:]).T @ x + eop[:3]) - plane[3]
 
@@ -38,11 +43,20 @@ def _network():
             if len(idx) < 8:
                 continue
             take = rng.choice(idx, size=min(12, len(idx)), replace=False)
-            obs.append(pc.observations[j][take]); inc.append(pc.incidence[j][take])
-            plane += [k] * len(take); scan += [j] * len(take)
+            obs.append(pc.observations[j][take])
+            inc.append(pc.incidence[j][take])
+            plane += [k] * len(take)
+            scan += [j] * len(take)
     obs, inc = np.concatenate(obs), np.concatenate(inc)
     plane, scan = np.array(plane), np.array(scan)
-    sig = np.stack([pc.sigma_range / np.cos(inc), np.full(len(inc), pc.sigma_angle), np.full(len(inc), pc.sigma_angle)], 1)
+    sig = np.stack(
+        [
+            pc.sigma_range / np.cos(inc),
+            np.full(len(inc), pc.sigma_angle),
+            np.full(len(inc), pc.sigma_angle),
+        ],
+        1,
+    )
     return pc, obs, sig, plane, scan
 
 
@@ -55,15 +69,33 @@ def _structured(pc, obs, sig, plane, scan, x0_planes, x0_eops):
     n_pl, n_s = len(pc.planes), len(pc.eops)
     pairs, pair = np.unique(np.stack([plane, scan], 1), axis=0, return_inverse=True)
     fam = Family(
-        obs=jnp.asarray(obs), weight=jnp.asarray(1 / sig), prim=jnp.asarray(plane), point=jnp.zeros(len(obs), int),
-        scan=jnp.asarray(scan), pair=jnp.asarray(pair.reshape(-1)), pair_prim=jnp.asarray(pairs[:, 0]),
-        pair_scan=jnp.asarray(pairs[:, 1]), ctrl_xyz=jnp.zeros((n_pl, 1, 3)), ctrl_weight=jnp.zeros((n_pl, 1, 3)),
-        bar_length=jnp.zeros(n_pl), bar_weight=jnp.full(n_pl, 1e7), k=1, kind="plane",
+        obs=jnp.asarray(obs),
+        weight=jnp.asarray(1 / sig),
+        prim=jnp.asarray(plane),
+        point=jnp.zeros(len(obs), int),
+        scan=jnp.asarray(scan),
+        pair=jnp.asarray(pair.reshape(-1)),
+        pair_prim=jnp.asarray(pairs[:, 0]),
+        pair_scan=jnp.asarray(pairs[:, 1]),
+        ctrl_xyz=jnp.zeros((n_pl, 1, 3)),
+        ctrl_weight=jnp.zeros((n_pl, 1, 3)),
+        bar_length=jnp.zeros(n_pl),
+        bar_weight=jnp.full(n_pl, 1e7),
+        k=1,
+        kind="plane",
     )
-    problem = Problem((fam,), jnp.zeros(n_s, int), jnp.zeros((n_s, 2)), jnp.zeros((n_s, 2)), jnp.zeros(6 * n_s + 4, bool))
+    problem = Problem(
+        (fam,),
+        jnp.zeros(n_s, int),
+        jnp.zeros((n_s, 2)),
+        jnp.zeros((n_s, 2)),
+        jnp.zeros(6 * n_s + 4, bool),
+    )
     spec = Spec((pc.scanner,), (APS,), ((0, 4),), n_s, tuple(range(6)), True, ("plane",))
     p0 = Params((jnp.asarray(x0_planes),), jnp.asarray(x0_eops), jnp.zeros(4))
-    state = adjust(spec, problem, p0, Options(jnp.asarray(30), jnp.asarray(1e-8), jnp.asarray(1e-6)))
+    state = adjust(
+        spec, problem, p0, Options(jnp.asarray(30), jnp.asarray(1e-8), jnp.asarray(1e-6))
+    )
     q = quality(spec, problem, state.params, jnp.asarray(1e-6), full_covariance=False)
     return state, q
 
@@ -76,7 +108,11 @@ def _dense(obs, sig, plane, scan, x0, n_pl, n_s, iterations=10):
 
     def unpack(x):
         x = jnp.asarray(x)
-        return x[: 4 * n_pl].reshape(n_pl, 4), x[4 * n_pl: 4 * n_pl + 6 * n_s].reshape(n_s, 6), x[4 * n_pl + 6 * n_s:]
+        return (
+            x[: 4 * n_pl].reshape(n_pl, 4),
+            x[4 * n_pl : 4 * n_pl + 6 * n_s].reshape(n_s, 6),
+            x[4 * n_pl + 6 * n_s :],
+        )
 
     def g_all(x):
         P, E, A = unpack(x)
@@ -84,7 +120,9 @@ def _dense(obs, sig, plane, scan, x0, n_pl, n_s, iterations=10):
 
     def m_all(x):
         P, E, A = unpack(x)
-        B = jax.vmap(lambda i: jax.grad(lambda li: _g_by_hand(P[pl[i]], E[sc[i]], A, li))(l[i]))(jnp.arange(len(obs)))
+        B = jax.vmap(lambda i: jax.grad(lambda li: _g_by_hand(P[pl[i]], E[sc[i]], A, li))(l[i]))(
+            jnp.arange(len(obs))
+        )
         return jnp.sum((B * sig) ** 2, axis=1), B
 
     def constraints(x):
@@ -98,7 +136,9 @@ def _dense(obs, sig, plane, scan, x0, n_pl, n_s, iterations=10):
         for k in range(n_pl):
             n = np.asarray(P[k, :3])
             G[:3, 4 * k + 3] = n
-            G[3:, 4 * k: 4 * k + 3] = np.array([[0, -n[2], n[1]], [n[2], 0, -n[0]], [-n[1], n[0], 0]]).T
+            G[3:, 4 * k : 4 * k + 3] = np.array(
+                [[0, -n[2], n[1]], [n[2], 0, -n[0]], [-n[1], n[0], 0]]
+            ).T
         return G
 
     x = np.asarray(x0, dtype=float)
@@ -135,7 +175,13 @@ def test_plane_adjustment_equals_dense_gauss_helmert(network):
     E0 = pc.eops + rng.normal(scale=[5e-3] * 3 + [5e-4] * 3, size=pc.eops.shape)
     state, q = _structured(pc, obs, sig, plane, scan, P0, E0)
     assert bool(state.converged)
-    x0 = np.concatenate([np.asarray(state.params.prims[0]).reshape(-1) * (1 + 1e-7), np.asarray(state.params.eops).reshape(-1) + 1e-5, np.zeros(4)])
+    x0 = np.concatenate(
+        [
+            np.asarray(state.params.prims[0]).reshape(-1) * (1 + 1e-7),
+            np.asarray(state.params.eops).reshape(-1) + 1e-5,
+            np.zeros(4),
+        ]
+    )
     x, Q, redund, v, vtpv, dof = _dense(obs, sig, plane, scan, x0, n_pl, n_s)
     a = 4 * n_pl + 6 * n_s
     assert float(q.dof) == dof
@@ -144,7 +190,7 @@ def test_plane_adjustment_equals_dense_gauss_helmert(network):
     assert np.isclose(float(q.vtpv), vtpv, rtol=1e-9)
     np.testing.assert_allclose(np.asarray(state.params.aps), x[a:], rtol=1e-7, atol=1e-12)
     # AP cofactors are datum invariant: the reduced system's AP block equals the dense one.
-    np.testing.assert_allclose(np.diag(np.asarray(q.Qzz))[6 * n_s:], np.diag(Q)[a:], rtol=1e-6)
+    np.testing.assert_allclose(np.diag(np.asarray(q.Qzz))[6 * n_s :], np.diag(Q)[a:], rtol=1e-6)
     np.testing.assert_allclose(np.asarray(q.redundancy[0]), redund, atol=1e-8)
     np.testing.assert_allclose(np.asarray(q.residuals[0]), v, rtol=1e-6, atol=1e-10)
     # Redundancy numbers of a point sum to at most 1, and all of them to the dof.
@@ -160,20 +206,36 @@ def test_plane_adjustment_equals_dense_gauss_helmert(network):
 def test_calibrate_of_a_plane_network_equals_dense_gauss_helmert(network):
     """The public path (make_plane_network, approximate values, calibrate) against the oracle:
     AP estimates and a posteriori sigmas, per-observation redundancy numbers and residuals."""
-    from tlsjax._io import ObservationTable
+    from tlsjax._adjustment._network import ObservationTable
 
     pc, obs, sig, plane, scan = network
     n_pl, n_s = len(pc.planes), len(pc.eops)
-    table = ObservationTable(kind="plane", source="<test>", scans=tuple(pc.scans[j] for j in scan),
-                             primitives=tuple(pc.plane_names[k] for k in plane), observations=obs, sigmas=sig,
-                             incidence=None, instruments=None, rows=np.arange(len(obs)))
+    table = ObservationTable(
+        kind="plane",
+        source="<test>",
+        scans=tuple(pc.scans[j] for j in scan),
+        primitives=tuple(pc.plane_names[k] for k in plane),
+        observations=obs,
+        sigmas=sig,
+        incidence=None,
+        instruments=None,
+        rows=np.arange(len(obs)),
+    )
     net = tj.make_plane_network(table)
-    res = tj.calibrate(net, tj.CalibrationModel(scanner=pc.scanner), tj.SolverOptions(tolerance=1e-8))
+    res = tj.calibrate(
+        net, tj.CalibrationModel(scanner=pc.scanner), tj.SolverOptions(tolerance=1e-8)
+    )
     assert res.ok and res.converged, res.message
     # The oracle starts at calibrate's solution, mapped back to the oracle's plane order.
     order = [net.planes.index(name) for name in pc.plane_names]
     scan_order = [net.scans.index(s) for s in pc.scans]
-    x0 = np.concatenate([res.plane_params[order].reshape(-1) * (1 + 1e-7), res.eops[scan_order].reshape(-1) + 1e-5, np.zeros(4)])
+    x0 = np.concatenate(
+        [
+            res.plane_params[order].reshape(-1) * (1 + 1e-7),
+            res.eops[scan_order].reshape(-1) + 1e-5,
+            np.zeros(4),
+        ]
+    )
     x, Q, redund, v, vtpv, dof = _dense(obs, sig, plane, scan, x0, n_pl, n_s)
     a = 4 * n_pl + 6 * n_s
     assert res.dof == dof

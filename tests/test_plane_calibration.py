@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
-from tlsjax._approx import approximate_network
+from tlsjax._adjustment._approx import approximate_network
 from tlsjax._cli import main
-from tlsjax._geometry import rotation_matrix
-from tlsjax._io import write_observations
+from tlsjax._io._tables import write_observations
+from tlsjax._model._geometry import rotation_matrix
 
 DEG = np.pi / 180
 APS = ("A0", "B6", "B7", "C0")
@@ -36,7 +36,10 @@ def _invariants(eops, planes):
 
 
 def _compare(est_eops, est_planes, true_eops, true_planes, length_tol, angle_tol):
-    de, dr, dn, dd = (a - b for a, b in zip(_invariants(est_eops, est_planes), _invariants(true_eops, true_planes)))
+    de, dr, dn, dd = (
+        a - b
+        for a, b in zip(_invariants(est_eops, est_planes), _invariants(true_eops, true_planes))
+    )
     assert np.abs(de).max() < length_tol and np.abs(dd).max() < length_tol
     assert np.abs(dr).max() < angle_tol and np.abs(dn).max() < angle_tol
 
@@ -122,10 +125,21 @@ def test_scan_with_planes_of_two_directions_is_refused():
     # nothing fixes its position along y.
     pc = tj.simulate_point_clouds(tj.CloudDesign(angular_step=3 * DEG, noise=False), seed=0)
     t = pc.to_table(MAX_POINTS)
-    keep = np.array([s != "S2" or p in ("floor", "ceiling", "wall_x0", "wall_xL") for s, p in zip(t.scans, t.primitives)])
-    t = dataclasses.replace(t, scans=tuple(np.array(t.scans)[keep]), primitives=tuple(np.array(t.primitives)[keep]),
-                            observations=t.observations[keep], sigmas=t.sigmas[keep], incidence=t.incidence[keep],
-                            rows=t.rows[keep])
+    keep = np.array(
+        [
+            s != "S2" or p in ("floor", "ceiling", "wall_x0", "wall_xL")
+            for s, p in zip(t.scans, t.primitives)
+        ]
+    )
+    t = dataclasses.replace(
+        t,
+        scans=tuple(np.array(t.scans)[keep]),
+        primitives=tuple(np.array(t.primitives)[keep]),
+        observations=t.observations[keep],
+        sigmas=t.sigmas[keep],
+        incidence=t.incidence[keep],
+        rows=t.rows[keep],
+    )
     net = tj.make_plane_network(t)
     with pytest.raises(ValueError, match="scan S2: its position is not determined"):
         tj.calibrate(net, tj.CalibrationModel(pc.scanner))
@@ -143,15 +157,23 @@ def test_combined_network_is_better_determined_than_either_part():
     targets = [tn.targets[i] for i in tn.target_index]
     table = pc.to_table(MAX_POINTS, seed=2)
     model = tj.CalibrationModel(pc.scanner)
-    both = tj.calibrate(tj.make_network(scans, targets, tn.observations, sigmas=tn.sigmas, planes=table,
-                                        levelling=pc.levelling), model)
-    alone_t = tj.calibrate(tj.make_network(scans, targets, tn.observations, sigmas=tn.sigmas,
-                                           levelling=pc.levelling), model)
+    both = tj.calibrate(
+        tj.make_network(
+            scans, targets, tn.observations, sigmas=tn.sigmas, planes=table, levelling=pc.levelling
+        ),
+        model,
+    )
+    alone_t = tj.calibrate(
+        tj.make_network(scans, targets, tn.observations, sigmas=tn.sigmas, levelling=pc.levelling),
+        model,
+    )
     alone_p = tj.calibrate(tj.make_plane_network(table, levelling=pc.levelling), model)
     for r in (both, alone_t, alone_p):
         assert r.ok, r.message
     assert both.redundancy_summary()["total"]["sum"] == pytest.approx(both.dof, abs=1e-6)
-    assert both.n_observations == alone_t.n_observations + alone_p.n_observations - 2 * len(pc.levelling)
+    assert both.n_observations == alone_t.n_observations + alone_p.n_observations - 2 * len(
+        pc.levelling
+    )
     # A priori AP standard deviations (cofactors): adding observations never loosens them.
     q = lambda r: r.ap_sigmas / r.sigma0
     assert (q(both) <= q(alone_t) * (1 + 1e-9)).all() and (q(both) <= q(alone_p) * (1 + 1e-9)).all()
@@ -164,7 +186,9 @@ def test_cli_calibrate_plane_csv(tmp_path, noisy, capsys):
     path = tmp_path / "planes.csv"
     write_observations(path, pc.to_table(MAX_POINTS, seed=1))
     out = tmp_path / "r.json"
-    assert main(["calibrate", "--planes", str(path), "--aps", " ".join(APS), "--json", str(out)]) == 0
+    assert (
+        main(["calibrate", "--planes", str(path), "--aps", " ".join(APS), "--json", str(out)]) == 0
+    )
     printed = capsys.readouterr().out
     assert "plane" in printed and "mm" in printed
     js = json.loads(out.read_text())
@@ -172,7 +196,9 @@ def test_cli_calibrate_plane_csv(tmp_path, noisy, capsys):
     assert js["n_plane_points"] == len(net.plane_observations)
     assert len(js["planes"]) == len(pc.plane_names)
     # The CSV has no compensator readings: the same network through the API, without them.
-    api = tj.calibrate(tj.make_plane_network(pc.to_table(MAX_POINTS, seed=1)), tj.CalibrationModel(pc.scanner))
+    api = tj.calibrate(
+        tj.make_plane_network(pc.to_table(MAX_POINTS, seed=1)), tj.CalibrationModel(pc.scanner)
+    )
     assert js["dof"] == api.dof and js["n_observations"] == api.n_observations
     for name, value, sigma in zip(api.ap_names, api.ap_values, api.ap_sigmas):
         assert js["aps"][name]["value"] == pytest.approx(value, rel=1e-6)

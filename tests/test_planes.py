@@ -6,9 +6,13 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
-from tlsjax._datum import move_eop, null_space_columns
-from tlsjax._planes import (
-    move_plane, observation_residuals, plane_condition, unit_normal_constraint, whitened_condition,
+from tlsjax._model._datum import move_eop, null_space_columns
+from tlsjax._model._planes import (
+    move_plane,
+    observation_residuals,
+    plane_condition,
+    unit_normal_constraint,
+    whitened_condition,
 )
 
 DEG = np.pi / 180
@@ -16,8 +20,12 @@ DEG = np.pi / 180
 
 @pytest.fixture(scope="module", params=["hybrid", "panoramic"])
 def clouds(request):
-    design = tj.CloudDesign(architecture=request.param, angular_step=4 * DEG, noise=False,
-                            aps=("A0", "B6", "B7", "C0", "A3"))
+    design = tj.CloudDesign(
+        architecture=request.param,
+        angular_step=4 * DEG,
+        noise=False,
+        aps=("A0", "B6", "B7", "C0", "A3"),
+    )
     return tj.simulate_point_clouds(design, seed=1)
 
 
@@ -31,15 +39,25 @@ def _rows(pc, scan=1, k=200):
 
 def _g(pc, names, coeffs):
     sc = (pc.scanner,)
-    return jax.vmap(lambda P, e, l: plane_condition(P, e, coeffs, l, sc, (names,), ((0, len(names)),), 0))
+    return jax.vmap(
+        lambda P, e, l: plane_condition(P, e, coeffs, l, sc, (names,), ((0, len(names)),), 0)
+    )
 
 
 def test_noiseless_points_close_the_condition(clouds):
     l, ids, names, coeffs = _rows(clouds)
-    g = _g(clouds, names, coeffs)(jnp.asarray(clouds.planes[ids]), jnp.tile(jnp.asarray(clouds.eops[1]), (len(l), 1)), jnp.asarray(l))
+    g = _g(clouds, names, coeffs)(
+        jnp.asarray(clouds.planes[ids]),
+        jnp.tile(jnp.asarray(clouds.eops[1]), (len(l), 1)),
+        jnp.asarray(l),
+    )
     assert np.abs(np.asarray(g)).max() < 1e-10
     # Without the AP correction the same points miss their planes by millimetres.
-    g0 = _g(clouds, names, jnp.zeros_like(coeffs))(jnp.asarray(clouds.planes[ids]), jnp.tile(jnp.asarray(clouds.eops[1]), (len(l), 1)), jnp.asarray(l))
+    g0 = _g(clouds, names, jnp.zeros_like(coeffs))(
+        jnp.asarray(clouds.planes[ids]),
+        jnp.tile(jnp.asarray(clouds.eops[1]), (len(l), 1)),
+        jnp.asarray(l),
+    )
     assert np.abs(np.asarray(g0)).max() > 1e-3
 
 
@@ -48,7 +66,12 @@ def test_autodiff_jacobians_match_finite_differences(clouds):
     sc, sl = (clouds.scanner,), ((0, len(names)),)
     f = lambda P, e, a, obs: plane_condition(P, e, a, obs, sc, (names,), sl, 0)
     for i in range(len(l)):
-        args = [jnp.asarray(clouds.planes[ids[i]]) * 1.0, jnp.asarray(clouds.eops[1]), coeffs, jnp.asarray(l[i])]
+        args = [
+            jnp.asarray(clouds.planes[ids[i]]) * 1.0,
+            jnp.asarray(clouds.eops[1]),
+            coeffs,
+            jnp.asarray(l[i]),
+        ]
         grads = jax.grad(f, argnums=(0, 1, 2, 3))(*args)
         for k, G in enumerate(grads):
             fd = np.zeros(G.shape)
@@ -69,7 +92,12 @@ def test_rigid_motion_is_a_null_direction(clouds):
     sc, sl = (clouds.scanner,), ((0, len(names)),)
     P = jnp.asarray(clouds.planes[ids])
     E = jnp.tile(jnp.asarray(clouds.eops[1]), (len(l), 1))
-    Jp, Je = jax.vmap(jax.grad(lambda p, e, obs: plane_condition(p, e, coeffs, obs, sc, (names,), sl, 0), argnums=(0, 1)))(P, E, jnp.asarray(l))
+    Jp, Je = jax.vmap(
+        jax.grad(
+            lambda p, e, obs: plane_condition(p, e, coeffs, obs, sc, (names,), sl, 0),
+            argnums=(0, 1),
+        )
+    )(P, E, jnp.asarray(l))
     Hp = null_space_columns(move_plane, P, range(6))
     He = null_space_columns(move_eop, E, range(6))
     total = jnp.einsum("np,npd->nd", Jp, Hp) + jnp.einsum("np,npd->nd", Je, He)
@@ -90,14 +118,28 @@ def test_gauss_helmert_residuals_close_the_linearised_condition(clouds):
     P = jnp.asarray(clouds.planes[ids])
     E = jnp.tile(jnp.asarray(clouds.eops[1]), (len(l), 1))
     w = jnp.tile(jnp.asarray(1 / sigma), (len(l), 1))
-    args = lambda f: jax.vmap(lambda p, e, obs, ww: f(p, e, coeffs, obs, ww, sc, (names,), sl, 0))(P, E, noisy, w)
+    args = lambda f: jax.vmap(lambda p, e, obs, ww: f(p, e, coeffs, obs, ww, sc, (names,), sl, 0))(
+        P, E, noisy, w
+    )
     v = args(observation_residuals)
     e = args(whitened_condition)[:, 0]
-    g = jax.vmap(lambda p, e_, obs: plane_condition(p, e_, coeffs, obs, sc, (names,), sl, 0))(P, E, noisy)
-    B = jax.vmap(jax.grad(lambda p, e_, obs: plane_condition(p, e_, coeffs, obs, sc, (names,), sl, 0), argnums=2))(P, E, noisy)
+    g = jax.vmap(lambda p, e_, obs: plane_condition(p, e_, coeffs, obs, sc, (names,), sl, 0))(
+        P, E, noisy
+    )
+    B = jax.vmap(
+        jax.grad(
+            lambda p, e_, obs: plane_condition(p, e_, coeffs, obs, sc, (names,), sl, 0), argnums=2
+        )
+    )(P, E, noisy)
     # B v + g = 0 (the linearised condition with x at the truth), and v^T P v = g^2 / m = e^2.
-    np.testing.assert_allclose(np.sum(np.asarray(B * v), axis=1), -np.asarray(g), rtol=1e-10, atol=1e-15)
-    np.testing.assert_allclose(np.sum(np.asarray(v) ** 2 / sigma**2, axis=1), np.asarray(e) ** 2, rtol=1e-10)
+    np.testing.assert_allclose(
+        np.sum(np.asarray(B * v), axis=1), -np.asarray(g), rtol=1e-10, atol=1e-15
+    )
+    np.testing.assert_allclose(
+        np.sum(np.asarray(v) ** 2 / sigma**2, axis=1), np.asarray(e) ** 2, rtol=1e-10
+    )
     # The first-order correction leaves a second-order misclosure only.
-    g_after = jax.vmap(lambda p, e_, obs: plane_condition(p, e_, coeffs, obs, sc, (names,), sl, 0))(P, E, noisy + v)
+    g_after = jax.vmap(lambda p, e_, obs: plane_condition(p, e_, coeffs, obs, sc, (names,), sl, 0))(
+        P, E, noisy + v
+    )
     assert np.abs(np.asarray(g_after)).max() < 1e-3 * np.abs(np.asarray(g)).max()

@@ -4,9 +4,14 @@ import numpy as np
 import pytest
 
 import tlsjax  # noqa: F401  (x64)
-from tlsjax._clouds import CloudDesign, simulate_point_clouds
-from tlsjax._geometry import cartesian_from_spherical
-from tlsjax._pointclouds import observations_from_points, read_point_clouds, write_ptx, write_xyz
+from tlsjax._io._point_clouds import (
+    observations_from_points,
+    read_point_clouds,
+    write_ptx,
+    write_xyz,
+)
+from tlsjax._model._geometry import cartesian_from_spherical
+from tlsjax._simulation._point_clouds import CloudDesign, simulate_point_clouds
 
 DEG = np.pi / 180
 
@@ -14,12 +19,16 @@ DEG = np.pi / 180
 @pytest.fixture(scope="module", params=["hybrid", "panoramic"])
 def clouds(request):
     # Noise-free: every observation's face follows from its own direction (SPEC section 1).
-    return simulate_point_clouds(CloudDesign(angular_step=4 * DEG, architecture=request.param, noise=False), seed=2)
+    return simulate_point_clouds(
+        CloudDesign(angular_step=4 * DEG, architecture=request.param, noise=False), seed=2
+    )
 
 
 def _write_pcd_double(path, x):
-    header = ("# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 8 8 8\nTYPE F F F\nCOUNT 1 1 1\n"
-              f"WIDTH {len(x)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(x)}\nDATA ascii\n")
+    header = (
+        "# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 8 8 8\nTYPE F F F\nCOUNT 1 1 1\n"
+        f"WIDTH {len(x)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(x)}\nDATA ascii\n"
+    )
     with open(path, "w") as fh:
         fh.write(header)
         np.savetxt(fh, x, fmt="%.17g")
@@ -56,7 +65,9 @@ def test_open3d_pcd_is_single_precision(tmp_path, clouds):
     o3d = pytest.importorskip("open3d", exc_type=ImportError)
     l = clouds.observations[0]
     x = cartesian_from_spherical(l, xp=np)
-    o3d.io.write_point_cloud(str(tmp_path / "s.pcd"), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(x)))
+    o3d.io.write_point_cloud(
+        str(tmp_path / "s.pcd"), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(x))
+    )
     (scan,) = read_point_clouds(tmp_path / "s.pcd", architecture=clouds.scanner.architecture)
     err = np.abs(scan.observations - l).max()
     assert 1e-12 < err < 2e-6
@@ -64,7 +75,9 @@ def test_open3d_pcd_is_single_precision(tmp_path, clouds):
 
 def test_ptx_several_scans_and_zero_points(tmp_path, clouds):
     arch = clouds.scanner.architecture
-    scans = [(cartesian_from_spherical(clouds.observations[j], xp=np), clouds.eops[j]) for j in (0, 5)]
+    scans = [
+        (cartesian_from_spherical(clouds.observations[j], xp=np), clouds.eops[j]) for j in (0, 5)
+    ]
     # A "no return" point in the middle of the first scan.
     x0 = scans[0][0]
     scans[0] = (np.concatenate([x0[:10], np.zeros((1, 3)), x0[10:]]), scans[0][1])
@@ -75,7 +88,7 @@ def test_ptx_several_scans_and_zero_points(tmp_path, clouds):
     np.testing.assert_allclose(b.observations, clouds.observations[5], rtol=0, atol=1e-9)
     np.testing.assert_allclose(b.pose, clouds.eops[5], rtol=0, atol=1e-12)
     # The pose maps the scanner-space points onto the simulation's object-space points.
-    from tlsjax._geometry import rotation_matrix
+    from tlsjax._model._geometry import rotation_matrix
 
     R = rotation_matrix(*b.pose[3:], xp=np)
     X = b.points @ R + b.pose[:3]
@@ -89,14 +102,17 @@ def test_e57_round_trip(tmp_path, clouds):
     pye57 = pytest.importorskip("pye57", exc_type=ImportError)
     from pyquaternion import Quaternion
 
-    from tlsjax._geometry import rotation_matrix
+    from tlsjax._model._geometry import rotation_matrix
 
     j = 3
     x = cartesian_from_spherical(clouds.observations[j], xp=np)
     A = rotation_matrix(*clouds.eops[j, 3:], xp=np).T  # X = A x + S
     e57 = pye57.E57(str(tmp_path / "s.e57"), mode="w")
-    e57.write_scan_raw({"cartesianX": x[:, 0], "cartesianY": x[:, 1], "cartesianZ": x[:, 2]},
-                       rotation=Quaternion(matrix=A).elements, translation=clouds.eops[j, :3])
+    e57.write_scan_raw(
+        {"cartesianX": x[:, 0], "cartesianY": x[:, 1], "cartesianZ": x[:, 2]},
+        rotation=Quaternion(matrix=A).elements,
+        translation=clouds.eops[j, :3],
+    )
     e57.close()
     (scan,) = read_point_clouds(tmp_path / "s.e57", architecture=clouds.scanner.architecture)
     np.testing.assert_allclose(scan.pose, clouds.eops[j], rtol=0, atol=1e-12)
@@ -132,7 +148,9 @@ def test_bad_input_names_file_and_line(tmp_path):
     lines = good.read_text().splitlines()
     bad = tmp_path / "bad.ptx"
     bad.write_text("\n".join(lines[:-1]) + "\n")
-    with pytest.raises(ValueError, match=r"bad\.ptx, line 11: PTX scan at line 1 needs 2 point lines"):
+    with pytest.raises(
+        ValueError, match=r"bad\.ptx, line 11: PTX scan at line 1 needs 2 point lines"
+    ):
         read_point_clouds(bad)
     bad.write_text("\n".join(["two"] + lines[1:]) + "\n")
     with pytest.raises(ValueError, match=r"bad\.ptx, line 1: PTX scan must start"):
@@ -170,7 +188,7 @@ def test_ptx_transform_convention_by_hand(tmp_path):
     (tmp_path / "hand.ptx").write_text(text)
     (scan,) = read_point_clouds(tmp_path / "hand.ptx")
     np.testing.assert_allclose(scan.pose, [10, 20, 30, 0, 0, np.pi / 2], atol=1e-15)
-    from tlsjax._geometry import rotation_matrix
+    from tlsjax._model._geometry import rotation_matrix
 
     X = scan.points @ rotation_matrix(*scan.pose[3:], xp=np) + scan.pose[:3]
     np.testing.assert_allclose(X, [[10, 21, 30], [10, 20, 32]], atol=1e-14)

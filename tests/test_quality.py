@@ -6,10 +6,11 @@ import dataclasses
 import jax
 import numpy as np
 import pytest
+from helpers import dense_oracle, dense_residuals, perturbed_start
 
 import tlsjax as tj
-from helpers import dense_oracle, dense_residuals, perturbed_start
-from tlsjax._statistics import _Reweighter, minimal_detectable_bias, w_tests
+from tlsjax._inference._statistics import minimal_detectable_bias, w_tests
+from tlsjax._inference._testing import _Reweighter
 
 APS = ("A0", "B6", "B7", "C0")
 ROW, COL = 11, 1  # the masked observation
@@ -62,7 +63,9 @@ def test_masked_observation_matches_dense_oracle_without_it(small):
     keep[3 * ROW + COL] = False
     np.testing.assert_allclose(res.redundancy.reshape(-1)[keep], r[:n][keep], atol=1e-8)
     # The removed observation's residual is still reported: the misclosure at the solution.
-    assert np.isclose(res.residuals[ROW, COL], e[3 * ROW + COL] * net.sigmas[ROW, COL], rtol=1e-6, atol=1e-10)
+    assert np.isclose(
+        res.residuals[ROW, COL], e[3 * ROW + COL] * net.sigmas[ROW, COL], rtol=1e-6, atol=1e-10
+    )
     assert abs(res.residuals[ROW, COL]) > 0
 
 

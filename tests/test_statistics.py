@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
-from tlsjax._adjust import _run
-from tlsjax._statistics import TestingOptions as Opts
-from tlsjax._statistics import ( _Reweighter, _undetermined_targets, calibrate_and_test, critical_value, non_centrality,
-)
+from tlsjax._adjustment._calibrate import _run
+from tlsjax._inference._statistics import critical_value
+from tlsjax._inference._testing import TestingOptions as Opts
+from tlsjax._inference._testing import _Reweighter, _undetermined_targets, calibrate_and_test
+from tlsjax._stats import non_centrality
 
 APS = ("A0", "B6", "B7", "C0")
 MODEL = tj.CalibrationModel(tj.Scanner(aps=APS))
@@ -39,7 +40,9 @@ def test_mdb_and_external_reliability_by_direct_readjustment(sim):
     for i, g in ((5, 0), (40, 1), (77, 2)):
         obs = net.observations.copy()
         obs[i, g] += base.mdb[i, g]
-        r2 = calibrate_and_test(net.with_observations(obs), MODEL, testing=Opts(vce=False, snooping=False))
+        r2 = calibrate_and_test(
+            net.with_observations(obs), MODEL, testing=Opts(vce=False, snooping=False)
+        )
         assert np.isclose(abs(r2.w[i, g] - base.w[i, g]), delta0, rtol=2e-3)
         s0 = base.calibration.sigma0
         sig_a = base.calibration.ap_sigmas / s0  # a priori AP sigmas
@@ -86,8 +89,11 @@ def test_reweighting_and_masking_do_not_recompile(sim):
     res = r.calibration
     total = res.redundancy.sum() + res.redundancy_levelling.sum() + res.redundancy_prior_sum
     assert np.isclose(total, res.dof, rtol=1e-9)
-    assert res.n_observations == net.n_observations + res.redundancy_levelling.astype(bool).sum() - len(r.outliers) \
-        or res.n_observations == net.n_observations + int(np.isfinite(net.levelling_sigma).sum()) - len(r.outliers)
+    assert res.n_observations == net.n_observations + res.redundancy_levelling.astype(
+        bool
+    ).sum() - len(r.outliers) or res.n_observations == net.n_observations + int(
+        np.isfinite(net.levelling_sigma).sum()
+    ) - len(r.outliers)
 
 
 @pytest.mark.parametrize("seed", [1, 2])
@@ -100,7 +106,9 @@ def test_snooping_finds_blunders_without_false_removals(seed):
     obs = net.observations.copy()
     for i, c in zip(rows, cols):
         obs[i, c] += 20 * net.sigmas[i, c]
-    r = calibrate_and_test(net.with_observations(obs), MODEL, testing=Opts(alpha=0.05, bonferroni=True))
+    r = calibrate_and_test(
+        net.with_observations(obs), MODEL, testing=Opts(alpha=0.05, bonferroni=True)
+    )
     removed = {(o.row, ("range", "hz", "el").index(o.group)) for o in r.outliers}
     assert removed == set(zip(rows.tolist(), cols.tolist()))
     assert r.calibration.ok
@@ -122,7 +130,9 @@ def test_target_removal_and_undetermined_target(sim):
     assert res.ok, res.message
     # The target's 3 x n_scans observations and its 3 unknowns leave; the pin adds 3 and 3.
     assert res.dof == full.dof - 3 * len(rows) + 3
-    assert np.isclose(res.redundancy.sum() + res.redundancy_levelling.sum() + res.redundancy_prior_sum, res.dof)
+    assert np.isclose(
+        res.redundancy.sum() + res.redundancy_levelling.sum() + res.redundancy_prior_sum, res.dof
+    )
     np.testing.assert_allclose(res.target_xyz[0], full.target_xyz[0], atol=1e-6)
 
 
@@ -136,12 +146,16 @@ def test_ap_t_tests_and_insignificant_term():
 
 
 def test_checkpoints_noiseless_identity_and_improvement():
-    from tlsjax._checkpoints import assess_checkpoints
+    from tlsjax._inference._checkpoints import assess_checkpoints
 
     for noise in (False, True):
-        s = tj.simulate(tj.Room(n_targets=24), seed=3, aps=" ".join(APS), noise=noise, architecture="panoramic")
+        s = tj.simulate(
+            tj.Room(n_targets=24), seed=3, aps=" ".join(APS), noise=noise, architecture="panoramic"
+        )
         cp = {t: s.true_targets[i] for i, t in enumerate(s.network.targets)}
-        r = assess_checkpoints(s.network, cp, s.true_aps, scanner=tj.Scanner(architecture="panoramic"))
+        r = assess_checkpoints(
+            s.network, cp, s.true_aps, scanner=tj.Scanner(architecture="panoramic")
+        )
         assert r.n_points == len(s.network.observations)
         if not noise:
             # True APs on noiseless data: the corrected scans coincide with the check points.
@@ -159,7 +173,11 @@ def test_json_fields_are_strict_json(sim):
     net = sim.network
     obs = net.observations.copy()
     obs[3, 1] += 40 * net.sigmas[3, 1]
-    r = calibrate_and_test(net.with_observations(obs), MODEL, testing=Opts(removal="target", alpha=0.05, bonferroni=True))
+    r = calibrate_and_test(
+        net.with_observations(obs),
+        MODEL,
+        testing=Opts(removal="target", alpha=0.05, bonferroni=True),
+    )
     d = r.json_fields()
     text = json.dumps(d, allow_nan=False)
     assert len(d["outliers"]) == 3 and {o["group"] for o in d["outliers"]} == {"range", "hz", "el"}
@@ -168,11 +186,15 @@ def test_json_fields_are_strict_json(sim):
 
 
 def test_stepwise_selection_adds_the_true_term_and_rejects_a_spurious_one():
-    from tlsjax._selection import SelectionOptions, select_aps
+    from tlsjax._inference._selection import SelectionOptions, select_aps
 
     s = tj.simulate(tj.Room(n_targets=24), seed=5, aps="A0")
-    sel = select_aps(s.network, tj.CalibrationModel(tj.Scanner(aps=())), candidates=("A0", "B7"),
-                     options=SelectionOptions(alpha=0.01))
+    sel = select_aps(
+        s.network,
+        tj.CalibrationModel(tj.Scanner(aps=())),
+        candidates=("A0", "B7"),
+        options=SelectionOptions(alpha=0.01),
+    )
     assert sel.aps == ("A0",)
     actions = [(st.action, st.term) for st in sel.steps if st.action != "try"]
     assert actions == [("start", ""), ("add", "A0"), ("final", "")]
@@ -183,7 +205,7 @@ def test_stepwise_selection_adds_the_true_term_and_rejects_a_spurious_one():
 
 
 def test_residual_plot_ap_curves(sim, tmp_path):
-    from tlsjax._plots import _ap_curves, plot_residuals
+    from tlsjax._report._plots import _ap_curves, plot_residuals
 
     res = tj.calibrate(sim.network, MODEL)
     curves = _ap_curves(res, tj.Scanner())
@@ -193,10 +215,18 @@ def test_residual_plot_ap_curves(sim, tmp_path):
     assert curves[(1, 2)]["terms"] == ["B6", "B7"]
     l = sim.network.observations
     b6, b7 = 1 / np.cos(l[:, 2]) - 1, np.tan(l[:, 2])
-    np.testing.assert_allclose(curves[(1, 2)]["at_obs"], res.ap_values[1] * b6 + res.ap_values[2] * b7, rtol=1e-12)
+    np.testing.assert_allclose(
+        curves[(1, 2)]["at_obs"], res.ap_values[1] * b6 + res.ap_values[2] * b7, rtol=1e-12
+    )
     np.testing.assert_allclose(curves[(0, 0)]["y"], res.ap_values[0])
     for ext in ("png", "svg"):
-        p = plot_residuals(res, str(tmp_path / f"r.{ext}"), scanner=tj.Scanner(), compare=res, mask=np.ones_like(l, dtype=bool))
+        p = plot_residuals(
+            res,
+            str(tmp_path / f"r.{ext}"),
+            scanner=tj.Scanner(),
+            compare=res,
+            mask=np.ones_like(l, dtype=bool),
+        )
         assert (tmp_path / f"r.{ext}").stat().st_size > 10_000 and p.endswith(ext)
 
 
@@ -205,11 +235,16 @@ def test_removed_observation_is_left_out_of_the_redundancy_means():
     net = sim.network
     obs = net.observations.copy()
     obs[7, 0] += 40 * net.sigmas[7, 0]
-    tested = tj.calibrate_and_test(net.with_observations(obs), tj.CalibrationModel(sim.scanner),
-                                   testing=tj.TestingOptions(vce=False, snooping=True, bonferroni=True, alpha=0.05))
+    tested = tj.calibrate_and_test(
+        net.with_observations(obs),
+        tj.CalibrationModel(sim.scanner),
+        testing=tj.TestingOptions(vce=False, snooping=True, bonferroni=True, alpha=0.05),
+    )
     res = tested.calibration
     assert [(o.row, o.group) for o in tested.outliers] == [(7, "range")]
     assert not res.used[7, 0] and res.used.sum() == res.used.size - 1 and res.redundancy[7, 0] == 0
     summary = res.redundancy_summary()
-    assert np.isclose(summary["range"]["mean"], np.delete(res.redundancy[:, 0], 7).mean(), rtol=1e-12)
+    assert np.isclose(
+        summary["range"]["mean"], np.delete(res.redundancy[:, 0], 7).mean(), rtol=1e-12
+    )
     assert np.isclose(summary["total"]["sum"], res.dof, rtol=1e-9)

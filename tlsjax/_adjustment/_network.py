@@ -1,0 +1,467 @@
+"""Networks: observations, their sigmas and the index plan, validated on the host.
+
+A network is data. :func:`make_network` checks it at the boundary (names, finiteness, counts,
+connectivity) and builds the index plan once: which observations share a target, which
+(target, scan) pairs exist. The compiled adjustment only ever sees fixed-shape arrays.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import defaultdict
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from .._units import ARCSEC
+
+#: Default a priori sigmas (SPEC section 8): 0.5 mm range at normal incidence, 20" for the angles.
+DEFAULT_SIGMA_RANGE = 0.5e-3
+DEFAULT_SIGMA_ANGLE = 20.0 * ARCSEC
+DEFAULT_SIGMA_LEVELLING = 10.0 * ARCSEC
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class ObservationTable:
+    """The rows of a target or plane observation file, in SI units (m, rad).
+
+    ``sigmas`` is None when the file has no sigma column; a sigma column or cell that is absent
+    is NaN (the caller fills the defaults). ``rows`` holds the 1-based line number of each row.
+    """
+
+    kind: str
+    source: str
+    scans: tuple[str, ...]
+    primitives: tuple[str, ...]
+    observations: np.ndarray
+    sigmas: np.ndarray | None
+    incidence: np.ndarray | None
+    instruments: tuple[str, ...] | None
+    rows: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.scans)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Network:
+    """A point-based TLS network (host-side, numpy). Build it with :func:`make_network`.
+
+    Arrays (n observations of targets, s scans, t targets):
+      observations (n, 3): range [m], horizontal direction [rad], elevation angle [rad]
+      sigmas (n, 3): a priori standard deviations [m, rad, rad], incidence already applied
+      target_index, scan_index (n,): integer codes into ``targets`` / ``scans``
+      instrument_of_scan (s,): integer code into ``instruments``
+      levelling (s, 2) values [rad] and levelling_sigma (s, 2) [rad]; ``inf`` = not levelled
+      control_index (c,), control_xyz (c, 3) [m], control_sigma (c, 3) [m]
+      scale_bars: tuple of (target_a, target_b) indices with scale_bar_length (b,) and
+        scale_bar_sigma (b,) [m]
+
+    Plane observations (m points on k planes, SPEC section 4), empty for a target network:
+      planes (k,) names; plane_observations (m, 3), plane_sigmas (m, 3) (incidence applied),
+      plane_index, plane_scan_index (m,) integer codes into ``planes`` / ``scans``.
+    A network may hold targets, planes or both (a combined network).
+    """
+
+    scans: tuple[str, ...]
+    targets: tuple[str, ...]
+    instruments: tuple[str, ...]
+    observations: np.ndarray
+    sigmas: np.ndarray
+    target_index: np.ndarray
+    scan_index: np.ndarray
+    instrument_of_scan: np.ndarray
+    levelling: np.ndarray
+    levelling_sigma: np.ndarray
+    control_index: np.ndarray
+    control_xyz: np.ndarray
+    control_sigma: np.ndarray
+    scale_bar_targets: np.ndarray
+    scale_bar_length: np.ndarray
+    scale_bar_sigma: np.ndarray
+    source: str = "<arrays>"
+    dropped: tuple[str, ...] = ()
+    planes: tuple[str, ...] = ()
+    plane_observations: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))
+    plane_sigmas: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))
+    plane_index: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=np.int32))
+    plane_scan_index: np.ndarray = dataclasses.field(
+        default_factory=lambda: np.zeros(0, dtype=np.int32)
+    )
+
+    @property
+    def n_observations(self) -> int:
+        """Number of scalar observations (three per target observation and per plane point)."""
+        return 3 * (self.observations.shape[0] + self.plane_observations.shape[0])
+
+    @property
+    def has_planes(self) -> bool:
+        return len(self.planes) > 0
+
+    @property
+    def has_targets(self) -> bool:
+        return len(self.targets) > 0
+
+    @property
+    def is_levelled(self) -> np.ndarray:
+        return np.isfinite(self.levelling_sigma).all(axis=1)
+
+    def with_observations(
+        self, observations: np.ndarray, plane_observations: np.ndarray | None = None
+    ) -> Network:
+        """The same design with other observation values (Monte Carlo, corrected data)."""
+        out = dataclasses.replace(self, observations=np.asarray(observations, dtype=np.float64))
+        if plane_observations is not None:
+            out = dataclasses.replace(
+                out, plane_observations=np.asarray(plane_observations, dtype=np.float64)
+            )
+        return out
+
+
+def _check_rows(obs, sigmas, incidence, defaults, where, what, source):
+    """Finiteness and positivity of one set of rows; returns the sigmas with defaults and the
+    incidence scaling of the range applied (SPEC section 5)."""
+    n = obs.shape[0]
+    bad = np.argwhere(~np.isfinite(obs))
+    if bad.size:
+        i, c = bad[0]
+        raise ValueError(
+            f"{where(i)}: {('range', 'hz', 'el')[c]} of {what(i)} is not finite ({obs[i, c]})"
+        )
+    bad = np.flatnonzero(obs[:, 0] <= 0)
+    if bad.size:
+        i = bad[0]
+        raise ValueError(f"{where(i)}: range of {what(i)} must be positive, got {obs[i, 0]}")
+    sig = np.empty_like(obs)
+    sig[:] = defaults
+    if sigmas is not None:
+        s_in = np.asarray(sigmas, dtype=np.float64)
+        if s_in.shape != obs.shape:
+            raise ValueError(f"{source}: sigmas must have shape {obs.shape}, got {s_in.shape}")
+        sig = np.where(np.isnan(s_in), sig, s_in)
+    bad = np.argwhere(~(np.isfinite(sig) & (sig > 0)))
+    if bad.size:
+        i, c = bad[0]
+        raise ValueError(
+            f"{where(i)}: sigma of {('range', 'hz', 'el')[c]} ({what(i)}) must be positive and finite, got {sig[i, c]}"
+        )
+    if incidence is not None:
+        inc = np.asarray(incidence, dtype=np.float64).reshape(-1)
+        if inc.shape != (n,):
+            raise ValueError(
+                f"{source}: incidence must have one angle per row ({n}), got {inc.shape[0]}"
+            )
+        inc = np.nan_to_num(inc, nan=0.0)
+        bad = np.flatnonzero(~np.isfinite(inc) | (np.abs(inc) >= np.pi / 2))
+        if bad.size:
+            i = bad[0]
+            raise ValueError(
+                f"{where(i)}: incidence angle of {what(i)} must be in (-90, 90) deg, got {np.degrees(inc[i])} deg"
+            )
+        sig[:, 0] = sig[:, 0] / np.cos(inc)
+    return sig
+
+
+def _where(source, rows):
+    if source != "<arrays>":
+        return lambda i: f"{source}, line {rows[i]}"
+    return lambda i: f"{source}, row {rows[i]}"
+
+
+#: Fewest points on a plane: three determine it, a fourth gives the first redundancy.
+MIN_PLANE_POINTS = 4
+
+
+def make_network(
+    scans: Sequence[str],
+    targets: Sequence[str],
+    observations,
+    *,
+    sigmas=None,
+    sigma_range: float = DEFAULT_SIGMA_RANGE,
+    sigma_hz: float = DEFAULT_SIGMA_ANGLE,
+    sigma_el: float = DEFAULT_SIGMA_ANGLE,
+    incidence=None,
+    instruments: Sequence[str] | None = None,
+    levelling: Mapping[str, Mapping[str, float]] | None = None,
+    control: Mapping[str, tuple] | None = None,
+    scale_bars: Sequence[tuple] = (),
+    drop_single_targets: bool = False,
+    min_targets_per_scan: int = 4,
+    source: str = "<arrays>",
+    rows=None,
+    planes=None,
+) -> Network:
+    """Validate observations and build a :class:`Network`.
+
+    ``scans``/``targets`` name the scan and target of each row; ``observations`` is (n, 3) in
+    metres and radians. ``sigmas`` (n, 3) overrides the group sigmas per observation (NaN entries
+    fall back to them). The range sigma is scaled by ``sec(incidence)`` (SPEC section 5).
+    ``levelling`` maps scan -> {"omega", "phi", "sigma_omega", "sigma_phi"} [rad].
+    ``control`` maps target -> (xyz [m], sigma [m] scalar or 3-vector).
+    ``scale_bars`` is a list of (target_a, target_b, length [m], sigma [m]).
+    ``rows`` (optional) gives the file line of each row for error messages.
+
+    ``planes``: plane observations (one row per point on a plane in a scan, SPEC sections 4
+    and 11) as an :class:`~tlsjax._io.ObservationTable` of kind "plane" (from
+    :func:`~tlsjax.read_observations`, :meth:`~tlsjax.ExtractedPlanes.to_table` or
+    :meth:`~tlsjax.PointClouds.to_table`); their sigmas default to the same group sigmas. With
+    ``planes`` the target rows may be empty (a plane network) or not (a combined network).
+    See :func:`make_plane_network`.
+    """
+    obs = np.asarray(observations, dtype=np.float64)
+    if obs.size == 0:
+        obs = obs.reshape(0, 3)
+    n = obs.shape[0] if obs.ndim == 2 else -1
+    if obs.ndim != 2 or obs.shape[1] != 3:
+        raise ValueError(
+            f"{source}: observations must have shape (n, 3) [range, hz, el], got {obs.shape}"
+        )
+    scans = [str(s) for s in scans]
+    targets = [str(t) for t in targets]
+    if len(scans) != n or len(targets) != n:
+        raise ValueError(
+            f"{source}: {n} observations but {len(scans)} scan names and {len(targets)} target names"
+        )
+    if n == 0 and planes is None:
+        raise ValueError(f"{source}: no observations")
+    rows = np.arange(n) if rows is None else np.asarray(rows)
+    where = _where(source, rows)
+
+    sig = _check_rows(
+        obs,
+        sigmas,
+        incidence,
+        (sigma_range, sigma_hz, sigma_el),
+        where,
+        lambda i: f"scan {scans[i]}, target {targets[i]}",
+        source,
+    )
+    seen: dict[tuple[str, str], int] = {}
+    for i, key in enumerate(zip(scans, targets)):
+        if key in seen:
+            raise ValueError(
+                f"{where(i)}: duplicate observation of target {key[1]} in scan {key[0]} (also {where(seen[key])})"
+            )
+        seen[key] = i
+
+    inst_rows = ["default"] * n if instruments is None else [str(x) for x in instruments]
+    scan_instrument: dict[str, str] = {}
+    for i, (s, ins) in enumerate(zip(scans, inst_rows)):
+        if scan_instrument.setdefault(s, ins) != ins:
+            raise ValueError(
+                f"{where(i)}: scan {s} is assigned to instruments {scan_instrument[s]} and {ins}; one scan, one instrument"
+            )
+
+    # Plane rows: validated the same way; each plane needs enough points to be determined.
+    p_scans: list[str] = []
+    p_names: list[str] = []
+    p_obs = np.zeros((0, 3))
+    p_sig = np.zeros((0, 3))
+    if planes is not None:
+        if getattr(planes, "kind", None) != "plane":
+            raise ValueError(
+                f"{source}: planes must be a plane ObservationTable (read_observations of a file with a "
+                f"'plane' column, ExtractedPlanes.to_table() or PointClouds.to_table())"
+            )
+        p_src = planes.source
+        p_where = _where(p_src, np.asarray(planes.rows))
+        p_scans = [str(s) for s in planes.scans]
+        p_names = [str(k) for k in planes.primitives]
+        p_obs = np.asarray(planes.observations, dtype=np.float64).reshape(-1, 3)
+        if not (len(p_scans) == len(p_names) == p_obs.shape[0]):
+            raise ValueError(
+                f"{p_src}: {p_obs.shape[0]} plane observations but {len(p_scans)} scan names and {len(p_names)} plane names"
+            )
+        if p_obs.shape[0] == 0:
+            raise ValueError(f"{p_src}: no plane observations")
+        p_sig = _check_rows(
+            p_obs,
+            planes.sigmas,
+            planes.incidence,
+            (sigma_range, sigma_hz, sigma_el),
+            p_where,
+            lambda i: f"scan {p_scans[i]}, plane {p_names[i]}",
+            p_src,
+        )
+        clash = sorted(set(p_names) & set(targets))
+        if clash:
+            raise ValueError(
+                f"{p_src}: {clash[0]} names both a target and a plane; give planes and targets distinct names"
+            )
+        p_inst = (
+            ["default"] * len(p_scans)
+            if planes.instruments is None
+            else [str(x) for x in planes.instruments]
+        )
+        for i, (s, ins) in enumerate(zip(p_scans, p_inst)):
+            if scan_instrument.setdefault(s, ins) != ins:
+                raise ValueError(
+                    f"{p_where(i)}: scan {s} is assigned to instruments {scan_instrument[s]} and {ins}; one scan, one instrument"
+                )
+        counts: dict[str, int] = defaultdict(int)
+        for k in p_names:
+            counts[k] += 1
+        few = [k for k, c in counts.items() if c < MIN_PLANE_POINTS]
+        if few:
+            raise ValueError(
+                f"{p_src}: plane {few[0]} has {counts[few[0]]} point(s); at least {MIN_PLANE_POINTS} are needed "
+                "to determine a plane with redundancy"
+            )
+
+    # Targets seen in one scan only add three unknowns and three observations: no redundancy.
+    scans_of_target: dict[str, set] = defaultdict(set)
+    for s, t in zip(scans, targets):
+        scans_of_target[t].add(s)
+    control = dict(control or {})
+    bar_targets = {str(a) for a, b, *_ in scale_bars} | {str(b) for a, b, *_ in scale_bars}
+    single = sorted(
+        t
+        for t, ss in scans_of_target.items()
+        if len(ss) < 2 and t not in control and t not in bar_targets
+    )
+    dropped: tuple[str, ...] = ()
+    if single:
+        if not drop_single_targets:
+            raise ValueError(
+                f"{source}: target(s) {', '.join(single[:10])}{' ...' if len(single) > 10 else ''} are seen in one scan only; "
+                "they give no redundancy. Pass drop_single_targets=True (CLI: --drop-single-targets) to drop them."
+            )
+        keep = np.array([t not in set(single) for t in targets])
+        dropped = tuple(single)
+        obs, sig = obs[keep], sig[keep]
+        scans = [s for s, k in zip(scans, keep) if k]
+        targets = [t for t, k in zip(targets, keep) if k]
+        inst_rows = [x for x, k in zip(inst_rows, keep) if k]
+
+    scan_names = tuple(dict.fromkeys(scans + p_scans))
+    target_names = tuple(dict.fromkeys(targets))
+    plane_names = tuple(dict.fromkeys(p_names))
+    s_code = {s: i for i, s in enumerate(scan_names)}
+    t_code = {t: i for i, t in enumerate(target_names)}
+    k_code = {k: i for i, k in enumerate(plane_names)}
+    scan_index = np.array([s_code[s] for s in scans], dtype=np.int32)
+    target_index = np.array([t_code[t] for t in targets], dtype=np.int32)
+    plane_scan_index = np.array([s_code[s] for s in p_scans], dtype=np.int32)
+    plane_index = np.array([k_code[k] for k in p_names], dtype=np.int32)
+
+    # A scan's pose needs 4 targets (3 determine it), or 3 planes (their normals must also be
+    # independent, which the approximate values check), or a mix of at least 3.
+    n_t_scan = np.bincount(scan_index, minlength=len(scan_names))
+    n_p_scan = np.array(
+        [len(set(plane_index[plane_scan_index == j].tolist())) for j in range(len(scan_names))],
+        dtype=int,
+    )
+    for j, s in enumerate(scan_names):
+        if n_p_scan[j] == 0 and n_t_scan[j] < min_targets_per_scan:
+            raise ValueError(
+                f"{source}: scan {s} observes {n_t_scan[j]} target(s); at least {min_targets_per_scan} are needed to determine its pose"
+            )
+        if n_p_scan[j] and n_t_scan[j] + n_p_scan[j] < 3:
+            raise ValueError(
+                f"{source if n_t_scan[j] else planes.source}: scan {s} observes {n_t_scan[j]} target(s) and "
+                f"{n_p_scan[j]} plane(s); at least 3 primitives are needed to determine its pose"
+            )
+
+    # Connectivity through shared primitives: targets and planes count alike (codes offset).
+    prim_scan = np.concatenate([scan_index, plane_scan_index])
+    prim_index = np.concatenate([target_index, plane_index + len(target_names)])
+    _check_connected(scan_names, scan_names, prim_scan, prim_index, source)
+
+    instrument_names = tuple(dict.fromkeys(scan_instrument[s] for s in scan_names))
+    i_code = {x: i for i, x in enumerate(instrument_names)}
+    instrument_of_scan = np.array([i_code[scan_instrument[s]] for s in scan_names], dtype=np.int32)
+
+    lev = np.zeros((len(scan_names), 2))
+    lev_sigma = np.full((len(scan_names), 2), np.inf)
+    for s, d in (levelling or {}).items():
+        if s not in s_code:
+            raise ValueError(f"{source}: levelling given for scan {s}, which has no observations")
+        lev[s_code[s]] = (d.get("omega", 0.0), d.get("phi", 0.0))
+        sg = np.array([d["sigma_omega"], d["sigma_phi"]], dtype=np.float64)
+        if not np.all(np.isfinite(sg) & (sg > 0)):
+            raise ValueError(
+                f"{source}: levelling sigmas of scan {s} must be positive and finite, got {sg}"
+            )
+        lev_sigma[s_code[s]] = sg
+
+    c_idx, c_xyz, c_sig = [], [], []
+    for t, (xyz, sg) in control.items():
+        if t not in t_code:
+            raise ValueError(f"{source}: control point {t} is not observed in any scan")
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(3)
+        sg = np.broadcast_to(np.asarray(sg, dtype=np.float64), (3,))
+        if not (np.all(np.isfinite(xyz)) and np.all(np.isfinite(sg) & (sg > 0))):
+            raise ValueError(
+                f"{source}: control point {t} needs finite coordinates and positive sigmas"
+            )
+        c_idx.append(t_code[t])
+        c_xyz.append(xyz)
+        c_sig.append(np.array(sg))
+
+    b_idx, b_len, b_sig = [], [], []
+    for bar in scale_bars:
+        a, b, length, sg = bar
+        for t in (a, b):
+            if str(t) not in t_code:
+                raise ValueError(f"{source}: scale bar end {t} is not observed in any scan")
+        if not (np.isfinite(length) and length > 0 and np.isfinite(sg) and sg > 0):
+            raise ValueError(f"{source}: scale bar {a}-{b} needs a positive length and sigma")
+        b_idx.append((t_code[str(a)], t_code[str(b)]))
+        b_len.append(float(length))
+        b_sig.append(float(sg))
+
+    return Network(
+        scans=scan_names,
+        targets=target_names,
+        instruments=instrument_names,
+        observations=obs,
+        sigmas=sig,
+        target_index=target_index,
+        scan_index=scan_index,
+        instrument_of_scan=instrument_of_scan,
+        levelling=lev,
+        levelling_sigma=lev_sigma,
+        control_index=np.array(c_idx, dtype=np.int32),
+        control_xyz=np.array(c_xyz).reshape(-1, 3),
+        control_sigma=np.array(c_sig).reshape(-1, 3),
+        scale_bar_targets=np.array(b_idx, dtype=np.int32).reshape(-1, 2),
+        scale_bar_length=np.array(b_len),
+        scale_bar_sigma=np.array(b_sig),
+        source=source,
+        dropped=dropped,
+        planes=plane_names,
+        plane_observations=p_obs,
+        plane_sigmas=p_sig,
+        plane_index=plane_index,
+        plane_scan_index=plane_scan_index,
+    )
+
+
+def make_plane_network(planes, **kwargs) -> Network:
+    """A plane network (no targets) from a plane ObservationTable; keywords as :func:`make_network`
+    (sigmas, levelling, instruments through the table)."""
+    kwargs.setdefault("source", planes.source)
+    return make_network((), (), np.zeros((0, 3)), planes=planes, **kwargs)
+
+
+def _check_connected(scan_names, target_names, scan_index, target_index, source):
+    """Scans must be linked through chains of >= 3 common primitives, or their relative pose is free."""
+    common = defaultdict(set)
+    for s, t in zip(scan_index, target_index):
+        common[int(s)].add(int(t))
+    n_s = len(scan_names)
+    linked = {0}
+    frontier = [0]
+    while frontier:
+        a = frontier.pop()
+        for b in range(n_s):
+            if b not in linked and len(common[a] & common[b]) >= 3:
+                linked.add(b)
+                frontier.append(b)
+    if len(linked) != n_s:
+        missing = [scan_names[j] for j in range(n_s) if j not in linked]
+        raise ValueError(
+            f"{source}: scan(s) {', '.join(missing)} are disconnected from scan {scan_names[0]}: "
+            "no chain of scans sharing at least 3 targets or planes links them"
+        )

@@ -1,0 +1,223 @@
+"""``tlsjax calibrate``: self-calibration from target and/or plane observation files."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import time
+
+from .._units import ARCSEC
+from ._common import EXIT_FAILED, EXIT_OK, scanner_args
+
+
+def add_calibrate_parser(sub):
+    c = sub.add_parser("calibrate", help="self-calibrate from target and/or plane observations")
+    c.add_argument(
+        "observations",
+        nargs="?",
+        help="target or plane observation CSV (SPEC section 11; units from the header suffixes)",
+    )
+    c.add_argument(
+        "--planes",
+        help="plane observations: a plane CSV or the .npz of `tlsjax extract-planes`; "
+        "alone (plane-based) or with a target CSV (combined network)",
+    )
+    c.add_argument("--scans", help="scans CSV with levelling observations")
+    c.add_argument(
+        "--aps",
+        default="physical",
+        help='APs to estimate, e.g. "A0 B6 B7 C0" or a preset (default: physical)',
+    )
+    c.add_argument("--datum", choices=("auto", "inner", "fixed-scan"), default="auto")
+    c.add_argument("--fixed-scan", help="scan held fixed with --datum fixed-scan")
+    c.add_argument("--json", help="write the result JSON here")
+    c.add_argument("--plots", help="write residual and correlation plots into this folder")
+    c.add_argument(
+        "--drop-single-targets",
+        action="store_true",
+        help="drop targets seen in one scan only (reported)",
+    )
+    c.add_argument(
+        "--sigma-range-mm",
+        type=float,
+        default=0.5,
+        help="a priori range sigma [mm] where the file has none",
+    )
+    c.add_argument(
+        "--sigma-hz-arcsec",
+        type=float,
+        default=20.0,
+        help='a priori hz sigma ["] where the file has none',
+    )
+    c.add_argument(
+        "--sigma-el-arcsec",
+        type=float,
+        default=20.0,
+        help='a priori el sigma ["] where the file has none',
+    )
+    c.add_argument("--max-iterations", type=int, default=30)
+    c.add_argument(
+        "--correlation-threshold",
+        type=float,
+        default=0.99,
+        help="flag APs whose max |correlation| exceeds this (default 0.99)",
+    )
+    c.add_argument(
+        "--vce",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="variance component estimation per group (range, hz, el, levelling); default on for "
+        "target networks, off with planes (SPEC section 5: the near-zero angular residuals of "
+        "plane points bias it)",
+    )
+    c.add_argument(
+        "--snoop",
+        action="store_true",
+        help="Baarda data snooping: remove rejected observations, re-adjust",
+    )
+    c.add_argument(
+        "--snoop-alpha",
+        type=float,
+        default=0.001,
+        help="significance level of each w-test (default 0.001: critical value 3.29)",
+    )
+    c.add_argument(
+        "--bonferroni",
+        action="store_true",
+        help="divide --snoop-alpha by the number of tests (family-wise level; no clean observation "
+        "removed with probability 1 - alpha)",
+    )
+    c.add_argument(
+        "--snoop-removal",
+        choices=("observation", "target"),
+        default="observation",
+        help="remove one scalar observation or all three of the target in that scan",
+    )
+    c.add_argument(
+        "--select",
+        action="store_true",
+        help="stepwise AP selection starting from --aps, adding from --select-candidates",
+    )
+    c.add_argument(
+        "--select-candidates", default="chow2013-noscale", help="candidate terms (names or presets)"
+    )
+    c.add_argument(
+        "--select-alpha",
+        type=float,
+        default=0.01,
+        help="significance level of the selection t-tests",
+    )
+    c.add_argument(
+        "--max-correlation",
+        type=float,
+        default=0.9,
+        help="a candidate more correlated than this with the model is not added (default 0.9)",
+    )
+    scanner_args(c)
+    c.set_defaults(func=_calibrate)
+    return c
+
+
+def _calibrate(args) -> int:
+    from .._adjustment._calibrate import calibrate
+    from .._adjustment._config import CalibrationModel, SolverOptions
+    from .._io._tables import read_network
+    from .._model._scanner import Scanner
+    from .._report._text import ap_table, summary
+
+    if args.observations is None and args.planes is None:
+        raise ValueError("give an observation CSV, --planes FILE, or both")
+    net = read_network(
+        args.observations,
+        args.scans,
+        planes=args.planes,
+        drop_single_targets=args.drop_single_targets,
+        sigma_range=args.sigma_range_mm * 1e-3,
+        sigma_hz=args.sigma_hz_arcsec * ARCSEC,
+        sigma_el=args.sigma_el_arcsec * ARCSEC,
+    )
+    if args.vce is None:
+        args.vce = not net.has_planes
+    if net.has_planes and (args.vce or args.snoop):
+        raise ValueError(
+            "--vce and --snoop are for target networks; with planes the weights are held fixed "
+            "(SPEC section 5): run without them"
+        )
+    if net.dropped:
+        print(
+            f"dropped {len(net.dropped)} target(s) seen in one scan only: {', '.join(net.dropped)}"
+        )
+    scanner = Scanner(architecture=args.architecture, aps=args.aps, unit_length=args.unit_length)
+    model = CalibrationModel(
+        scanner,
+        datum=args.datum,
+        fixed_scan=args.fixed_scan,
+        correlation_threshold=args.correlation_threshold,
+    )
+    solver = SolverOptions(max_iterations=args.max_iterations)
+    t0 = time.perf_counter()
+    parts = [f"{len(net.scans)} scans"]
+    if net.has_targets:
+        parts.append(f"{len(net.targets)} targets, {net.observations.shape[0]} target observations")
+    if net.has_planes:
+        parts.append(f"{len(net.planes)} planes, {net.plane_observations.shape[0]} plane points")
+    print(f"{net.source}: " + ", ".join(parts))
+    extra, mask = {}, None
+    if args.select:
+        from .._inference._selection import SelectionOptions, select_aps
+
+        # Selection runs on the a priori weights; the chosen set is then weighted and tested.
+        sel = select_aps(
+            net,
+            model,
+            start=args.aps,
+            candidates=args.select_candidates,
+            options=SelectionOptions(alpha=args.select_alpha, max_correlation=args.max_correlation),
+        )
+        print(sel.report())
+        print()
+        scanner = dataclasses.replace(scanner, aps=tuple(sel.aps))
+        model = dataclasses.replace(model, scanner=scanner)
+        extra["selection"] = {"aps": list(sel.aps), "n_fits": sel.n_fits}
+    if args.vce or args.snoop:
+        from .._inference._testing import TestingOptions, calibrate_and_test
+
+        tested = calibrate_and_test(
+            net,
+            model,
+            solver,
+            TestingOptions(
+                vce=args.vce,
+                snooping=args.snoop,
+                alpha=args.snoop_alpha,
+                bonferroni=args.bonferroni,
+                removal=args.snoop_removal,
+            ),
+        )
+        res, mask = tested.calibration, tested.mask
+        extra.update(tested.json_fields())
+        print(tested.summary())
+    else:
+        res = calibrate(net, model, solver)
+    print(f"({time.perf_counter() - t0:.2f} s)")
+    print(summary(res))
+    print()
+    print(ap_table(res))
+    write_outputs(res, args.json, args.plots, extra=extra, scanner=scanner, mask=mask)
+    return EXIT_OK if res.ok else EXIT_FAILED
+
+
+def write_outputs(res, json_path, plots_dir, *, extra=None, scanner=None, mask=None):
+    from .._report._json import write_json
+    from .._report._plots import plot_ap_correlations, plot_residuals
+
+    if json_path:
+        write_json(res, json_path, extra=extra)
+        print(f"wrote {json_path}")
+    if plots_dir:
+        a = plot_residuals(
+            res, os.path.join(plots_dir, "residuals.png"), scanner=scanner, mask=mask
+        )
+        b = plot_ap_correlations(res, os.path.join(plots_dir, "ap_correlations.png"))
+        print(f"wrote {a} and {b}")

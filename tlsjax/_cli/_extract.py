@@ -1,0 +1,94 @@
+"""``tlsjax extract-planes SCANS... --out planes.npz``."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from .._clouds._extract import ExtractionConfig
+
+
+def add_extract_parser(subparsers) -> argparse.ArgumentParser:
+    """Add the ``extract-planes`` sub-command to an argparse ``subparsers`` object."""
+    p = subparsers.add_parser(
+        "extract-planes",
+        help="extract and match planes from point clouds",
+        description="Extract planes from scans (PLY/PCD/XYZ/PTX/E57, coordinates in scanner space), match "
+        "them across scans with the scan poses, write them as .npz and optionally as a plane "
+        "observation CSV.",
+    )
+    p.add_argument(
+        "scans", nargs="+", help="point-cloud files, one scan each (PTX/E57 files may hold several)"
+    )
+    p.add_argument("--out", required=True, help="output .npz of the extracted planes")
+    p.add_argument(
+        "--poses",
+        help="scan poses CSV (scan, x_m, y_m, z_m, omega_deg, phi_deg, kappa_deg); "
+        "default: the poses stored in the files",
+    )
+    p.add_argument("--architecture", choices=("hybrid", "panoramic"), default="hybrid")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--budget", type=int, default=None, help="most points kept per plane patch")
+    p.add_argument(
+        "--distance-threshold",
+        type=float,
+        default=ExtractionConfig.distance_threshold,
+        help="RANSAC inlier distance [m]",
+    )
+    p.add_argument("--min-points", type=int, default=ExtractionConfig.min_points)
+    p.add_argument("--csv", help="also write the plane observations CSV (SPEC section 11)")
+    p.set_defaults(func=cli_extract)
+    return p
+
+
+def cli_extract(args) -> int:
+    """Run ``tlsjax extract-planes``; returns the exit code."""
+    import sys
+
+    from .._clouds._extract import ExtractionConfig, extract_planes
+    from .._clouds._match import match_planes
+    from .._io._plane_files import read_poses, save_planes
+    from .._io._point_clouds import read_point_clouds
+    from .._io._tables import write_observations
+
+    clouds = []
+    for path in args.scans:
+        clouds.extend(read_point_clouds(path, architecture=args.architecture))
+    names = [c.name for c in clouds]
+    if len(set(names)) != len(names):
+        raise ValueError(f"scan names are not unique: {names}")
+    if args.poses:
+        table = read_poses(args.poses)
+        missing = [n for n in names if n not in table]
+        if missing:
+            raise ValueError(f"{args.poses}: no pose for scan(s) {', '.join(missing)}")
+        poses = np.stack([table[n] for n in names])
+    elif all(c.pose is not None for c in clouds):
+        poses = np.stack([c.pose for c in clouds])
+    elif len(clouds) == 1:
+        poses = np.zeros((1, 6))  # one scan: its own frame is object space
+    else:
+        poses = None
+    if poses is None and args.csv:
+        raise ValueError("matching planes across scans needs scan poses: give --poses poses.csv")
+    config = ExtractionConfig(
+        distance_threshold=args.distance_threshold, min_points=args.min_points, budget=args.budget
+    )
+    planes = extract_planes([c.observations for c in clouds], config, names=names, seed=args.seed)
+    if poses is not None:
+        planes = match_planes(planes, poses)
+    save_planes(args.out, planes)
+    if args.csv:
+        write_observations(args.csv, planes.to_table())
+    matched = (
+        "not matched (no scan poses: give --poses)"
+        if planes.planes is None
+        else f"{len(planes.planes)} planes"
+    )
+    print(
+        f"{len(names)} scan(s), {len(planes.patch_scan)} patches, {matched}, "
+        f"{len(planes.point_patch)} points -> {args.out}",
+        file=sys.stdout,
+    )
+    return 0

@@ -1,0 +1,25 @@
+"""Levelling pseudo-observations: readings of a dual-axis compensator (SPEC section 6)."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from ._geometry import rotation_matrix
+
+
+def compensator_reading(eop):
+    """Tilt readings (omega_c, phi_c) of a dual-axis compensator in the scanner frame [rad].
+
+    The compensator senses the object-space vertical in scanner space, ``g = R_j e3``:
+    ``omega_c = asin(g_y)``, ``phi_c = asin(-g_x / sqrt(1 - g_y^2))``. For kappa = 0 these are
+    exactly the Cardan omega and phi of SPEC section 6, so the levelling pseudo-observations
+    ``omega_c = 0 +- s``, ``phi_c = 0 +- s`` are SPEC's to first order. Unlike omega and phi
+    themselves, g is invariant under a rotation of object space about Z (``R_j -> R_j Rz^T``),
+    so rotation about Z stays an exact null vector of the normal equations and the free-network
+    solution does not depend on the datum.
+    """
+    g = rotation_matrix(eop[3], eop[4], eop[5])[:, 2]
+    gy = jnp.clip(g[1], -1.0, 1.0)
+    omega = jnp.arcsin(gy)
+    phi = jnp.arcsin(jnp.clip(-g[0] / jnp.sqrt(1.0 - gy * gy), -1.0, 1.0))
+    return jnp.stack([omega, phi])

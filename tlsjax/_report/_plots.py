@@ -1,0 +1,283 @@
+"""Plots of a calibration for model identification (Chow et al. 2013, figs. 2-13; Lichti &
+Licht 2006, figs. 1-3): residuals of each observation group against range, horizontal
+direction and elevation angle, and the correlation matrix of the APs.
+
+Host side, matplotlib with the Agg backend; lengths in mm, angles in arc seconds, abscissae in
+m and degrees, units in every label.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+
+import numpy as np
+
+from .._units import ARCSEC, display_unit
+
+GROUP_LABELS = (
+    "range residual [mm]",
+    'horizontal direction residual ["]',
+    'elevation angle residual ["]',
+)
+GROUP_FACTORS = (1e3, 1.0 / ARCSEC, 1.0 / ARCSEC)
+ABSCISSAE = (
+    ("range [m]", 1.0),
+    ("horizontal direction [deg]", 180.0 / np.pi),
+    ("elevation angle [deg]", 180.0 / np.pi),
+)
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_residuals(
+    result,
+    path,
+    *,
+    title: str | None = None,
+    overlay: bool = True,
+    compare=None,
+    mask=None,
+    scanner=None,
+):
+    """3 x 3 grid: residuals ``v = F + Delta - l`` of range, hz and el (rows) against the
+    observed range, horizontal direction and elevation angle (columns), as in Chow et al. 2013
+    figs. 2-13 and Lichti & Licht 2006 figs. 1-3. Writes PNG or SVG by the file name's
+    extension and returns the path.
+
+    ``overlay``: where an estimated AP of a row's group depends only on that column's variable
+    (or is constant), the panel shows the residuals *without* that term, ``v - Delta_c(l)``
+    (approximately what an adjustment without it would leave), and the fitted AP curve
+    ``-Delta_c`` as a line, so the term's signal and its fit are seen together; other panels
+    show plain residuals. ``compare``: another result of the same observations (e.g. without
+    APs), drawn in grey behind. ``mask`` (n, 3) bool: observations used in the adjustment
+    (e.g. ``TestedCalibration.mask``; default all); the others (removed by data snooping) are
+    drawn as red crosses. ``scanner``: the :class:`Scanner` of the calibration (architecture and unit
+    lengths enter some bases, e.g. B6 and A3/A4; default hybrid).
+    """
+    plt = _pyplot()
+    l, v, used = _rows(result)
+    if mask is not None:
+        used = np.asarray(mask, dtype=bool)
+    curves = _ap_curves(result, scanner) if overlay else {}
+    # Own y scale per panel: an overlay panel (residuals without a term) spans far more than a
+    # plain one, and a shared scale would flatten the plain residuals to a line.
+    fig, axes = plt.subplots(3, 3, figsize=(12, 9))
+    for g in range(3):
+        for c, (xlabel, xf) in enumerate(ABSCISSAE):
+            ax = axes[g, c]
+            y = v[:, g].copy()
+            curve = curves.get((g, c))
+            if compare is not None:
+                ax.plot(
+                    l[:, c] * xf,
+                    _rows(compare)[1][:, g] * GROUP_FACTORS[g],
+                    ".",
+                    ms=2,
+                    color="0.7",
+                    label=f"APs: {' '.join(compare.ap_names) or 'none'}",
+                )
+            if curve is not None:
+                y = y - curve["at_obs"]
+            m = used[:, g]
+            ax.plot(
+                l[m, c] * xf,
+                y[m] * GROUP_FACTORS[g],
+                ".",
+                ms=2,
+                alpha=0.6,
+                label=(
+                    f"without {' '.join(curve['terms'])}"
+                    if curve is not None
+                    else f"APs: {' '.join(result.ap_names) or 'none'}"
+                ),
+            )
+            if (~m).any():
+                ax.plot(
+                    l[~m, c] * xf,
+                    y[~m] * GROUP_FACTORS[g],
+                    "x",
+                    ms=5,
+                    color="tab:red",
+                    label="removed",
+                )
+            if curve is not None:
+                ax.plot(
+                    curve["x"] * xf,
+                    -curve["y"] * GROUP_FACTORS[g],
+                    "-",
+                    color="tab:orange",
+                    lw=1.5,
+                    label=f"fitted {' + '.join(curve['terms'])}",
+                )
+            ax.axhline(0.0, color="k", lw=0.5)
+            if curve is not None or compare is not None or (~m).any():
+                ax.legend(fontsize=7, loc="upper right", markerscale=3)
+            if g == 2:
+                ax.set_xlabel(xlabel)
+            if c == 0:
+                ax.set_ylabel(GROUP_LABELS[g])
+    fig.suptitle(
+        title or f"Residuals after self-calibration (APs: {' '.join(result.ap_names) or 'none'})"
+    )
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)
+    return path
+
+
+def _rows(result):
+    """Observations, residuals and used-mask of the rows to plot: the target observations, or
+    for a plane network the plane points (Gauss-Helmert residuals, SPEC section 4)."""
+    net = result.network
+    if net.observations.shape[0] == 0 and getattr(result, "planes", ()):
+        return (
+            np.asarray(net.plane_observations),
+            np.asarray(result.plane_residuals),
+            np.asarray(result.plane_used),
+        )
+    v = np.asarray(result.residuals)
+    used = np.ones_like(v, dtype=bool) if result.used is None else np.asarray(result.used)
+    return np.asarray(net.observations), v, used
+
+
+def _ap_curves(result, scanner=None):
+    """Per (group, abscissa): the estimated terms of that group whose basis depends only on
+    that abscissa (constants included), their sum at the observations and along a grid."""
+    from .._model._aps import GROUP_INDEX, get_ap
+
+    net = result.network
+    if net is None or len(net.instruments) != 1 or not len(result.ap_names):
+        return {}
+    if scanner is None:
+        from .._model._scanner import Scanner
+
+        scanner = Scanner(aps=())
+    l = _rows(result)[0]
+    rng = np.random.default_rng(0)
+    probe = l[rng.choice(len(l), min(len(l), 50), replace=False)]
+    out = {}
+    for c in range(3):
+        grid_1d = np.linspace(l[:, c].min(), l[:, c].max(), 200)
+        for name, value in zip(result.ap_names, result.ap_values):
+            if not np.isfinite(value):
+                continue
+            term = get_ap(name)
+            g = GROUP_INDEX[term.group]
+            deps = _dependencies(term, probe, scanner)
+            if deps - {c}:
+                continue
+            d = out.setdefault(
+                (g, c),
+                {
+                    "terms": [],
+                    "at_obs": np.zeros(len(l)),
+                    "x": grid_1d,
+                    "y": np.zeros_like(grid_1d),
+                },
+            )
+            d["terms"].append(name)
+            d["at_obs"] = d["at_obs"] + value * _basis(term, l, scanner)
+            grid = np.tile(np.median(l, axis=0), (len(grid_1d), 1))
+            grid[:, c] = grid_1d
+            d["y"] = d["y"] + value * _basis(term, grid, scanner)
+    # A panel whose only terms are constants shows nothing a constant line would not; keep it
+    # (it is the offset the term removes) only in the first column.
+    for g, c in list(out):
+        if (
+            all(not _dependencies(get_ap(n), probe, scanner) for n in out[(g, c)]["terms"])
+            and c != 0
+        ):
+            del out[(g, c)]
+    return out
+
+
+def _basis(term, l, scanner):
+    return np.asarray(term.basis(l[:, 0], l[:, 1], l[:, 2], scanner), dtype=float) * np.ones(len(l))
+
+
+def _dependencies(term, probe, scanner):
+    base = _basis(term, probe, scanner)
+    deps = set()
+    for c in range(3):
+        q = probe.copy()
+        q[:, c] = q[:, c] * 0.9 + 0.01
+        if not np.allclose(_basis(term, q, scanner), base, rtol=1e-12, atol=1e-15):
+            deps.add(c)
+    return deps
+
+
+def plot_ap_correlations(result, path):
+    """Absolute correlations among the APs (datum invariant block of the cofactor matrix)."""
+    plt = _pyplot()
+    C = np.asarray(result.ap_covariance, dtype=float)
+    s = np.sqrt(np.diag(C))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        R = np.abs(C / np.outer(s, s))
+    n = len(result.ap_names)
+    fig, ax = plt.subplots(figsize=(1.0 + 0.35 * max(n, 4), 0.8 + 0.35 * max(n, 4)))
+    im = ax.imshow(R, vmin=0.0, vmax=1.0, cmap="viridis")
+    ax.set_xticks(range(n), result.ap_names, rotation=90)
+    ax.set_yticks(range(n), result.ap_names)
+    fig.colorbar(im, ax=ax, label="|correlation| [-]")
+    ax.set_title("AP correlations (non-estimable APs blank)")
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)
+    return path
+
+
+def _save(fig, path):
+    os.makedirs(os.path.dirname(os.path.abspath(path)) or ".", exist_ok=True)
+    fig.savefig(path, dpi=110)
+
+
+def plot_monte_carlo(result, path=None):
+    """Monte Carlo result (:func:`tlsjax.monte_carlo`): histograms of ``(estimate - truth)`` per AP with the formal normal density; PNG if
+    ``path``. Returns the matplotlib figure."""
+    plt = _pyplot()
+
+    ok = result.ok
+    na = len(result.ap_names)
+    cols = min(na, 4)
+    rows = int(math.ceil(na / cols)) + 1
+    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.6 * rows), squeeze=False)
+    for k, name in enumerate(result.ap_names):
+        ax = axes[k // cols][k % cols]
+        f, u = display_unit(result.ap_units[k])
+        d = (result.ap_values[ok, k] - result.true_aps[ok, k]) * f
+        sig = float(np.sqrt(np.mean(result.ap_sigmas[ok, k] ** 2))) * f
+        ax.hist(d, bins=30, density=True, color="0.7")
+        x = np.linspace(d.min(), d.max(), 200) if d.size else np.zeros(1)
+        ax.plot(x, np.exp(-0.5 * (x / sig) ** 2) / (sig * np.sqrt(2 * np.pi)), "k-", lw=1)
+        ax.set_xlabel(f"{name} estimate - truth [{u}]")
+        ax.set_ylabel(f"density [1/{u}]", fontsize=8)
+        ax.set_title(
+            f"{name}: emp/formal {np.std(d, ddof=1) / sig:.3f}" if d.size > 1 else name, fontsize=9
+        )
+    for k in range(na, cols * (rows - 1)):
+        axes[k // cols][k % cols].axis("off")
+    ax = axes[-1][0]
+    ax.hist(result.sigma0_sq[ok], bins=30, color="0.7")
+    ax.set_xlabel("s0^2 [-]")
+    ax.set_ylabel("realisations")
+    ax = axes[-1][1] if cols > 1 else None
+    if ax is not None:
+        sm = result.summary()["aps"]
+        ax.bar(range(na), [sm[n]["power"] for n in result.ap_names], color="0.5")
+        ax.set_xticks(range(na))
+        ax.set_xticklabels(result.ap_names, rotation=90, fontsize=7)
+        ax.set_ylabel(f"power (|t| > t_crit, alpha {result.alpha:g}) [-]")
+    for k in range(2, cols):
+        axes[-1][k].axis("off")
+    fig.tight_layout()
+    if path is not None:
+        fig.savefig(path, dpi=110)
+    return fig

@@ -1,0 +1,84 @@
+"""Text reports of a calibration: the paper-style AP table and the summary.
+
+Host side only. SI inside the result; the table shows millimetres for lengths, arc seconds (")
+for angles and ppm for dimensionless scale terms, with the unit in every label. The JSON keeps
+SI units and states them (SPEC section 11).
+"""
+
+from __future__ import annotations
+
+from .._inference._statistics import global_test
+from .._units import display
+
+EOP_NAMES = ("Xs", "Ys", "Zs", "omega", "phi", "kappa")
+
+
+def ap_table(res, truth: dict | None = None) -> str:
+    """The papers' AP table (Chow et al. 2013, tables 3-6): estimate, standard deviation,
+    t statistic and the largest absolute correlation with the parameter it is with."""
+    head = f"{'AP':<8} {'estimate':>12} {'sigma':>10} {'unit':<4} {'|t|':>8} {'max |corr|':>10}  {'with':<14}"
+    if truth is not None:
+        head += f" {'true':>10}"
+    lines = [head, "-" * len(head)]
+    not_est = {n: r for n, _, r in res.not_estimable}
+    weak = {n for n, _, _ in res.weakly_determined}
+    for i, name in enumerate(res.ap_names):
+        if name in not_est:
+            lines.append(f"{name:<8} not estimable: {not_est[name]}")
+            continue
+        if name in getattr(res, "ap_fixed", ()):
+            lines.append(f"{name:<8} held at 0 (fixed)")
+            continue
+        v, u = display(res.ap_values[i], res.ap_units[i])
+        s, _ = display(res.ap_sigmas[i], res.ap_units[i])
+        row = (
+            f"{name:<8} {v:12.4f} {s:10.4f} {u:<4} {abs(res.ap_t[i]):8.1f} {res.ap_max_abs_corr[i]:10.3f}  "
+            f"{res.ap_max_corr_with[i]:<14}"
+        )
+        if truth is not None:
+            tv = truth.get(name.split("[")[0])
+            row += f" {display(tv, res.ap_units[i])[0]:10.4f}" if tv is not None else f" {'':>10}"
+        if name in weak:
+            row += "  (weakly determined)"
+        lines.append(row)
+    return "\n".join(lines)
+
+
+def summary(res, alpha: float = 0.05) -> str:
+    """A few lines: result, sigma0 with the global test, redundancy, flags."""
+    gt = global_test(res.sigma0, res.dof, alpha)
+    red = res.redundancy_summary()
+    out = [
+        f"result: {res.result} ({res.message}); {res.iterations} iterations; datum: {res.datum}",
+        f"observations n = {res.n_observations}, unknowns u = {res.n_unknowns}, "
+        + (
+            f"degrees of freedom r = n - u + d = {res.dof:.0f}"
+            if not getattr(res, "planes", ())
+            else f"degrees of freedom r = conditions + constraints - u + d = {res.dof:.0f} (Gauss-Helmert, "
+            f"{len(res.planes)} planes, {int(res.plane_used.any(axis=1).sum())} plane points)"
+        ),
+    ]
+    if gt["statistic"] is not None:
+        out.append(
+            f"sigma0 = {res.sigma0:.4f} (s0^2 = {res.sigma0**2:.4f}); global test chi^2 = {gt['statistic']:.1f}, "
+            f"{100 * (1 - alpha):.0f}% interval [{gt['lower']:.1f}, {gt['upper']:.1f}]: "
+            f"{'accepted' if gt['accepted'] else 'REJECTED'} (p = {gt['p_value']:.3f})"
+        )
+    groups = ", ".join(
+        f"{g} {red[g]['mean']:.3f}" for g in ("range", "hz", "el", "levelling") if g in red
+    )
+    if groups:
+        out.append(f"mean redundancy numbers: {groups}")
+    if "planes" in red:
+        pl = red["planes"]
+        out.append(
+            f"mean redundancy numbers of plane observations: range {pl['range']['mean']:.3f}, hz {pl['hz']['mean']:.3f}, "
+            f"el {pl['el']['mean']:.3f}; all {pl['all']['mean']:.3f} (at most 1/3: one condition per point)"
+        )
+    for n, w, c in res.weakly_determined:
+        out.append(f"warning: {n} is weakly determined: |corr| = {c:.4f} with {w}")
+    for n, _, r in res.not_estimable:
+        out.append(f"warning: {n} is not estimable: {r}")
+    if res.rank_deficient:
+        out.append("error: the network does not determine " + ", ".join(res.rank_deficient))
+    return "\n".join(out)
