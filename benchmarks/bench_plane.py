@@ -510,7 +510,6 @@ def child_tlsjax(a, workdir: Path) -> dict:
         plan.problem,
         p0,
         opts.arrays(),
-        jnp.asarray(opts.rank_tolerance),
         opts.full_covariance,
     )
     t0 = time.perf_counter()

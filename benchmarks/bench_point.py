@@ -328,7 +328,6 @@ def bench_case(
         plan.problem,
         p0,
         opts.arrays(),
-        jnp.asarray(opts.rank_tolerance),
         opts.full_covariance,
     )
     t0 = time.perf_counter()

@@ -92,8 +92,7 @@ code(r"""
 CHI2_23_95 = 35.17
 
 def ap_covariance(res):
-    idx = [res.parameter_names.index(n) for n in res.ap_names]
-    return res.covariance[np.ix_(idx, idx)]
+    return res.ap_covariance
 
 print(f"{'AP':4s} {'truth':>9s} {'unit':4s} " + " ".join(f"{k:>19s}" for k in keys))
 z = {}

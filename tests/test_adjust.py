@@ -12,7 +12,11 @@ APS = ("A0", "B6", "B7", "C0")
 @pytest.fixture(scope="module")
 def small():
     sim = tj.simulate(tj.Room(n_targets=24), seed=3, aps=" ".join(APS), tilted=True)
-    res = tj.calibrate(sim.network, tj.CalibrationModel(tj.Scanner(aps=APS)))
+    res = tj.calibrate(
+        sim.network,
+        tj.CalibrationModel(tj.Scanner(aps=APS)),
+        tj.SolverOptions(full_covariance=True),
+    )
     return sim, res
 
 

@@ -13,7 +13,7 @@ import pytest
 from helpers import _R
 
 import tlsjax as tj
-from tlsjax._adjustment._families import Family, Options, Params, Problem, Spec
+from tlsjax._adjustment._families import Params, PlaneFamily, Problem, Spec
 from tlsjax._adjustment._quality import quality
 from tlsjax._adjustment._solver import adjust
 
@@ -68,7 +68,7 @@ def network():
 def _structured(pc, obs, sig, plane, scan, x0_planes, x0_eops):
     n_pl, n_s = len(pc.planes), len(pc.eops)
     pairs, pair = np.unique(np.stack([plane, scan], 1), axis=0, return_inverse=True)
-    fam = Family(
+    fam = PlaneFamily(
         obs=jnp.asarray(obs),
         weight=jnp.asarray(1 / sig),
         prim=jnp.asarray(plane),
@@ -77,12 +77,7 @@ def _structured(pc, obs, sig, plane, scan, x0_planes, x0_eops):
         pair=jnp.asarray(pair.reshape(-1)),
         pair_prim=jnp.asarray(pairs[:, 0]),
         pair_scan=jnp.asarray(pairs[:, 1]),
-        ctrl_xyz=jnp.zeros((n_pl, 1, 3)),
-        ctrl_weight=jnp.zeros((n_pl, 1, 3)),
-        bar_length=jnp.zeros(n_pl),
-        bar_weight=jnp.full(n_pl, 1e7),
-        k=1,
-        kind="plane",
+        unit_weight=jnp.full(n_pl, 1e7),
     )
     problem = Problem(
         (fam,),
@@ -91,11 +86,9 @@ def _structured(pc, obs, sig, plane, scan, x0_planes, x0_eops):
         jnp.zeros((n_s, 2)),
         jnp.zeros(6 * n_s + 4, bool),
     )
-    spec = Spec((pc.scanner,), (APS,), ((0, 4),), n_s, tuple(range(6)), True, ("plane",))
+    spec = Spec((pc.scanner,), (APS,), ((0, 4),), n_s, tuple(range(6)), True)
     p0 = Params((jnp.asarray(x0_planes),), jnp.asarray(x0_eops), jnp.zeros(4))
-    state = adjust(
-        spec, problem, p0, Options(jnp.asarray(30), jnp.asarray(1e-8), jnp.asarray(1e-6))
-    )
+    state = adjust(spec, problem, p0, tj.SolverOptions(tolerance=1e-8).arrays())
     q = quality(spec, problem, state.params, jnp.asarray(1e-6), full_covariance=False)
     return state, q
 

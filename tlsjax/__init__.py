@@ -2,9 +2,12 @@
 
 import jax as _jax
 
-# float64 always (SPEC section 1): set before any array is created.
+# float64 always (SPEC section 1): set before any array is created. This is process-wide; the
+# README says so at the top, since it also changes the default dtype of a user's other JAX code.
 _jax.config.update("jax_enable_x64", True)
 
+from ._adjustment._calibrate import Adjustment as Adjustment
+from ._adjustment._calibrate import analyze as analyze
 from ._adjustment._calibrate import calibrate as calibrate
 from ._adjustment._config import CalibrationModel as CalibrationModel
 from ._adjustment._config import SolverOptions as SolverOptions
@@ -25,6 +28,9 @@ from ._inference._compat import APSet as APSet
 from ._inference._compat import CompatibilityOptions as CompatibilityOptions
 from ._inference._compat import CompatibilityResult as CompatibilityResult
 from ._inference._compat import compatibility_test as compatibility_test
+from ._inference._robust import PlaneScreening as PlaneScreening
+from ._inference._robust import PlaneScreeningOptions as PlaneScreeningOptions
+from ._inference._robust import screen_planes as screen_planes
 from ._inference._selection import SelectionOptions as SelectionOptions
 from ._inference._selection import SelectionResult as SelectionResult
 from ._inference._selection import select_aps as select_aps

@@ -1,18 +1,27 @@
-"""The public entry point: ``calibrate(network, model, options) -> CalibrationResult``.
+"""The entry points: ``calibrate(network, model, options)`` and the two-phase
+``analyze(network, model, options).solve(...)``.
 
-Host side: validate the configuration, build the index plan and the approximate values, call
-the compiled adjustment (:mod:`._solver`) and quality (:mod:`._quality`) once, and turn the
-arrays into a result with names, units and result codes (:mod:`._result`).
+Host side: validate the configuration, build the index plan and the approximate values once
+(:class:`Adjustment`), call the compiled adjustment (:mod:`._solver`) and quality
+(:mod:`._quality`), and turn the arrays into a result with names, units and result codes
+(:mod:`._result`). Variance component estimation, data snooping, AP selection and Monte Carlo
+re-solve one analysed adjustment with other weights, masks, fixed APs or observations: the
+compiled function is specialised on the plan's static spec and shapes only, so none of them
+recompiles.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from ._config import CalibrationModel, SolverOptions
+from ._families import Params
 from ._network import Network
 from ._plan import build_plan, initial_params
 from ._quality import quality
@@ -20,11 +29,127 @@ from ._result import CalibrationResult, assemble
 from ._solver import adjust
 
 
-@functools.partial(jax.jit, static_argnums=(0, 5))
-def _run(spec, problem, params0, options, rank_tolerance, full_covariance):
+@functools.partial(jax.jit, static_argnums=(0, 4))
+def _run(spec, problem, params0, options, full_covariance):
+    """The compiled adjustment and its quality; pure in (problem, params0, options)."""
     state = adjust(spec, problem, params0, options)
-    q = quality(spec, problem, state.params, rank_tolerance, full_covariance)
+    q = quality(spec, problem, state.params, options.rank_tolerance, full_covariance)
     return state, q
+
+
+def _replace(module, **changes):
+    """``dataclasses.replace`` for an ``eqx.Module``."""
+    names = list(changes)
+    return eqx.tree_at(
+        lambda m: [getattr(m, k) for k in names], module, [changes[k] for k in names]
+    )
+
+
+class Adjustment:
+    """One analysed adjustment: the index plan, the static spec and the approximate values of a
+    (network, model) pair, built once on the host (the two phases of jaxls's ``analyze()`` then
+    ``solve()``). :meth:`solve` runs the compiled adjustment with the network's weights or with
+    others; every call after the first reuses the compiled code.
+    """
+
+    def __init__(
+        self,
+        network: Network,
+        model: CalibrationModel | None = None,
+        options: SolverOptions | None = None,
+    ):
+        if not isinstance(network, Network):
+            raise TypeError(
+                f"network must be a tlsjax.Network (tj.read_network(...), tj.make_network(...)), "
+                f"got {type(network).__name__}"
+            )
+        self.network = network
+        self.model = model or CalibrationModel()
+        self.options = options or SolverOptions()
+        self.plan = build_plan(network, self.model)
+        self._params0 = None
+
+    @property
+    def initial(self) -> Params:
+        """Approximate values (computed on first use, :mod:`._approx`)."""
+        if self._params0 is None:
+            self._params0 = initial_params(self.network, self.plan)
+        return self._params0
+
+    def problem(
+        self,
+        *,
+        weights=None,
+        plane_weights=None,
+        levelling_weights=None,
+        fixed_aps=None,
+        control=None,
+    ):
+        """The plan's data with other weights (1/sigma, 0 = removed), in network row order:
+        ``weights`` (n, 3) of the target rows, ``plane_weights`` (m, 3) of the plane rows,
+        ``levelling_weights`` (s, 2); ``fixed_aps``: AP labels held at zero; ``control``: {target
+        index: (xyz, sigma)} pseudo-observations added to (or replacing) the control points."""
+        plan = self.plan
+        fams = list(plan.problem.families)
+        for fi, rows in enumerate(plan.family_rows):
+            w = plane_weights if fi == plan.plane_family else weights
+            if w is not None:
+                fams[fi] = _replace(fams[fi], weight=jnp.asarray(np.asarray(w, dtype=float)[rows]))
+        if control:
+            fams = self._with_control(fams, control)
+        changes = {"families": tuple(fams)}
+        if levelling_weights is not None:
+            changes["levelling_weight"] = jnp.asarray(levelling_weights, dtype=jnp.float64)
+        if fixed_aps is not None:
+            changes["fixed"] = build_plan(
+                self.network, self.model, fixed_aps=fixed_aps
+            ).problem.fixed
+        return _replace(plan.problem, **changes)
+
+    def _with_control(self, fams, control):
+        where = {
+            int(t): (fi, pi, k)
+            for fi, tg in enumerate(self.plan.family_targets)
+            for pi, row in enumerate(tg)
+            for k, t in enumerate(row)
+        }
+        for fi in {where[int(t)][0] for t in control}:
+            cx, cw = np.asarray(fams[fi].ctrl_xyz).copy(), np.asarray(fams[fi].ctrl_weight).copy()
+            for t, (xyz, sigma) in control.items():
+                f, pi, k = where[int(t)]
+                if f == fi:
+                    cx[pi, k], cw[pi, k] = xyz, 1.0 / np.asarray(sigma, dtype=float)
+            fams[fi] = _replace(fams[fi], ctrl_xyz=jnp.asarray(cx), ctrl_weight=jnp.asarray(cw))
+        return fams
+
+    def run(self, problem=None, params0=None):
+        """The compiled call: (solver state, quality) as arrays."""
+        return _run(
+            self.plan.spec,
+            self.plan.problem if problem is None else problem,
+            self.initial if params0 is None else params0,
+            self.options.arrays(),
+            self.options.full_covariance,
+        )
+
+    def solve(self, *, initial=None, **weights) -> CalibrationResult:
+        """Adjust (with the weights of :meth:`problem`, if given) and return the result.
+        ``initial``: (targets (t, 3), eops (s, 6)[, planes (k, 4)]) or a ``Params`` to start from."""
+        problem = self.problem(**weights) if weights else self.plan.problem
+        if initial is not None and not isinstance(initial, Params):
+            initial = initial_params(self.network, self.plan, *initial)
+        state, q = self.run(problem, initial)
+        plan = dataclasses.replace(self.plan, problem=problem)
+        return assemble(self.network, self.model, plan, state, q)
+
+
+def analyze(
+    network: Network, model: CalibrationModel | None = None, options: SolverOptions | None = None
+) -> Adjustment:
+    """Analyse a (network, model) pair once: index plan, datum, approximate values. Returns an
+    :class:`Adjustment` whose ``solve()`` runs the compiled adjustment, again and again with
+    other weights, masks or fixed APs without recompiling."""
+    return Adjustment(network, model, options)
 
 
 def calibrate(
@@ -46,19 +171,11 @@ def calibrate(
     ``throw=True`` a failed result raises ``RuntimeError``. ``initial`` optionally gives
     (targets (t, 3), eops (s, 6)[, planes (k, 4)]) instead of the computed approximate values.
     """
-    model = model or CalibrationModel()
-    options = options or SolverOptions()
-    plan = build_plan(network, model)
-    p0 = initial_params(network, plan, *(initial or (None, None)))
-    state, q = _run(
-        plan.spec,
-        plan.problem,
-        p0,
-        options.arrays(),
-        jnp.asarray(options.rank_tolerance),
-        options.full_covariance,
-    )
-    res = assemble(network, model, plan, state, q)
+    if model is not None and not isinstance(model, CalibrationModel):
+        raise TypeError(f"model must be a tlsjax.CalibrationModel, got {type(model).__name__}")
+    if options is not None and not isinstance(options, SolverOptions):
+        raise TypeError(f"options must be a tlsjax.SolverOptions, got {type(options).__name__}")
+    res = analyze(network, model, options).solve(initial=initial)
     if throw and not res.ok:
         raise RuntimeError(res.message)
     return res

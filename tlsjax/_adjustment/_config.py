@@ -52,20 +52,65 @@ class CalibrationModel:
 
 @dataclasses.dataclass(frozen=True)
 class SolverOptions:
-    """Numerical settings. ``tolerance``: convergence when the largest update is below this
-    fraction of the parameter's standard deviation (cofactor ``sqrt(Q_ii)``);
-    ``rank_tolerance``: smallest accepted Cholesky pivot ``1 - R^2`` of the unit-diagonal
-    reduced normal matrix (below it a parameter is not estimable); ``full_covariance``: also form the inner-constraint cofactor matrix of all
-    unknowns (needed for correlations with targets)."""
+    """Numerical settings of the adjustment (every float is a traced array of the compiled
+    adjustment: changing it never recompiles).
+
+    ``max_iterations``: most Gauss-Newton / Levenberg-Marquardt steps. ``tolerance``:
+    convergence when the largest Gauss-Newton update is below this fraction of the parameter's
+    a posteriori standard deviation (invariant to scaling all sigmas). ``rank_tolerance``:
+    smallest accepted Cholesky pivot ``1 - R^2`` of a parameter's column regressed on every
+    other unknown (below it the parameter is not estimable). The Levenberg-Marquardt schedule:
+    a rejected step multiplies the damping by ``damping_increase`` (starting at
+    ``damping_initial``), an accepted one by ``damping_decrease``, back to pure Gauss-Newton
+    below ``damping_min``; above ``damping_max`` the adjustment gives up. Damping is relative
+    to the diagonal of the normal matrix. ``full_covariance``: also form the dense cofactor
+    matrix of all unknowns (u^2 memory; the AP correlations with every unknown, the sigmas of
+    every target and plane are computed blockwise without it).
+    """
 
     max_iterations: int = 30
     tolerance: float = 1e-6
     rank_tolerance: float = 1e-6
-    full_covariance: bool = True
+    damping_initial: float = 1e-4
+    damping_increase: float = 10.0
+    damping_decrease: float = 0.1
+    damping_min: float = 1e-7
+    damping_max: float = 1e8
+    full_covariance: bool = False
+
+    def __post_init__(self):
+        if int(self.max_iterations) < 1:
+            raise ValueError(
+                f"SolverOptions.max_iterations must be >= 1, got {self.max_iterations}"
+            )
+        for name in (
+            "tolerance",
+            "rank_tolerance",
+            "damping_initial",
+            "damping_min",
+            "damping_max",
+        ):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and v > 0):
+                raise ValueError(f"SolverOptions.{name} must be a positive number, got {v!r}")
+        if not self.damping_increase > 1:
+            raise ValueError(
+                f"SolverOptions.damping_increase must be > 1, got {self.damping_increase}"
+            )
+        if not 0 < self.damping_decrease < 1:
+            raise ValueError(
+                f"SolverOptions.damping_decrease must be in (0, 1), got {self.damping_decrease}"
+            )
 
     def arrays(self) -> Options:
+        f = lambda v: jnp.asarray(v, dtype=jnp.float64)
         return Options(
-            jnp.asarray(self.max_iterations),
-            jnp.asarray(self.tolerance),
-            jnp.asarray(self.rank_tolerance),
+            jnp.asarray(int(self.max_iterations)),
+            f(self.tolerance),
+            f(self.rank_tolerance),
+            f(self.damping_initial),
+            f(self.damping_increase),
+            f(self.damping_decrease),
+            f(self.damping_min),
+            f(self.damping_max),
         )

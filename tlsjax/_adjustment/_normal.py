@@ -22,19 +22,8 @@ import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, Bool, Float
 
-from .._model._datum import move_eop, move_points, null_space_columns, s_transform_vector
-from .._model._planes import move_plane
-from ._families import (
-    OBS_AXES,
-    Params,
-    Problem,
-    Spec,
-    family_args,
-    levelling_jacobian,
-    levelling_residual,
-    obs_residual,
-    prior_residual,
-)
+from .._model._datum import move_eop, null_space_columns, s_transform_vector
+from ._families import OBS_AXES, Params, Problem, Spec, levelling_jacobian, levelling_residual
 from ._linalg import cholesky_solve, forward_substitution, rank_revealing_cholesky, spd_inverse
 
 
@@ -59,22 +48,34 @@ class Blocks(eqx.Module):
 
 
 def ap_jacobians(spec: Spec, problem: Problem, params: Params) -> tuple:
-    """``d e / d AP`` per family, (m, 3, a).
+    """``d e / d AP`` per family, (m, rows, a), for the families where it is constant.
 
-    Constant during an adjustment of points: Delta is linear in the AP coefficients with its
-    bases evaluated at the observations, and F does not depend on the APs (SPEC section 2). Taking it
-    once leaves 3 + 6 tangents per observation for the iterations instead of 9 + a.
+    For points Delta is linear in the AP coefficients with its bases evaluated at the
+    observations, and F does not depend on the APs (SPEC section 2): taking it once leaves
+    3 + 6 tangents per observation for the iterations instead of 9 + a.
     """
-    # Not for planes: their condition mixes the corrected observation with the plane and the
-    # pose, so d g / d AP changes with them.
-    return tuple(
-        None
-        if fam.kind == "plane"
-        else jax.vmap(jax.jacfwd(obs_residual(spec, fam), argnums=2), in_axes=OBS_AXES)(
-            *family_args(problem, params, fi)
-        )
-        for fi, fam in enumerate(problem.families)
-    )
+    out = []
+    for fi, fam in enumerate(problem.families):
+        if not fam.constant_ap_jacobian:
+            out.append(None)
+            continue
+        jac = jax.jacfwd(lambda *a, fam=fam: fam.residual(spec, *a), argnums=2)
+        out.append(jax.vmap(jac, in_axes=OBS_AXES)(*fam.observation_args(problem, params, fi)))
+    return tuple(out)
+
+
+def _family_jacobians(spec, problem, params, fi, ap_jac):
+    """Residual rows e (m, rows) and Jacobian blocks w.r.t. the primitive, pose and APs."""
+    fam = problem.families[fi]
+    args = fam.observation_args(problem, params, fi)
+    f = lambda *a: fam.residual(spec, *a)
+    e = jax.vmap(f, in_axes=OBS_AXES)(*args)
+    if ap_jac is None or ap_jac[fi] is None:
+        Jp, Js, Ja = jax.vmap(jax.jacfwd(f, argnums=(0, 1, 2)), in_axes=OBS_AXES)(*args)
+    else:
+        Jp, Js = jax.vmap(jax.jacfwd(f, argnums=(0, 1)), in_axes=OBS_AXES)(*args)
+        Ja = ap_jac[fi]
+    return e, Jp, Js, Ja
 
 
 def linearise(spec: Spec, problem: Problem, params: Params, ap_jac: tuple | None = None) -> Blocks:
@@ -91,24 +92,13 @@ def linearise(spec: Spec, problem: Problem, params: Params, ap_jac: tuple | None
     Npp, Npz, bp = [], [], []
     for fi, fam in enumerate(problem.families):
         P = params.prims[fi]
-        f = obs_residual(spec, fam)
-        args = family_args(problem, params, fi)
-        e = jax.vmap(f, in_axes=OBS_AXES)(*args)
-        if ap_jac is None or ap_jac[fi] is None:
-            Jp, Js, Ja = jax.vmap(jax.jacfwd(f, argnums=(0, 1, 2)), in_axes=OBS_AXES)(*args)
-        else:
-            Jp, Js = jax.vmap(jax.jacfwd(f, argnums=(0, 1)), in_axes=OBS_AXES)(*args)
-            Ja = ap_jac[fi]
+        e, Jp, Js, Ja = _family_jacobians(spec, problem, params, fi, ap_jac)
         n, nq = fam.n, fam.pair_prim.shape[0]
         seg = jax.ops.segment_sum
         npp = seg(outer(Jp, Jp), fam.prim, n)
         bpp = -seg(matvec_t(Jp, e), fam.prim, n)
-        # Priors on primitives (control points, scale-bar lengths).
-        g = prior_residual(fam)
-        pr = jax.vmap(g)(P, fam.ctrl_xyz, fam.ctrl_weight, fam.bar_length, fam.bar_weight)
-        Jpr = jax.vmap(jax.jacfwd(g))(
-            P, fam.ctrl_xyz, fam.ctrl_weight, fam.bar_length, fam.bar_weight
-        )
+        # Priors on primitives (control points, scale-bar lengths, unit normals).
+        pr, Jpr = fam.prior_residuals(P), fam.prior_jacobian(P)
         npp = npp + outer(Jpr, Jpr)
         bpp = bpp - matvec_t(Jpr, pr)
         nps_pairs = seg(outer(Jp, Js), fam.pair, nq)  # (q, p, 6)
@@ -138,13 +128,10 @@ def linearise(spec: Spec, problem: Problem, params: Params, ap_jac: tuple | None
     return Blocks(tuple(Npp), tuple(Npz), tuple(bp), Nzz, bz)
 
 
-def null_space(spec: Spec, params: Params):
+def null_space(spec: Spec, families, params: Params):
     """Rigid-motion null-space columns H: per family (n, p, d) and the reduced part (r, d)."""
     cols = spec.datum_columns
-    Hp = tuple(
-        null_space_columns(move_plane if spec.kind(fi) == "plane" else move_points, P, cols)
-        for fi, P in enumerate(params.prims)
-    )
+    Hp = tuple(null_space_columns(fam.motion, P, cols) for fam, P in zip(families, params.prims))
     Hs = null_space_columns(move_eop, params.eops, cols).reshape(6 * spec.n_scans, len(cols))
     Hz = jnp.concatenate([Hs, jnp.zeros((spec.n_aps, len(cols)))], axis=0)
     return Hp, Hz
@@ -155,7 +142,7 @@ class Reduced(eqx.Module):
 
     Npp_inv: tuple
     Y: tuple  # Npp^-1 Npz per family
-    scale: Float[Array, " r"]  # 1/sqrt(diag K)
+    scale: Float[Array, " r"]  # 1/sqrt(diag N_zz), the unreduced diagonal
     L: Float[Array, "r r"]
     dependent: Bool[Array, " r"]
     pivots: Float[Array, " r"]
@@ -163,7 +150,17 @@ class Reduced(eqx.Module):
 
 
 def reduce(spec, problem, blocks: Blocks, Hz, damping, rank_tolerance) -> Reduced:
-    """Eliminate the primitives and factorise the reduced system (SPEC section 7)."""
+    """Eliminate the primitives and factorise the reduced system (SPEC section 7).
+
+    The reduced matrix K is scaled by the diagonal of the *unreduced* normal matrix,
+    ``K_s = D^-1/2 K D^-1/2`` with ``D = diag(N_zz)``, so that the in-order Cholesky pivot of
+    parameter j is ``1 - R^2`` of its column regressed on every other unknown, the eliminated
+    targets and planes included. A parameter whose effect the primitives absorb entirely (A0
+    with every scan at one station) has pivot 0 and is found dependent; on the unit-diagonal K
+    its pivot would be rounding noise of any size. The test is a ratio, so it does not depend
+    on the scale of the sigmas. The datum defect is closed by ``+ Q Q^T`` (Q an orthonormal
+    basis of the rigid-motion null space in the scaled coordinates).
+    """
     K = blocks.Nzz
     inv_list, Y_list = [], []
     for Npp, Npz in zip(blocks.Npp, blocks.Npz):
@@ -173,7 +170,7 @@ def reduce(spec, problem, blocks: Blocks, Hz, damping, rank_tolerance) -> Reduce
         K = K - jnp.einsum("npr,npq->rq", Npz, Y)
         inv_list.append(Ninv)
         Y_list.append(Y)
-    diag = jnp.diagonal(K)
+    diag = jnp.diagonal(blocks.Nzz)
     ok = diag > 0
     scale = jnp.where(ok, 1.0 / jnp.sqrt(jnp.where(ok, diag, 1.0)), 0.0)
     Ks = K * scale[:, None] * scale[None, :]

@@ -13,10 +13,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._model._aps import get_ap
+from .._model._datum import free_motions
 from .._model._scanner import Scanner
 from ._approx import approximate_network, approximate_values
 from ._config import CalibrationModel
-from ._families import Family, Params, Problem, Spec
+from ._families import Params, PlaneFamily, PointFamily, Problem, Spec
 from ._network import Network
 
 #: Weight of the unit-normal constraint ``|n|^2 - 1`` of a plane, as a pseudo-observation: with
@@ -28,14 +29,21 @@ PLANE_PARAMETERS = ("nx", "ny", "nz", "d")
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Plan:
-    """Host-built index plan and static spec of one (network, model) pair."""
+    """Host-built index plan and static spec of one (network, model) pair.
+
+    ``family_targets``: per point family, the (n, k) target indices of its primitives;
+    ``family_rows``: per family, the rows of the network's observation table it holds (target
+    rows for point families, plane rows for the plane family), in the family's order.
+    """
 
     spec: Spec
     problem: Problem
-    family_targets: tuple  # per family: (n, k) target indices
+    family_targets: tuple
+    family_rows: tuple
     ap_labels: tuple
     ap_units: tuple
     parameter_names: tuple
+    datum: str
     fixed_scan_index: int | None
     plane_family: int | None = None  # index of the plane family among problem.families
 
@@ -47,12 +55,13 @@ def _scanner_for(model: CalibrationModel, instrument: str) -> Scanner:
         return model.scanner[instrument]
     except KeyError:
         raise ValueError(
-            f"no Scanner configured for instrument {instrument!r}; configured: {sorted(model.scanner)}"
+            f"no Scanner configured for instrument {instrument!r}; "
+            f"configured: {sorted(model.scanner)}"
         ) from None
 
 
-def build_plan(net: Network, model: CalibrationModel) -> Plan:
-    """Index plan (which observations share a target, which (target, scan) pairs exist)."""
+def _ap_blocks(net: Network, model: CalibrationModel):
+    """Scanners, AP names and slices per instrument, AP labels and units."""
     scanners = tuple(_scanner_for(model, ins) for ins in net.instruments)
     ap_names, ap_slices, labels, units = [], [], [], []
     off = 0
@@ -63,33 +72,50 @@ def build_plan(net: Network, model: CalibrationModel) -> Plan:
         for a in sc.aps:
             labels.append(a if len(net.instruments) == 1 else f"{a}[{ins}]")
             units.append(get_ap(a).unit)
-    n_s = len(net.scans)
-    levelled = net.is_levelled.any()
+    return scanners, tuple(ap_names), tuple(ap_slices), tuple(labels), tuple(units)
 
+
+def _datum(net: Network, model: CalibrationModel, labels, fixed_aps):
+    """Datum kind, the parameters it holds (reduced order), the fixed scan, the free motions."""
+    n_s = len(net.scans)
+    motions = free_motions(bool(net.is_levelled.any()))
     datum = model.datum
     if datum == "auto":
         datum = "control" if len(net.control_index) else "inner"
     if datum == "control" and len(net.control_index) == 0:
         raise ValueError(f"{net.source}: datum 'control' needs control points")
-    fixed = np.zeros(6 * n_s + off, dtype=bool)
+    fixed = np.zeros(6 * n_s + len(labels), dtype=bool)
     fixed_idx = None
     if datum == "fixed-scan":
         if model.fixed_scan not in net.scans:
             raise ValueError(
-                f"fixed scan {model.fixed_scan!r} is not a scan of {net.source}; scans: {', '.join(net.scans)}"
+                f"fixed scan {model.fixed_scan!r} is not a scan of {net.source}; "
+                f"scans: {', '.join(net.scans)}"
             )
         fixed_idx = net.scans.index(model.fixed_scan)
-        cols = (0, 1, 2, 5) if levelled else tuple(range(6))
-        fixed[[6 * fixed_idx + c for c in cols]] = True
-    for name in model.fixed_aps:
+        fixed[[6 * fixed_idx + c for c in motions]] = True
+    for name in fixed_aps:
         if name not in labels:
             raise ValueError(
                 f"fixed AP {name!r} is not among the APs of the model: {' '.join(labels)}"
             )
         fixed[6 * n_s + labels.index(name)] = True
-    datum_columns = ((0, 1, 2, 5) if levelled else tuple(range(6))) if datum == "inner" else ()
+    return datum, fixed, fixed_idx, (motions if datum == "inner" else ())
 
-    # Families: free targets (k=1) and scale bars (k=2: both end targets in one block).
+
+def _index_pairs(prim, scan):
+    pairs, pair = np.unique(np.stack([prim, scan], axis=1), axis=0, return_inverse=True)
+    return dict(
+        prim=jnp.asarray(prim),
+        scan=jnp.asarray(scan),
+        pair=jnp.asarray(pair.reshape(-1).astype(np.int32)),
+        pair_prim=jnp.asarray(pairs[:, 0]),
+        pair_scan=jnp.asarray(pairs[:, 1]),
+    )
+
+
+def _point_families(net: Network, datum: str):
+    """Free targets (k = 1) and scale bars (k = 2: both end targets in one block)."""
     n_t = len(net.targets)
     bars = net.scale_bar_targets
     in_bar = np.zeros(n_t, dtype=bool)
@@ -98,89 +124,76 @@ def build_plan(net: Network, model: CalibrationModel) -> Plan:
         if len(set(flat.tolist())) != len(flat):
             raise ValueError(f"{net.source}: a target may end at most one scale bar")
         in_bar[flat] = True
-    fam_of = np.zeros(n_t, dtype=np.int32)
-    prim_of = np.zeros(n_t, dtype=np.int32)
-    point_of = np.zeros(n_t, dtype=np.int32)
+    fam_of, prim_of, point_of = (np.zeros(n_t, dtype=np.int32) for _ in range(3))
     free = np.flatnonzero(~in_bar)
     prim_of[free] = np.arange(len(free))
-    fam_targets = [free[:, None]]
+    fam_targets = [free[:, None]] if net.has_targets else []
     if len(bars):
         fam_of[bars.reshape(-1)] = 1
         prim_of[bars[:, 0]] = prim_of[bars[:, 1]] = np.arange(len(bars))
         point_of[bars[:, 1]] = 1
         fam_targets.append(bars)
-    ctrl_w_t = np.zeros((n_t, 3))
-    ctrl_x_t = np.zeros((n_t, 3))
+    ctrl_w, ctrl_x = np.zeros((n_t, 3)), np.zeros((n_t, 3))
     if datum != "inner" or len(net.control_index):
-        ctrl_w_t[net.control_index] = 1.0 / net.control_sigma
-        ctrl_x_t[net.control_index] = net.control_xyz
-    families = []
-    if not net.has_targets:
-        fam_targets = []
+        ctrl_w[net.control_index] = 1.0 / net.control_sigma
+        ctrl_x[net.control_index] = net.control_xyz
+    families, rows = [], []
     for fi, tg in enumerate(fam_targets):
-        m = fam_of[net.target_index] == fi
-        prim = prim_of[net.target_index[m]]
-        scan = net.scan_index[m]
-        pairs, pair = np.unique(np.stack([prim, scan], axis=1), axis=0, return_inverse=True)
+        m = np.flatnonzero(fam_of[net.target_index] == fi)
         k = tg.shape[1]
-        blen = np.zeros(len(tg))
-        bw = np.zeros(len(tg))
-        if k == 2:
-            blen[:] = net.scale_bar_length
-            bw[:] = 1.0 / net.scale_bar_sigma
+        bar = k == 2
         families.append(
-            Family(
+            PointFamily(
                 obs=jnp.asarray(net.observations[m]),
                 weight=jnp.asarray(1.0 / net.sigmas[m]),
-                prim=jnp.asarray(prim),
                 point=jnp.asarray(point_of[net.target_index[m]]),
-                scan=jnp.asarray(scan),
-                pair=jnp.asarray(pair.reshape(-1).astype(np.int32)),
-                pair_prim=jnp.asarray(pairs[:, 0]),
-                pair_scan=jnp.asarray(pairs[:, 1]),
-                ctrl_xyz=jnp.asarray(ctrl_x_t[tg]),
-                ctrl_weight=jnp.asarray(ctrl_w_t[tg]),
-                bar_length=jnp.asarray(blen),
-                bar_weight=jnp.asarray(bw),
+                **_index_pairs(prim_of[net.target_index[m]], net.scan_index[m]),
+                ctrl_xyz=jnp.asarray(ctrl_x[tg]),
+                ctrl_weight=jnp.asarray(ctrl_w[tg]),
+                bar_length=jnp.asarray(net.scale_bar_length if bar else np.zeros(len(tg))),
+                bar_weight=jnp.asarray(1.0 / net.scale_bar_sigma if bar else np.zeros(len(tg))),
                 k=k,
             )
         )
-    kinds = ["point"] * len(families)
+        rows.append(m)
+    return families, rows, fam_targets
+
+
+def _plane_family(net: Network):
+    """Planes: one Gauss-Helmert condition per point (SPEC section 4), p = 4 per plane."""
+    return PlaneFamily(
+        obs=jnp.asarray(net.plane_observations),
+        weight=jnp.asarray(1.0 / net.plane_sigmas),
+        point=jnp.zeros(len(net.plane_index), dtype=jnp.int32),
+        **_index_pairs(net.plane_index, net.plane_scan_index),
+        unit_weight=jnp.full(len(net.planes), UNIT_NORMAL_WEIGHT),
+    )
+
+
+def _parameter_names(net: Network, fam_targets, labels):
+    names = [
+        f"{c}[{net.targets[t]}]" for tg in fam_targets for row in tg for t in row for c in "XYZ"
+    ]
+    names += [f"{c}[{k}]" for k in net.planes for c in PLANE_PARAMETERS]
+    eop = ("Xs", "Ys", "Zs", "omega", "phi", "kappa")
+    names += [f"{c}[{s}]" for s in net.scans for c in eop]
+    return tuple(names) + tuple(labels)
+
+
+def build_plan(net: Network, model: CalibrationModel, fixed_aps=None) -> Plan:
+    """Index plan (which observations share a target or plane, which (primitive, scan) pairs
+    exist), the datum and the static spec. ``fixed_aps``: AP labels held at zero (default:
+    ``model.fixed_aps``)."""
+    scanners, ap_names, ap_slices, labels, units = _ap_blocks(net, model)
+    fixed_aps = model.fixed_aps if fixed_aps is None else tuple(fixed_aps)
+    datum, fixed, fixed_idx, datum_columns = _datum(net, model, labels, fixed_aps)
+    families, rows, fam_targets = _point_families(net, datum)
     plane_family = None
     if net.has_planes:
-        # Planes: one Gauss-Helmert condition per point (SPEC section 4), p = 4 per plane.
-        n_k = len(net.planes)
-        prim, scan = net.plane_index, net.plane_scan_index
-        pairs, pair = np.unique(np.stack([prim, scan], axis=1), axis=0, return_inverse=True)
         plane_family = len(families)
-        families.append(
-            Family(
-                obs=jnp.asarray(net.plane_observations),
-                weight=jnp.asarray(1.0 / net.plane_sigmas),
-                prim=jnp.asarray(prim),
-                point=jnp.zeros(len(prim), dtype=jnp.int32),
-                scan=jnp.asarray(scan),
-                pair=jnp.asarray(pair.reshape(-1).astype(np.int32)),
-                pair_prim=jnp.asarray(pairs[:, 0]),
-                pair_scan=jnp.asarray(pairs[:, 1]),
-                ctrl_xyz=jnp.zeros((n_k, 1, 3)),
-                ctrl_weight=jnp.zeros((n_k, 1, 3)),
-                bar_length=jnp.zeros(n_k),
-                bar_weight=jnp.full(n_k, UNIT_NORMAL_WEIGHT),
-                k=1,
-                kind="plane",
-            )
-        )
-        kinds.append("plane")
-    spec = Spec(
-        scanners,
-        tuple(ap_names),
-        tuple(ap_slices),
-        n_s,
-        datum_columns,
-        datum == "inner",
-        tuple(kinds),
-    )
+        families.append(_plane_family(net))
+        rows.append(np.arange(len(net.plane_index)))
+    spec = Spec(scanners, ap_names, ap_slices, len(net.scans), datum_columns, datum == "inner")
     lw = np.where(np.isfinite(net.levelling_sigma), 1.0 / net.levelling_sigma, 0.0)
     problem = Problem(
         tuple(families),
@@ -189,24 +202,16 @@ def build_plan(net: Network, model: CalibrationModel) -> Plan:
         jnp.asarray(lw),
         jnp.asarray(fixed),
     )
-
-    names = []
-    for tg in fam_targets:
-        for row in tg:
-            for t in row:
-                names += [f"{c}[{net.targets[t]}]" for c in "XYZ"]
-    for k in net.planes:
-        names += [f"{c}[{k}]" for c in PLANE_PARAMETERS]
-    for s in net.scans:
-        names += [f"{c}[{s}]" for c in ("Xs", "Ys", "Zs", "omega", "phi", "kappa")]
-    names += labels
+    names = _parameter_names(net, fam_targets, labels)
     return Plan(
         spec,
         problem,
         tuple(fam_targets),
-        tuple(labels),
-        tuple(units),
-        tuple(names),
+        tuple(rows),
+        labels,
+        units,
+        names,
+        datum,
         fixed_idx,
         plane_family,
     )

@@ -8,7 +8,7 @@ import enum
 
 import numpy as np
 
-from ._diagnose import confounded_partners
+from ._diagnose import confounded_partners, failure_diagnosis
 from ._network import Network
 from ._plan import Plan
 
@@ -101,6 +101,9 @@ class CalibrationResult:
     plane_residuals: np.ndarray | None = None  # (m, 3) Gauss-Helmert residuals v [m, rad, rad]
     plane_redundancy: np.ndarray | None = None  # (m, 3); the three of a point sum to <= 1
     plane_used: np.ndarray | None = None  # (m, 3)
+    # What a person can act on when the adjustment fails (largest normalised misclosures,
+    # sigma0 per scan and per primitive, suspicious plane matches); see _diagnose.
+    diagnosis: dict = dataclasses.field(default_factory=dict)
 
     @property
     def ok(self) -> bool:
@@ -109,7 +112,8 @@ class CalibrationResult:
     def correlation(self) -> np.ndarray:
         if self.covariance is None:
             raise ValueError(
-                "no full covariance: run calibrate with SolverOptions(full_covariance=True)"
+                "no full covariance matrix (u^2 memory): run calibrate with "
+                "SolverOptions(full_covariance=True)"
             )
         s = np.sqrt(np.clip(np.diag(self.covariance), 0, None))
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -170,144 +174,166 @@ class CalibrationResult:
         }
 
 
-def assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
-    spec = plan.spec
-    ns, na = spec.n_scans, spec.n_aps
+def _ap_estimates(plan: Plan, q, state, s0sq):
+    """AP values, a posteriori sigmas, t, the dependent (non-estimable) and fixed masks and the
+    AP covariance; non-estimable APs are NaN, never numbers."""
+    ns, na = plan.spec.n_scans, plan.spec.n_aps
     dep = np.asarray(q.dependent)
     fixed = np.asarray(plan.problem.fixed)
-    dof = float(q.dof)
-    vtpv = float(q.vtpv)
-    s0sq = vtpv / dof if dof > 0 else np.nan
-    finite = bool(state.finite) and np.isfinite(vtpv)
-    n_p = sum(int(np.prod(P.shape)) for P in state.params.prims)
-
-    names = plan.parameter_names
-    Qzz = np.asarray(q.Qzz)
-    cov = None if q.Qfull is None else np.asarray(q.Qfull) * (s0sq if np.isfinite(s0sq) else 1.0)
-    zdiag = np.diag(Qzz) * s0sq
     ap_idx = 6 * ns + np.arange(na)
     ap_dep = dep[ap_idx] & ~fixed[ap_idx]
-    eop_dep = dep[: 6 * ns] & ~fixed[: 6 * ns]
-    values = np.asarray(state.params.aps).copy()
-    sig = np.sqrt(np.clip(zdiag[ap_idx], 0, None))
     ap_fixed = fixed[ap_idx]
+    Qzz = np.asarray(q.Qzz)
+    values = np.asarray(state.params.aps).copy()
+    sig = np.sqrt(np.clip(np.diag(Qzz)[ap_idx] * s0sq, 0, None))
     values[ap_dep] = np.nan
     sig[ap_dep] = np.nan
     sig[ap_fixed] = 0.0
     with np.errstate(invalid="ignore", divide="ignore"):
         tstat = values / sig
+    # The AP block is datum invariant (SPEC section 6); scaled a posteriori like the sigmas.
+    cov = Qzz[np.ix_(ap_idx, ap_idx)] * s0sq
+    cov[ap_dep, :] = np.nan
+    cov[:, ap_dep] = np.nan
+    return values, sig, tstat, ap_dep, ap_fixed, cov
 
-    # Largest absolute correlation of each AP with any other unknown (inner-constraint datum).
-    if cov is not None:
-        full_dep = np.concatenate([np.zeros(n_p, dtype=bool), dep])
-        s = np.sqrt(np.clip(np.diag(cov), 0, None))
-        rows = n_p + ap_idx
-        with np.errstate(invalid="ignore", divide="ignore"):
-            C = cov[rows] / np.outer(s[rows], s)
-        C[:, full_dep | (s == 0)] = 0.0
-    else:
-        s = np.sqrt(np.clip(np.diag(Qzz), 0, None))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            C = Qzz[ap_idx] / np.outer(s[ap_idx], s)
-        C[:, dep | (s == 0)] = 0.0
+
+def _max_correlations(plan: Plan, q, skip):
+    """Largest |correlation| of every AP with any other unknown, and that unknown's name, in the
+    datum (inner constraints on the primitives), computed block by block: each AP's row of
+    the cofactor matrix against the primitives (``prim_cross``) and the reduced unknowns."""
+    ns, na = plan.spec.n_scans, plan.spec.n_aps
+    dep = np.asarray(q.dependent)
+    Qzz = np.asarray(q.Qzz)
+    ap_idx = 6 * ns + np.arange(na)
+    sz = np.sqrt(np.clip(np.diag(Qzz), 0, None))
+    parts, sigmas = [], []
+    for D, X in zip(q.prim_cofactor, q.prim_cross):
+        D, X = np.asarray(D), np.asarray(X)
+        parts.append(X[:, :, ap_idx].reshape(-1, na).T)  # (a, n p)
+        sigmas.append(np.sqrt(np.clip(np.diagonal(D, axis1=1, axis2=2), 0, None)).reshape(-1))
+    parts.append(Qzz[ap_idx])
+    sigmas.append(np.where(dep, 0.0, sz))
+    R = np.concatenate(parts, axis=1)
+    s = np.concatenate(sigmas)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        C = R / np.outer(sz[ap_idx], s)
+    n_p = s.size - plan.spec.r
+    C[:, s == 0] = 0.0
+    C[np.arange(na), n_p + ap_idx] = 0.0
     C = np.nan_to_num(C)
-    off = n_p if cov is not None else 0
-    for i in range(na):
-        C[i, off + ap_idx[i] if cov is None else n_p + ap_idx[i]] = 0.0
     max_corr = np.abs(C).max(axis=1) if C.size else np.zeros(na)
     arg = np.abs(C).argmax(axis=1) if C.size else np.zeros(na, dtype=int)
-    partner = tuple(names[(a if cov is not None else n_p + a)] for a in arg)
-    max_corr[ap_dep | ap_fixed] = np.nan
-    partner = tuple("" if ap_dep[i] or ap_fixed[i] else partner[i] for i in range(na))
+    names = plan.parameter_names
+    partner = tuple("" if skip[i] else names[arg[i]] for i in range(na))
+    max_corr[skip] = np.nan
+    return max_corr, partner
 
-    not_est = (
-        _diagnose(plan, q, net, state, np.flatnonzero(ap_dep), names, n_p) if ap_dep.any() else ()
-    )
-    weak = tuple(
-        (plan.ap_labels[i], partner[i], float(max_corr[i]))
-        for i in range(na)
-        if not ap_dep[i] and max_corr[i] > model.correlation_threshold
-    )
-    rank_def = tuple(names[n_p + j] for j in np.flatnonzero(eop_dep))
 
-    converged = bool(state.converged)
+def _result_code(state, q, rank_def, not_est):
+    finite = bool(state.finite) and np.isfinite(float(q.vtpv))
     if not finite:
-        code = NONFINITE
-    elif rank_def:
-        code = RANK_DEFICIENT
-    elif not converged:
-        code = MAX_ITERATIONS
-    elif not_est:
-        code = NOT_ESTIMABLE
-    else:
-        code = SUCCESS
-    msg = RESULT_MESSAGES[code]
+        return ResultCode.NONFINITE
+    if rank_def:
+        return ResultCode.RANK_DEFICIENT
+    if not bool(state.converged):
+        return ResultCode.MAX_ITERATIONS
+    if not_est:
+        return ResultCode.NOT_ESTIMABLE
+    return ResultCode.SUCCESS
+
+
+def _message(code, rank_def, not_est, state, diagnosis):
+    msg = code.message
+    if code == ResultCode.MAX_ITERATIONS:
+        msg += f" ({int(state.iteration)} iterations; last update {float(state.size):.3g} x the tolerance)"
     if rank_def:
         msg += ": " + ", ".join(rank_def[:12])
     if not_est:
         msg += "; " + "; ".join(f"{n} is not estimable: {reason}" for n, _, reason in not_est)
+    if code in (ResultCode.MAX_ITERATIONS, ResultCode.NONFINITE) and diagnosis.get("summary"):
+        msg += "; " + diagnosis["summary"]
+    return msg
 
-    # Back to network row order and target order.
+
+def _observation_arrays(net: Network, plan: Plan, q, state, s0sq):
+    """Residuals, redundancy numbers and used masks in network row order; target and plane
+    estimates with a posteriori sigmas (datum blocks of the cofactor matrix)."""
     n_obs = net.observations.shape[0]
-    resid = np.zeros((n_obs, 3))
-    redund = np.zeros((n_obs, 3))
+    resid, redund = np.zeros((n_obs, 3)), np.zeros((n_obs, 3))
     used = np.ones((n_obs, 3), dtype=bool)
     txyz = np.zeros((len(net.targets), 3))
     tsig = np.full((len(net.targets), 3), np.nan)
-    fam_rows = family_rows(net, plan)
-    off_p = 0
-    n_t_params = sum(3 * tg.size for tg in plan.family_targets)
-    plane_out = {}
-    if plan.plane_family is not None:
-        fp = plan.plane_family
-        P = np.asarray(state.params.prims[fp])
-        psig = np.full(P.shape, np.nan)
-        if cov is not None:
-            psig = np.sqrt(
-                np.clip(np.diag(cov)[n_t_params : n_t_params + P.size], 0, None)
-            ).reshape(P.shape)
-        plane_out = dict(
+    sig_of = lambda fi: np.sqrt(
+        np.clip(np.diagonal(np.asarray(q.prim_cofactor[fi]), axis1=1, axis2=2) * s0sq, 0, None)
+    )
+    for fi, tg in enumerate(plan.family_targets):
+        rows = plan.family_rows[fi]
+        resid[rows] = np.asarray(q.residuals[fi])
+        redund[rows] = np.asarray(q.redundancy[fi])
+        used[rows] = np.asarray(plan.problem.families[fi].weight) > 0
+        txyz[tg.reshape(-1)] = np.asarray(state.params.prims[fi]).reshape(-1, 3)
+        tsig[tg.reshape(-1)] = sig_of(fi).reshape(-1, 3)
+    planes = {}
+    fp = plan.plane_family
+    if fp is not None:
+        planes = dict(
             planes=net.planes,
-            plane_params=P,
-            plane_sigmas=psig,
+            plane_params=np.asarray(state.params.prims[fp]),
+            plane_sigmas=sig_of(fp),
             plane_residuals=np.asarray(q.residuals[fp]),
             plane_redundancy=np.asarray(q.redundancy[fp]),
             plane_used=np.asarray(plan.problem.families[fp].weight) > 0,
         )
-    for fi, tg in enumerate(plan.family_targets):
-        rows = fam_rows[fi]
-        resid[rows] = np.asarray(q.residuals[fi])
-        redund[rows] = np.asarray(q.redundancy[fi])
-        used[rows] = np.asarray(plan.problem.families[fi].weight) > 0
-        P = np.asarray(state.params.prims[fi]).reshape(-1, 3)
-        txyz[tg.reshape(-1)] = P
-        if cov is not None:
-            d = np.sqrt(np.clip(np.diag(cov)[off_p : off_p + P.size], 0, None)).reshape(-1, 3)
-            tsig[tg.reshape(-1)] = d
-        off_p += P.size
-    eop_sig = np.sqrt(np.clip(zdiag[: 6 * ns], 0, None)).reshape(ns, 6)
-    if cov is not None:
-        eop_sig = np.sqrt(np.clip(np.diag(cov)[n_p : n_p + 6 * ns], 0, None)).reshape(ns, 6)
-    prior_sum = float(sum(np.asarray(r).sum() for r in q.redundancy_prior))
-    # Observations with weight 0 (removed by data snooping) are not counted (SPEC section 7).
-    n_obs_total = int(round(float(q.n_observations))) if q.n_observations is not None else 3 * n_obs
+    return resid, redund, used, txyz, tsig, planes
+
+
+def assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
+    """The arrays of one adjustment (state, quality) as a :class:`CalibrationResult` with
+    names, units, result code and message."""
+    spec = plan.spec
+    ns = spec.n_scans
+    dof = float(q.dof)
+    s0sq = float(q.vtpv) / dof if dof > 0 else np.nan
+    s0sq_scale = s0sq if np.isfinite(s0sq) else 1.0
+    values, sig, tstat, ap_dep, ap_fixed, ap_cov = _ap_estimates(plan, q, state, s0sq)
+    max_corr, partner = _max_correlations(plan, q, ap_dep | ap_fixed)
+    dep = np.asarray(q.dependent)
+    fixed = np.asarray(plan.problem.fixed)
+    n_p = sum(int(np.prod(P.shape)) for P in state.params.prims)
+    names = plan.parameter_names
+    eop_dep = dep[: 6 * ns] & ~fixed[: 6 * ns]
+    rank_def = tuple(names[n_p + j] for j in np.flatnonzero(eop_dep))
+    not_est = _diagnose(plan, q, state, np.flatnonzero(ap_dep)) if ap_dep.any() else ()
+    weak = tuple(
+        (plan.ap_labels[i], partner[i], float(max_corr[i]))
+        for i in range(spec.n_aps)
+        if not ap_dep[i] and max_corr[i] > model.correlation_threshold
+    )
+    code = _result_code(state, q, rank_def, not_est)
+    diagnosis = failure_diagnosis(net, plan, q) if code != ResultCode.SUCCESS else {}
+    resid, redund, used, txyz, tsig, plane_out = _observation_arrays(
+        net, plan, q, state, s0sq_scale
+    )
+    eop_sig = np.sqrt(np.clip(np.diag(np.asarray(q.Qzz))[: 6 * ns] * s0sq_scale, 0, None)).reshape(
+        ns, 6
+    )
+    eop_sig[eop_dep.reshape(ns, 6)] = np.nan
+    cov = None if q.Qfull is None else np.asarray(q.Qfull) * s0sq_scale
+    n_obs_total = int(round(float(q.n_observations)))
     if plane_out:
         # The solver counts one condition per plane point; a point is three observations.
         n_obs_total += 2 * int(plane_out["plane_used"].any(axis=1).sum())
     return CalibrationResult(
         result=code,
-        message=msg,
-        converged=converged,
+        message=_message(code, rank_def, not_est, state, diagnosis),
+        converged=bool(state.converged),
         iterations=int(state.iteration),
         sigma0=float(np.sqrt(s0sq)),
         dof=dof,
         n_observations=n_obs_total,
         n_unknowns=int(n_p + (~dep).sum()),
-        datum=(
-            "inner"
-            if spec.inner
-            else ("fixed-scan" if plan.fixed_scan_index is not None else "control")
-        ),
+        datum=plan.datum,
         ap_names=plan.ap_labels,
         ap_units=plan.ap_units,
         ap_values=values,
@@ -327,55 +353,50 @@ def assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
         residuals=resid,
         redundancy=redund,
         redundancy_levelling=np.asarray(q.redundancy_levelling),
-        redundancy_prior_sum=prior_sum,
+        redundancy_prior_sum=float(sum(np.asarray(r).sum() for r in q.redundancy_prior)),
         parameter_names=names,
         covariance=cov,
         network=net,
-        ap_covariance=_ap_covariance(Qzz, ap_idx, ap_dep, s0sq),
+        ap_covariance=ap_cov,
         used=used,
         ap_fixed=tuple(plan.ap_labels[i] for i in np.flatnonzero(ap_fixed)),
+        diagnosis=diagnosis,
         **plane_out,
     )
 
 
-def _ap_covariance(Qzz, ap_idx, ap_dep, s0sq):
-    # The AP block of the reduced cofactor matrix is datum invariant (SPEC section 6), so it
-    # needs no S-transformation; scaled a posteriori like the sigmas.
-    C = Qzz[np.ix_(ap_idx, ap_idx)] * s0sq
-    C[ap_dep, :] = np.nan
-    C[:, ap_dep] = np.nan
-    return C
-
-
-def family_rows(net: Network, plan: Plan):
-    n_t = len(net.targets)
-    fam_of = np.zeros(n_t, dtype=int)
-    for fi, tg in enumerate(plan.family_targets):
-        fam_of[tg.reshape(-1)] = fi
-    return [
-        np.flatnonzero(fam_of[net.target_index] == fi) for fi in range(len(plan.family_targets))
-    ]
-
-
-def _diagnose(plan: Plan, q, net, state, columns, names, n_p: int):
+def _diagnose(plan: Plan, q, state, columns):
     """Name what each non-estimable AP (reduced indices ``6s + j``) is confounded with, in the
-    inner-constraint datum on the targets (:mod:`._diagnose`)."""
+    inner-constraint datum on the primitives (:mod:`._diagnose`)."""
     ns = plan.spec.n_scans
+    n_p = sum(int(np.prod(P.shape)) for P in state.params.prims)
+    cols = [6 * ns + j for j in columns]
     found = confounded_partners(
         plan.spec,
         plan.problem,
         state.params,
         np.asarray(q.dependent),
         np.asarray(plan.problem.fixed),
-        [6 * ns + j for j in columns],
+        cols,
+        np.asarray(q.K_over_N),
     )
+    primitives = "plane" if plan.plane_family is not None and not plan.family_targets else "target"
     out = []
-    for j in columns:
-        partner_col, _, scale_like = found[6 * ns + j]
+    for j, col in zip(columns, cols):
+        partner_col, _, kind = found[col]
         name = plan.ap_labels[j]
-        if scale_like:
+        if kind == "scale":
             out.append((name, "scale", "scale is undefined; add scale bars or control points"))
+        elif kind == "primitives":
+            out.append(
+                (
+                    name,
+                    f"{primitives} coordinates",
+                    f"its effect is absorbed by the {primitives} parameters: this design cannot separate "
+                    f"them (e.g. every scan from one station, or no tilted scans); add stations or tilts",
+                )
+            )
         else:
-            partner = names[n_p + partner_col]
+            partner = plan.parameter_names[n_p + partner_col]
             out.append((name, partner, f"confounded with {partner}"))
     return tuple(out)

@@ -32,11 +32,10 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 
-from .._adjustment._calibrate import _run
+from .._adjustment._calibrate import analyze
 from .._adjustment._config import CalibrationModel, SolverOptions
 from .._adjustment._network import Network
-from .._adjustment._plan import build_plan, initial_params
-from .._adjustment._result import CalibrationResult, assemble, family_rows
+from .._adjustment._result import CalibrationResult, assemble
 from .._stats import non_centrality
 from .._units import ARCSEC, display_group
 from ._statistics import ap_t_tests, critical_value, minimal_detectable_bias, w_tests
@@ -243,68 +242,27 @@ def _finite_or_none(d: dict) -> dict:
 
 
 class _Reweighter:
-    """One (network, model) plan, re-run with other weights through the same compiled ``_run``."""
+    """One analysed adjustment (:class:`tlsjax.Adjustment`), re-solved with other weights and
+    pinned targets; nothing recompiles."""
 
     def __init__(self, net: Network, model: CalibrationModel, options: SolverOptions):
         self.net, self.model, self.options = net, model, options
-        self.plan = build_plan(net, model)
-        self.rows = family_rows(net, self.plan)
-        # Target -> (family, primitive, point) so that a target can be pinned.
-        self.where = {}
-        for fi, tg in enumerate(self.plan.family_targets):
-            for pi, row in enumerate(tg):
-                for k, t in enumerate(row):
-                    self.where[int(t)] = (fi, pi, k)
-        self.params0 = initial_params(net, self.plan)
+        self.adjustment = analyze(net, model, options)
+        self.plan = self.adjustment.plan
+        self.params0 = self.adjustment.initial
 
     def run(self, weight: np.ndarray, levelling_weight: np.ndarray, pinned: dict, params0=None):
         """``weight`` (n, 3) = 1/sigma or 0 (removed); ``pinned`` maps target -> xyz."""
-        problem = self.plan.problem
-        fams = []
-        for fi, fam in enumerate(problem.families):
-            cx = np.asarray(fam.ctrl_xyz).copy()
-            cw = np.asarray(fam.ctrl_weight).copy()
-            for t, xyz in pinned.items():
-                f, pi, k = self.where[t]
-                if f == fi:
-                    cx[pi, k] = xyz
-                    cw[pi, k] = 1.0 / PIN_SIGMA
-            fams.append(
-                _replace_module(
-                    fam,
-                    weight=jnp.asarray(weight[self.rows[fi]]),
-                    ctrl_xyz=jnp.asarray(cx),
-                    ctrl_weight=jnp.asarray(cw),
-                )
-            )
-        problem = _replace_module(
-            problem, families=tuple(fams), levelling_weight=jnp.asarray(levelling_weight)
-        )
+        adj = self.adjustment
+        control = {t: (xyz, PIN_SIGMA) for t, xyz in pinned.items()}
+        problem = adj.problem(weights=weight, levelling_weights=levelling_weight, control=control)
+        state, q = adj.run(problem, params0)
         plan = dataclasses.replace(self.plan, problem=problem)
-        o = self.options
-        state, q = _run(
-            plan.spec,
-            problem,
-            params0 if params0 is not None else self.params0,
-            o.arrays(),
-            jnp.asarray(o.rank_tolerance),
-            o.full_covariance,
-        )
         res = assemble(self.net, self.model, plan, state, q)
         infl = np.zeros((self.net.observations.shape[0], 3, plan.spec.n_aps))
-        for fi, rows in enumerate(self.rows):
+        for fi, rows in enumerate(plan.family_rows[: len(plan.family_targets)]):
             infl[rows] = np.asarray(q.ap_influence[fi])
         return res, state, infl
-
-
-def _replace_module(module, **changes):
-    """``dataclasses.replace`` for an ``eqx.Module`` (its ``__init__`` may not take every field)."""
-    import equinox as eqx
-
-    names = list(changes)
-    return eqx.tree_at(
-        lambda m: [getattr(m, k) for k in names], module, [changes[k] for k in names]
-    )
 
 
 # ----------------------------------------------------------------------------------------

@@ -16,8 +16,13 @@ import jax.numpy as jnp
 
 from ._geometry import rotation_matrix
 
-#: Columns of the 6-parameter rigid motion: translations, then rotations about X, Y, Z.
-MOTIONS = ("tx", "ty", "tz", "rx", "ry", "rz")
+
+def free_motions(levelled: bool) -> tuple:
+    """Rigid motions (columns of tx, ty, tz, rx, ry, rz) that leave the observations of a free
+    network invariant: all six, or with levelling (compensator) observations the translations
+    and the rotation about Z (SPEC section 6). They are also the pose parameters (Xs, Ys, Zs,
+    omega, phi, kappa) that a fixed scan must hold to define the datum."""
+    return (0, 1, 2, 5) if levelled else (0, 1, 2, 3, 4, 5)
 
 
 def small_rotation(w):
@@ -33,6 +38,12 @@ def move_point(X, motion):
 def move_points(P, motion):
     """Action on a primitive made of several points stacked as (3k,) (e.g. a scale bar)."""
     return jax.vmap(lambda X: move_point(X, motion))(P.reshape(-1, 3)).reshape(-1)
+
+
+def move_plane(plane, motion):
+    """Rigid-motion action on a plane (Lichti & Chow 2013): ``n -> R n``, ``d -> d + (R n) . t``."""
+    n = small_rotation(motion[3:]) @ plane[:3]
+    return jnp.concatenate([n, (plane[3] + jnp.dot(n, motion[:3]))[None]])
 
 
 def _angles(R):
@@ -66,3 +77,44 @@ def s_transform_vector(Hp, Hz, dps, dz):
     coef = jnp.linalg.solve(GtH, Gtx)
     dps = tuple(dp - jnp.einsum("npd,d->np", H, coef) for H, dp in zip(Hp, dps))
     return dps, dz - Hz @ coef
+
+
+def inner_constraint_cofactor(Hp, Hz, Ninv, Y, Qzz):
+    """Blocks of the inner-constraint cofactor matrix ``S Q S^T`` from the Schur blocks of any
+    generalised inverse ``Q`` of the normal matrix, never forming a matrix of size u^2.
+
+    ``Q_ii = N_ii^-1 + Y_i Q_zz Y_i^T``, ``Q_iz = -Y_i Q_zz`` (per primitive i, ``Y = N_pp^-1
+    N_pz``), ``S = I - H M G^T``, ``M = (G^T H)^-1``, ``G = [H_p; 0]`` (Koch 1999, eq. 3.298;
+    inner constraints on the primitives). With ``W = G^T Q`` (d x u) and ``Z = M (W G) M^T``:
+    ``(S Q S^T)_ab = Q_ab - H_a M W_b - W_a^T M^T H_b^T + H_a Z H_b^T``.
+
+    ``Hp``, ``Ninv``, ``Y``: per family (n, p, d), (n, p, p), (n, p, r); ``Hz`` (r, d); ``Qzz``
+    (r, r). Returns (per family diagonal blocks (n, p, p), per family (n, p, r) blocks with the
+    reduced unknowns, the (r, r) block). Linear in the number of primitives.
+    """
+    C = sum(jnp.einsum("npd,npr->dr", H, y) for H, y in zip(Hp, Y))  # Hp^T Y
+    M = jnp.linalg.inv(sum(jnp.einsum("npd,npe->de", H, H) for H in Hp))
+    Wz = -C @ Qzz  # (d, r)
+    Wp = tuple(
+        jnp.einsum("npd,npq->ndq", H, Ni) + jnp.einsum("dr,npr->ndp", C @ Qzz, y)
+        for H, Ni, y in zip(Hp, Ninv, Y)
+    )  # per family (n, d, p): columns of W for the primitives
+    WG = sum(jnp.einsum("npd,npq,nqe->de", H, Ni, H) for H, Ni in zip(Hp, Ninv)) + C @ Qzz @ C.T
+    Z = M @ WG @ M.T
+    HzM = Hz @ M
+    Qzz_s = Qzz - HzM @ Wz - Wz.T @ HzM.T + Hz @ Z @ Hz.T
+    diag, cross = [], []
+    for H, Ni, y, W in zip(Hp, Ninv, Y, Wp):
+        HM = jnp.einsum("npd,de->npe", H, M)
+        YQ = jnp.einsum("npr,rq->npq", y, Qzz)
+        Qii = Ni + jnp.einsum("npq,nsq->nps", YQ, y)
+        HMW = jnp.einsum("npd,ndq->npq", HM, W)
+        HZH = jnp.einsum("npd,de,nqe->npq", H, Z, H)
+        diag.append(Qii - HMW - jnp.swapaxes(HMW, -1, -2) + HZH)
+        cross.append(
+            -YQ
+            - jnp.einsum("npd,dr->npr", HM, Wz)
+            - jnp.einsum("ndp,rd->npr", W, HzM)
+            + jnp.einsum("npd,de,re->npr", H, Z, Hz)
+        )
+    return tuple(diag), tuple(cross), Qzz_s

@@ -31,7 +31,6 @@ import jax
 import jax.numpy as jnp
 
 from ._aps import ap_corrections
-from ._datum import small_rotation
 from ._geometry import cartesian_from_spherical, rotation_matrix
 
 
@@ -92,9 +91,3 @@ def observation_residuals(plane, eop, coeffs, l, weight, scanners, ap_names, ap_
 def unit_normal_constraint(plane):
     """``n . n - 1``: the constraint that keeps n a unit vector."""
     return jnp.dot(plane[:3], plane[:3]) - 1.0
-
-
-def move_plane(plane, motion):
-    """Rigid-motion action on a plane (Lichti & Chow 2013): ``n -> R n``, ``d -> d + (R n) . t``."""
-    n = small_rotation(motion[3:]) @ plane[:3]
-    return jnp.concatenate([n, (plane[3] + jnp.dot(n, motion[:3]))[None]])
