@@ -6,9 +6,13 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
-from tlsjax._model._datum import move_eop, null_space_columns
-from tlsjax._model._datum import move_plane
-from tlsjax._model._planes import observation_residuals, plane_condition, unit_normal_constraint, whitened_condition
+from tlsjax._model._datum import move_eop, move_plane, null_space_columns
+from tlsjax._model._planes import (
+    observation_residuals,
+    plane_condition,
+    unit_normal_constraint,
+    whitened_condition,
+)
 
 DEG = np.pi / 180
 

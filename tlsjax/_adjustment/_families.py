@@ -127,6 +127,10 @@ class Family(eqx.Module):
         """Which residual rows are observations in the adjustment (weight > 0), (m, rows)."""
         return self.weight > 0
 
+    def retract(self, P):
+        """The primitives after an update, on their constraint manifold (identity here)."""
+        return P
+
     def rounding(self):
         """Rounding error of the whitened residuals, (m, rows): float64 resolves an observation
         to ``eps |l|``; this sets how small an update can usefully be (noise-free data)."""
@@ -213,6 +217,12 @@ class PlaneFamily(Family):
 
     def motion(self, P, motion):
         return move_plane(P, motion)
+
+    def retract(self, P):
+        """``(n, d) / |n|``: the same plane with a unit normal. A Gauss-Newton step satisfies the
+        unit-normal constraint only to first order; its second-order error, times the heavy
+        weight, would make Levenberg-Marquardt reject good steps (Maratos effect)."""
+        return P / jnp.linalg.norm(P[:, :3], axis=1, keepdims=True)
 
     def active_rows(self):
         return jnp.any(self.weight > 0, axis=-1, keepdims=True)

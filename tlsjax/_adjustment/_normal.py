@@ -45,6 +45,10 @@ class Blocks(eqx.Module):
     bp: tuple  # per family (n, p)
     Nzz: Float[Array, "r r"]
     bz: Float[Array, " r"]
+    # Diagonal of the observations' part of N_pp (priors left out): the Levenberg-Marquardt
+    # scaling, so that a heavy pseudo-observation (a plane's unit-normal constraint) does not
+    # freeze the directions it does not constrain.
+    Dp: tuple = ()
 
 
 def ap_jacobians(spec: Spec, problem: Problem, params: Params) -> tuple:
@@ -89,7 +93,7 @@ def linearise(spec: Spec, problem: Problem, params: Params, ap_jac: tuple | None
     Naa = jnp.zeros((na, na))
     bs = jnp.zeros((ns, 6))
     ba = jnp.zeros((na,))
-    Npp, Npz, bp = [], [], []
+    Npp, Npz, bp, Dp = [], [], [], []
     for fi, fam in enumerate(problem.families):
         P = params.prims[fi]
         e, Jp, Js, Ja = _family_jacobians(spec, problem, params, fi, ap_jac)
@@ -99,6 +103,7 @@ def linearise(spec: Spec, problem: Problem, params: Params, ap_jac: tuple | None
         bpp = -seg(matvec_t(Jp, e), fam.prim, n)
         # Priors on primitives (control points, scale-bar lengths, unit normals).
         pr, Jpr = fam.prior_residuals(P), fam.prior_jacobian(P)
+        Dp.append(jnp.diagonal(npp, axis1=-2, axis2=-1))
         npp = npp + outer(Jpr, Jpr)
         bpp = bpp - matvec_t(Jpr, pr)
         nps_pairs = seg(outer(Jp, Js), fam.pair, nq)  # (q, p, 6)
@@ -125,7 +130,7 @@ def linearise(spec: Spec, problem: Problem, params: Params, ap_jac: tuple | None
     Nsa_full = Nsa.reshape(6 * ns, na)
     Nzz = jnp.block([[Nss_full, Nsa_full], [Nsa_full.T, Naa]])
     bz = jnp.concatenate([bs.reshape(-1), ba])
-    return Blocks(tuple(Npp), tuple(Npz), tuple(bp), Nzz, bz)
+    return Blocks(tuple(Npp), tuple(Npz), tuple(bp), Nzz, bz, tuple(Dp))
 
 
 def null_space(spec: Spec, families, params: Params):
@@ -163,8 +168,7 @@ def reduce(spec, problem, blocks: Blocks, Hz, damping, rank_tolerance) -> Reduce
     """
     K = blocks.Nzz
     inv_list, Y_list = [], []
-    for Npp, Npz in zip(blocks.Npp, blocks.Npz):
-        D = jnp.diagonal(Npp, axis1=-2, axis2=-1)
+    for Npp, Npz, D in zip(blocks.Npp, blocks.Npz, blocks.Dp):
         Ninv = spd_inverse(Npp + damping * D[..., :, None] * jnp.eye(Npp.shape[-1]))
         Y = jnp.sum(Ninv[..., :, :, None] * Npz[..., None, :, :], axis=-2)  # (n, p, r)
         K = K - jnp.einsum("npr,npq->rq", Npz, Y)
@@ -198,7 +202,8 @@ def reduced_rhs(blocks: Blocks, red: Reduced):
 
 
 def solve_step(spec, problem, params, blocks, red: Reduced, Hp, Hz):
-    """Solve for the update, back-substitute the primitives, apply the datum."""
+    """Solve for the update, back-substitute the primitives, apply the datum and retract the
+    primitives onto their constraints. Returns (new parameters, applied primitive updates, dz)."""
     c = reduced_rhs(blocks, red) * red.scale
     c = jnp.where(red.dependent, 0.0, c)
     dz = cholesky_solve(red.L, c) * red.scale
@@ -210,15 +215,11 @@ def solve_step(spec, problem, params, blocks, red: Reduced, Hp, Hz):
     if spec.inner and Hz.shape[1]:
         dps, dz = s_transform_vector(Hp, Hz, dps, dz)
     ns = spec.n_scans
-    return (
-        Params(
-            tuple(P + dp for P, dp in zip(params.prims, dps)),
-            params.eops + dz[: 6 * ns].reshape(ns, 6),
-            params.aps + dz[6 * ns :],
-        ),
-        dps,
-        dz,
-    )
+    prims = tuple(fam.retract(P + dp) for fam, P, dp in zip(problem.families, params.prims, dps))
+    # The update as applied (after the retraction onto the constraints): it measures convergence.
+    dps = tuple(new - P for new, P in zip(prims, params.prims))
+    new = Params(prims, params.eops + dz[: 6 * ns].reshape(ns, 6), params.aps + dz[6 * ns :])
+    return new, dps, dz
 
 
 def update_size(blocks, red: Reduced, dz, dps):
