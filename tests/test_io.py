@@ -416,7 +416,11 @@ def test_read_scans(tmp_path):
 
 
 def test_read_scans_without_sigmas_levels_nothing(tmp_path):
+    # Levelling angles without sigma columns are refused (issue 13: they were dropped silently).
     path = write(tmp_path, "scan,omega_rad,phi_rad\nS1,0.001,0.002\n", "scans.csv")
+    with pytest.raises(ValueError, match=where(path, 2, "omega_rad") + ".*no sigma columns"):
+        read_scans(path)
+    path = write(tmp_path, "scan,omega_rad,phi_rad\nS1,,\n", "empty.csv")
     assert read_scans(path) == {}
     path = write(tmp_path, "scan\n", "only.csv")
     assert read_scans(path) == {}

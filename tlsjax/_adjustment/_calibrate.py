@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 
 from ._config import CalibrationModel, SolverOptions
-from ._network import Network
+from ._network import Network, check_calibration_arguments
 from ._plan import build_plan, initial_params
 from ._quality import quality
 from ._result import CalibrationResult, assemble
@@ -46,6 +46,7 @@ def calibrate(
     ``throw=True`` a failed result raises ``RuntimeError``. ``initial`` optionally gives
     (targets (t, 3), eops (s, 6)[, planes (k, 4)]) instead of the computed approximate values.
     """
+    check_calibration_arguments(network, model, options, "calibrate")
     model = model or CalibrationModel()
     options = options or SolverOptions()
     plan = build_plan(network, model)
