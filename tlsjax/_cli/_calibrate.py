@@ -188,7 +188,7 @@ def _calibrate(args) -> int:
     else:
         res = calibrate(net, model, solver)
     print(f"({time.perf_counter() - t0:.2f} s)")
-    report(res, after_vce=tested is not None and tested.options.vce)
+    report(res, after_vce=tested is not None and tested.weights_fitted)
     write_outputs(res, args.json, args.plots, extra=extra, scanner=scanner, mask=mask)
     ok = res.ok and (tested is None or tested.ok)
     return EXIT_OK if ok else EXIT_FAILED

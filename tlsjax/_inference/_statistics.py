@@ -136,7 +136,7 @@ UNIT_MIXUPS = (
 #: A variance factor whose sigma ratio is beyond this (either way) is named in a warning.
 PLAUSIBLE_SIGMA_RATIO = 5.0
 #: A sigma ratio within this factor of a unit ratio is named as that unit mix-up.
-UNIT_MATCH = 1.25
+UNIT_MATCH = 1.15
 
 
 def suspected_units(sigma_ratio: float, dimension: str | None = None) -> tuple[str, ...]:

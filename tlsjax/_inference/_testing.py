@@ -198,8 +198,8 @@ _VCE_MESSAGES = {
     "of iterations",
     VCEResult.OSCILLATING: "variance components oscillate and did not converge",
     VCEResult.FACTOR_LIMIT: "a variance factor left the plausible range; VCE stopped",
-    VCEResult.ADJUSTMENT_FAILED: "the adjustment failed; variance components were not (further) "
-    "estimated",
+    VCEResult.ADJUSTMENT_FAILED: "VCE stopped: an adjustment failed (see the result message and the "
+    "warnings); the last weights whose adjustment succeeded are kept",
     VCEResult.NONFINITE: "a variance factor was not finite; VCE stopped at the last finite weights",
 }
 
@@ -292,6 +292,12 @@ class TestedCalibration:
     def ok(self) -> bool:
         return bool(self.calibration.ok and self.vce_result.ok)
 
+    @property
+    def weights_fitted(self) -> bool:
+        """True when the final weights were fitted to the residuals (a factor is not 1): then
+        sigma0 of the final adjustment is no test of the a priori sigmas."""
+        return any(vc.factor != 1.0 for vc in self.variance_components)
+
     def outliers_json(self) -> list:
         return [_finite_or_none(o.as_dict()) for o in self.outliers]
 
@@ -334,12 +340,12 @@ class TestedCalibration:
             "warnings": list(self.warnings),
             "testing_message": self.message,
         }
-        if self.a_priori_tests and self.vce_result not in (VCEResult.OFF,):
+        if self.a_priori_tests and self.weights_fitted:
             out["global_test"] = {**self.a_priori_tests[-1]["global"], "stage": "a priori"}
             out["global_test_after_vce"] = {
                 "sigma0": _finite(self.calibration.sigma0),
-                "note": "after VCE sigma0 is 1 by construction (the variances were fitted to "
-                "these residuals): not a test",
+                "note": "the variance factors were fitted to these residuals (sigma0 is 1 by "
+                "construction once VCE converges): not a test",
             }
         return out
 
@@ -350,17 +356,17 @@ class TestedCalibration:
             lines += _format_a_priori(stage)
         if self.options.vce:
             lines.append(f"variance components: {self.vce_result.message}")
-        for vc in self.variance_components:
+        for vc in self.variance_components if self.a_priori_tests else ():
             unit, f = ("mm", 1e3) if vc.group == "range" else ('"', 1 / ARCSEC)
             held = "" if vc.estimated else f" (held{': ' + vc.note if vc.note else ''})"
             lines.append(
                 f"  {vc.group:9s} factor {vc.factor:10.4g}  sigma {vc.a_priori_sigma * f:.4g} -> {vc.sigma * f:.4g} {unit}"
                 f"  r_g = {vc.redundancy:.1f} of n = {vc.n}{held}"
             )
-        if self.options.vce and self.vce_result == VCEResult.CONVERGED:
+        if self.weights_fitted:
             lines.append(
-                f"  sigma0 after VCE = {c.sigma0:.4f}: 1 by construction (not a test; the a priori "
-                "tests are above)"
+                f"  sigma0 with the fitted variance factors = {c.sigma0:.4f}: not a test (1 by "
+                "construction once VCE converges; the a priori tests are above)"
             )
         lines.append(
             f"  {len(self.outliers)} removed observation(s); snooping critical value "
@@ -531,6 +537,7 @@ class _Session:
         self.step = 0
         self.params = None
         self.res = self.state = self.infl = None
+        self.last_ok = None
         self.vce_result = VCEResult.CONVERGED if testing.vce else VCEResult.OFF
         self.vce_iterations = 0
         self.screen_crit = None
@@ -550,6 +557,12 @@ class _Session:
             # Warm start the next adjustment; the datum (inner constraints) stays the same
             # because the S-transformation is applied to every update.
             self.params = self.state.params
+            self.last_ok = (self.res, self.state, self.infl, self.factor.copy())
+
+    def restore_last_ok(self):
+        """Back to the last successful adjustment and its variance factors (no re-run: the
+        same weights need not converge again from another start)."""
+        self.res, self.state, self.infl, self.factor = self.last_ok
 
     def group_factors(self):
         return _group_factors(
@@ -701,14 +714,15 @@ def _vce(s: _Session) -> None:
                 f"{VCE_FACTOR_LIMIT:.0e} either way: the a priori sigmas are not plausible"
             )
             return _stop(s, VCEResult.FACTOR_LIMIT)
-        old = s.factor.copy()
         s.factor = np.exp(new)
         s.adjust()
         if not s.res.ok:
-            failed = s.res.message
-            s.factor = old
-            s.adjust()
-            s.warnings.append(f"with the re-estimated weights the adjustment failed: {failed}")
+            s.warnings.append(
+                f"VCE stopped: with the re-estimated weights (variance factors "
+                f"{', '.join(f'{GROUPS[g]} {s.factor[g]:.4g}' for g in range(4) if est[g])}) the "
+                f"adjustment failed: {s.res.message}; the last weights whose adjustment succeeded are kept"
+            )
+            s.restore_last_ok()
             return _stop(s, VCEResult.ADJUSTMENT_FAILED)
         prev_step = step
     s.vce_iterations = t.vce_max_iterations

@@ -72,6 +72,16 @@ def _check_folder_writable(folder: str, path: str, option: str) -> None:
         )
     if not os.access(ancestor, os.W_OK | os.X_OK):
         raise ValueError(f"{option}{path}: cannot be written: no permission to write in {ancestor}")
+    # Permissions do not tell everything (a read-only mount, a pseudo file system, root):
+    # creating and removing a file there does.
+    try:
+        with tempfile.TemporaryFile(dir=ancestor):
+            pass
+    except OSError as err:
+        raise ValueError(
+            f"{option}{path}: cannot be written: no file can be created in {ancestor} "
+            f"({err.strerror or err})"
+        ) from None
 
 
 def check_output_file(path, option: str = "") -> None:

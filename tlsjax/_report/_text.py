@@ -46,7 +46,7 @@ def ap_table(res, truth: dict | None = None) -> str:
 
 def summary(res, alpha: float = 0.05, *, after_vce: bool = False) -> str:
     """A few lines: result, sigma0 with the global test, redundancy, flags. ``after_vce``: the
-    weights were fitted to these residuals, so sigma0 is 1 by construction and no test."""
+    weights were fitted to these residuals (VCE), so sigma0 is no test of them."""
     gt = global_test(res.sigma0, res.dof, alpha)
     red = res.redundancy_summary()
     out = [
@@ -61,8 +61,8 @@ def summary(res, alpha: float = 0.05, *, after_vce: bool = False) -> str:
     ]
     if after_vce and gt["statistic"] is not None:
         out.append(
-            f"sigma0 = {res.sigma0:.4f} after variance component estimation: 1 by construction, "
-            "not a test (the global test with the a priori sigmas is above)"
+            f"sigma0 = {res.sigma0:.4f} with variance factors fitted to these residuals: not a test "
+            "(the global test with the a priori sigmas is above)"
         )
     elif gt["statistic"] is not None:
         out.append(
