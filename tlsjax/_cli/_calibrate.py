@@ -241,10 +241,7 @@ def report(res, *, after_vce: bool = False, truth=None):
 
     print(summary(res, after_vce=after_vce))
     print()
-    if res.result in (0, 2):
-        print(ap_table(res, truth=truth))
-    else:
-        print(f"no estimates: the adjustment failed ({res.message})")
+    print(ap_table(res, truth=truth))
 
 
 def check_outputs(json_path=None, plots_dir=None):

@@ -85,6 +85,8 @@ VCE_FACTOR_LIMIT = 1e20
 MAD_TO_SIGMA = 1.482602218505602
 #: Fewest testable observations of a group for a robust scale.
 MIN_SCREENED = 10
+#: Robust re-weighting steps that balance the groups before screening.
+ROBUST_REWEIGHTING = 4
 
 
 @dataclasses.dataclass(frozen=True)
@@ -622,21 +624,55 @@ class _Session:
         return out
 
 
+def _robust_scales(s: _Session):
+    """Standardised residuals ``u = v / (sigma sqrt(r))`` at the current weights and each
+    group's robust scale ``median |u| / 0.6745`` (NaN for a group with too few testable
+    observations)."""
+    u = np.where(s.mask, w_tests(s.res.residuals, s.sigmas_now(), s.res.redundancy), np.nan)
+    scale = np.full(3, np.nan)
+    for g in range(3):
+        keep = np.isfinite(u[:, g]) & (s.res.redundancy[:, g] >= s.t.min_redundancy)
+        if keep.sum() >= MIN_SCREENED:
+            scale[g] = MAD_TO_SIGMA * np.median(np.abs(u[keep, g]))
+    return u, scale
+
+
+def _balance_groups(s: _Session) -> bool:
+    """Robust re-weighting before screening: a priori sigmas far off between the groups (e.g.
+    ranges in mm read as m) distort the residuals of the others; each group's factor is set to
+    its robust scale squared (bounded steps) until they agree within 10 %. False when the
+    residuals are at rounding level (nothing to screen)."""
+    for _ in range(ROBUST_REWEIGHTING):
+        _, scale = _robust_scales(s)
+        if s.rounding_groups(np.append(scale**2, np.nan)):
+            return False
+        ok = np.isfinite(scale) & (scale > 0)
+        step = np.where(
+            ok, np.clip(2 * np.log(np.where(ok, scale, 1.0)), -VCE_MAX_STEP, VCE_MAX_STEP), 0.0
+        )
+        if np.all(np.abs(step) < np.log(1.1)):
+            return True
+        # Levelling (a few readings, no robust scale of its own) moves with the others.
+        step = np.append(step, step[ok].mean() if ok.any() else 0.0)
+        limit = np.log(VCE_FACTOR_LIMIT)
+        s.factor = np.exp(np.clip(np.log(s.factor) + step, -limit, limit))
+        s.adjust()
+        if not s.res.ok:
+            s.restore_last_ok()
+            return True
+    return True
+
+
 def _screen(s: _Session) -> None:
     """Gross-error screening before VCE (module docstring): robust group scales, family-wise
     critical value, largest first, re-adjusting after each removal."""
     t = s.t
     limit = max(1, int(t.screening_max_share * s.mask.sum()))
     removed = 0
+    if not _balance_groups(s):
+        return  # noise-free: nothing to screen; VCE says so
     while True:
-        u = np.where(s.mask, w_tests(s.res.residuals, s.sigmas_now(), s.res.redundancy), np.nan)
-        scale = np.full(3, np.nan)
-        for g in range(3):
-            keep = np.isfinite(u[:, g]) & (s.res.redundancy[:, g] >= t.min_redundancy)
-            if keep.sum() >= MIN_SCREENED:
-                scale[g] = MAD_TO_SIGMA * np.median(np.abs(u[keep, g]))
-        if s.rounding_groups(np.append(scale**2, np.nan)):
-            return  # noise-free: nothing to screen; VCE says so
+        u, scale = _robust_scales(s)
         with np.errstate(invalid="ignore", divide="ignore"):
             w = u / np.where(scale > 0, scale, np.nan)[None, :]
         n_tested = int(np.isfinite(w).sum())
@@ -661,11 +697,23 @@ def _screen(s: _Session) -> None:
             return
 
 
+def _a_priori_after_screening(s: _Session) -> None:
+    """The a priori tests again, on the screened observations (a priori weights)."""
+    fitted = s.factor.copy()
+    s.factor = np.ones(4)
+    s.adjust()
+    if s.res.ok:
+        s.record_a_priori("after screening")
+    s.factor = fitted
+    s.adjust()
+
+
 def _vce(s: _Session) -> None:
     """Variance component estimation with safeguards (module docstring); sets
     ``s.vce_result``. Every stop leaves the session at weights whose adjustment succeeded."""
     t = s.t
     prev_step = np.zeros(4)
+    relax = np.ones(4)  # halved at every change of direction of a group's step
     flips = 0
     for it in range(t.vce_max_iterations):
         s2, r_g, n_g = s.group_factors()
@@ -704,7 +752,8 @@ def _vce(s: _Session) -> None:
             est, np.clip(np.log(np.where(est, s2, 1.0)), -VCE_MAX_STEP, VCE_MAX_STEP), 0.0
         )
         flip = step * prev_step < 0
-        step = np.where(flip, 0.5 * step, step)  # damp a change of direction
+        relax = np.where(flip, 0.5 * relax, relax)  # damp an oscillation geometrically
+        step = relax * step
         flips += int(flip.any())
         new = np.log(s.factor) + step
         if np.any(np.abs(new) > np.log(VCE_FACTOR_LIMIT)):
@@ -825,7 +874,7 @@ def calibrate_and_test(
             n_before = len(s.removals)
             _screen(s)
             if len(s.removals) > n_before and s.res.ok:
-                s.record_a_priori("after screening")
+                _a_priori_after_screening(s)
     elif np.isfinite(s.res.sigma0):
         hint = implausible_factor("all groups", s.res.sigma0**2)
         if hint:

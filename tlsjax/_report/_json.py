@@ -42,7 +42,7 @@ def result_to_dict(res, *, alpha: float = 0.05) -> dict:
 def _withhold_estimates(d: dict, reason: str) -> None:
     """Null every estimate and sigma of a failed adjustment, in place."""
     for a in d["aps"].values():
-        for k in ("value", "sigma", "t", "max_abs_corr"):
+        for k in ("value", "sigma", "t", "max_abs_corr", "max_corr_with"):
             a[k] = None
     for e in d["eops"].values():
         for k in EOP_NAMES:

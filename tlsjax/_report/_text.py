@@ -20,6 +20,9 @@ def ap_table(res, truth: dict | None = None) -> str:
     if truth is not None:
         head += f" {'true':>10}"
     lines = [head, "-" * len(head)]
+    if int(res.result) not in (0, 2):
+        # A failed adjustment's numbers would look plausible and be wrong.
+        return "\n".join(lines + [f"no estimates: the adjustment failed ({res.message})"])
     not_est = {n: r for n, _, r in res.not_estimable}
     weak = {n for n, _, _ in res.weakly_determined}
     for i, name in enumerate(res.ap_names):
