@@ -262,7 +262,8 @@ class TestedCalibration:
     below ``min_redundancy``. ``history``: one line per adjustment (sigma0, factors, removals).
     ``a_priori_tests``: the global test and the group tests with the a priori sigmas, for all
     observations and (when screening removed some) after screening: the honest tests of the
-    stochastic model. ``vce_result`` (:class:`VCEResult`) says how VCE ended; ``warnings``
+    stochastic model. ``vce_result`` (:class:`VCEResult`) says how VCE ended and
+    ``vce_iterations`` counts its re-weighted adjustments; ``warnings``
     name implausible variance factors (with a suspected unit mix-up) and other findings.
     ``ok``: the adjustment succeeded and VCE ended in a usable state.
     """
@@ -734,7 +735,6 @@ def _vce(s: _Session) -> None:
                 "s2": s2.tolist(),
             }
         )
-        s.vce_iterations = it
         if not est.any():
             return _stop(s, VCEResult.NO_REDUNDANCY)
         noise_free = s.rounding_groups(np.where(est, s2, np.nan))
@@ -765,6 +765,7 @@ def _vce(s: _Session) -> None:
             return _stop(s, VCEResult.FACTOR_LIMIT)
         s.factor = np.exp(new)
         s.adjust()
+        s.vce_iterations += 1
         if not s.res.ok:
             s.warnings.append(
                 f"VCE stopped: with the re-estimated weights (variance factors "
@@ -774,7 +775,6 @@ def _vce(s: _Session) -> None:
             s.restore_last_ok()
             return _stop(s, VCEResult.ADJUSTMENT_FAILED)
         prev_step = step
-    s.vce_iterations = t.vce_max_iterations
     return _stop(s, VCEResult.OSCILLATING if flips >= 3 else VCEResult.MAX_ITERATIONS)
 
 
