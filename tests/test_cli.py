@@ -1,10 +1,12 @@
 """The command line and the result JSON contract (SPEC section 11)."""
 
 import json
+import re
 
 import numpy as np
 import pytest
 import scipy.stats
+from strict_json import load_strict
 
 import tlsjax as tj
 from tlsjax._cli import main
@@ -237,3 +239,132 @@ def test_global_test_against_scipy():
 
 def test_room_parse_of_the_default_room_is_the_default_room():
     assert tj.Room.parse("14x11x3") == tj.Room()
+
+
+# --------------------------------------------------------------------------------------------
+# Issue 13: never a plausible wrong answer through the CLI
+
+
+def _edit(src, dst, edits):
+    """Copy a CSV with cells replaced: edits = {(line index, column index): text}."""
+    lines = src.read_text().splitlines()
+    for (i, c), text in edits.items():
+        cells = lines[i].split(",")
+        cells[c] = text(cells[c]) if callable(text) else text
+        lines[i] = ",".join(cells)
+    dst.write_text("\n".join(lines) + "\n")
+    return dst
+
+
+def test_default_calibrate_finds_gross_errors(simulated, tmp_path, capsys):
+    d, obs, scans, truth = simulated
+    bad = _edit(
+        obs,
+        tmp_path / "blunders.csv",
+        {
+            (10, 2): lambda v: repr(float(v) + 1.0),  # 1 m in the range
+            (50, 3): lambda v: repr(float(v) + 10.0),  # 10 deg in hz
+            (90, 4): lambda v: repr(float(v) + 10.0),  # 10 deg in el
+        },
+    )
+    out = tmp_path / "res.json"
+    code = main(["calibrate", str(bad), "--scans", str(scans), "--json", str(out)])
+    printed = capsys.readouterr().out
+    assert code == 0
+    js = load_strict(out)
+    rows = obs.read_text().splitlines()
+    expected = {
+        (rows[i].split(",")[0], rows[i].split(",")[1], g)
+        for i, g in ((10, "range"), (50, "hz"), (90, "el"))
+    }
+    assert {(o["scan"], o["target"], o["group"]) for o in js["outliers"]} == expected
+    assert js["a_priori_tests"][0]["global"]["accepted"] is False
+    assert (
+        js["global_test"]["stage"] == "a priori"
+        and "not a test" in js["global_test_after_vce"]["note"]
+    )
+    assert js["vce"]["status"] == "converged"
+    true = load_strict(truth)["aps"]
+    for name, v in true.items():
+        assert abs(js["aps"][name]["value"] - v) < 5 * js["aps"][name]["sigma"]
+    assert "REJECTED" in printed and "screening before VCE" in printed
+    assert ": accepted" not in printed.split("variance components:")[1].split("AP ")[0]
+
+
+def test_implausible_input_is_refused_with_one_line(simulated, tmp_path, capsys):
+    _, obs, scans, _ = simulated
+    cases = {
+        "el95.csv": ({(20, 4): "95"}, "el of scan .* = 95 deg .*hybrid scanner"),
+        "elm120.csv": ({(20, 4): "-120"}, "column el_deg: el = -120 .*below -90 deg"),
+        "hz720.csv": ({(20, 3): "720"}, "column hz_deg: hz = 720 .*two turns"),
+    }
+    for name, (edits, message) in cases.items():
+        assert (
+            main(["calibrate", str(_edit(obs, tmp_path / name, edits)), "--scans", str(scans)]) == 2
+        )
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and re.search(
+            f"{name}, line 21.*{message}", err
+        ), err
+    rad = tmp_path / "rad.csv"
+    rad.write_text(obs.read_text().replace("hz_deg,el_deg", "hz_rad,el_rad", 1))
+    assert main(["calibrate", str(rad)]) == 2
+    assert "column hz_rad" in capsys.readouterr().err
+    nosig = tmp_path / "scans_nosig.csv"
+    nosig.write_text("scan,omega_arcsec,phi_arcsec\nS1,1,2\n")
+    assert main(["calibrate", str(obs), "--scans", str(nosig)]) == 2
+    assert "no sigma columns" in capsys.readouterr().err
+
+
+def test_file_system_failures_are_one_line_before_any_work(simulated, tmp_path, capsys):
+    _, obs, scans, _ = simulated
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    cases = [
+        ([str(tmp_path), "--scans", str(scans)], "is a directory, not a CSV file"),
+        ([str(obs), "--scans", str(tmp_path)], "is a directory, not a CSV file"),
+        ([str(obs), "--json", str(tmp_path)], "--json .*is a directory"),
+        ([str(obs), "--json", str(afile / "r.json")], "--json .*afile is a file, not a directory"),
+        ([str(obs), "--plots", str(afile)], "--plots .*is a file, not a directory"),
+        ([str(obs), "--plots", str(afile / "p")], "--plots .*afile is a file"),
+    ]
+    for args, message in cases:
+        assert main(["calibrate", *args]) == 2, args
+        captured = capsys.readouterr()
+        assert "scans," not in captured.out  # refused before the network was even read
+        assert len(captured.err.strip().splitlines()) == 1 and re.search(message, captured.err)
+    assert main(["montecarlo", "--runs", "5", "--json", str(tmp_path)]) == 2
+    assert "--json" in capsys.readouterr().err
+    assert main(["simulate", "--out", str(afile / "obs.csv")]) == 2
+    assert "--out" in capsys.readouterr().err
+    assert main(["extract-planes", str(tmp_path / "none.ply"), "--out", str(tmp_path)]) == 2
+    assert "--out" in capsys.readouterr().err  # before the (missing) scan is read
+    assert main(["compare", str(obs), str(obs), "--json", str(afile / "c.json")]) == 2
+    assert "--json" in capsys.readouterr().err
+
+
+def test_drop_single_targets_that_empty_a_scan_is_a_message(simulated, tmp_path, capsys):
+    _, obs, scans, _ = simulated
+    lines = obs.read_text().splitlines()
+    # Scan S6 keeps only its own renamed targets: all of them single.
+    kept = [lines[0]] + [
+        ln if not ln.startswith("S6,") else ln.replace(",T", ",X", 1) for ln in lines[1:]
+    ]
+    f = tmp_path / "lonely.csv"
+    f.write_text("\n".join(kept) + "\n")
+    assert main(["calibrate", str(f), "--drop-single-targets"]) == 2
+    err = capsys.readouterr().err
+    assert "scan(s) S6 observe only targets seen in no other scan" in err and "Traceback" not in err
+
+
+def test_montecarlo_json_is_strict_and_failures_explained(tmp_path, capsys):
+    assert main(["montecarlo", "--runs", "1", "--no-progress"]) == 2
+    assert "at least 2 realisations" in capsys.readouterr().err
+    out = tmp_path / "mc.json"
+    args = ["montecarlo", "--runs", "4", "--targets", "24", "--aps", "A0 A1 B6", "--no-progress"]
+    assert main([*args, "--json", str(out)]) == 1
+    printed = capsys.readouterr().out
+    js = load_strict(out)
+    assert js["successful"] == 0 and js["aps"]["A1"]["mean"] is None
+    assert "A1 is not estimable" in js["diagnosis"] and "scale" in js["diagnosis"]
+    assert "A1 is not estimable" in printed

@@ -253,3 +253,136 @@ def test_planes_must_be_a_plane_table(rows, plane_table):
     wrong = dataclasses.replace(plane_table, kind="target")
     with pytest.raises(ValueError, match="planes must be a plane ObservationTable"):
         _make(scans, targets, obs, planes=wrong)
+
+
+# --------------------------------------------------------------------------------------------
+# Issue 13: inputs checked at the boundary
+
+
+@pytest.mark.parametrize(
+    "column, degrees, architecture, message",
+    [
+        (2, 95.0, "hybrid", "el of scan .* = 95 deg .*beyond 90 deg: a hybrid scanner"),
+        (2, 95.0, None, "el of .* = 95 deg .*only the second face of a panoramic scanner.*hz = "),
+        (2, -120.0, None, "el of .* = -120 deg .*below -90 deg"),
+        (2, -120.0, "panoramic", "below -90 deg"),
+        (2, 270.0, "panoramic", "not below 270 deg"),
+        (1, 720.0, None, "hz of scan .* = 720 deg .*two turns"),
+        (1, -800.0, "hybrid", "two turns"),
+    ],
+)
+def test_angles_outside_the_architecture_are_refused(rows, column, degrees, architecture, message):
+    scans, targets, obs = rows
+    obs = obs.copy()
+    i = 40
+    obs[i, column] = np.radians(degrees)
+    with pytest.raises(ValueError, match=rf"row {i}: .*" + message):
+        _make(scans, targets, obs, architecture=architecture)
+
+
+def test_angles_checked_against_the_model_at_calibration(rows):
+    scans, targets, obs = rows
+    net = _make(scans, targets, obs)
+    # A panoramic model needs every hz in [0, 180) deg: this hybrid network has them all round.
+    with pytest.raises(ValueError, match=r"hz of scan .*panoramic scanner\).*not in \[0, 180\)"):
+        tj.calibrate(net, tj.CalibrationModel(tj.Scanner(architecture="panoramic", aps="A0")))
+    pan = tj.simulate(tj.Room(n_targets=24), aps="none", architecture="panoramic", noise=False)
+    assert np.degrees(pan.network.observations[:, 2].max()) > 90  # second-face rows exist
+    with pytest.raises(ValueError, match="beyond 90 deg: a hybrid scanner"):
+        tj.calibrate_and_test(pan.network, tj.CalibrationModel(tj.Scanner(aps="A0")))
+    # Angles one turn off (a reading of 370 deg, or -10 deg) are directions, not errors.
+    o = obs.copy()
+    o[3, 1] += 2 * np.pi
+    o[4, 1] -= 2 * np.pi
+    _make(scans, targets, o, architecture="hybrid")
+
+
+def test_levelling_needs_known_keys_and_sigmas(rows):
+    scans, targets, obs = rows
+    with pytest.raises(
+        ValueError, match="levelling of scan S1 has no sigma_omega and no sigma_phi"
+    ):
+        _make(scans, targets, obs, levelling={"S1": {"omega": 0}})
+    with pytest.raises(ValueError, match="S2 has no sigma_phi"):
+        _make(scans, targets, obs, levelling={"S2": {"sigma_omega": 1e-5}})
+    good = {"omega": 0.0, "phi": 1e-5, "sigma_omega": 5e-5, "sigma_phi": 5e-5}
+    with pytest.raises(ValueError, match="unknown key.*kappa"):
+        _make(scans, targets, obs, levelling={"S1": {**good, "kappa": 0.0}})
+    with pytest.raises(ValueError, match="omega = 5.7.*deg.*check the values and their unit"):
+        _make(scans, targets, obs, levelling={"S1": {**good, "omega": 0.1}})
+    with pytest.raises(ValueError, match="S3 must be positive"):
+        _make(scans, targets, obs, levelling={"S3": {**good, "sigma_phi": 0.0}})
+    with pytest.raises(TypeError, match="levelling\\['S1'\\] must be a mapping"):
+        _make(scans, targets, obs, levelling={"S1": (0.0, 0.0, 1e-5, 1e-5)})
+    with pytest.raises(TypeError, match="values must be numbers"):
+        _make(scans, targets, obs, levelling={"S1": {**good, "phi": "flat"}})
+    net = _make(scans, targets, obs, levelling={"S1": good})
+    assert net.is_levelled.tolist() == [True] + [False] * 5
+    np.testing.assert_array_equal(net.levelling_sigma[0], [5e-5, 5e-5])
+
+
+def test_degenerate_and_repeated_scale_bars(rows):
+    scans, targets, obs = rows
+    with pytest.raises(ValueError, match="scale bar 1 joins target T001 to itself"):
+        _make(scans, targets, obs, scale_bars=[("T001", "T001", 1.0, 1e-4)])
+    bars = [("T001", "T002", 1.0, 1e-4), ("T002", "T001", 1.0, 1e-4)]
+    with pytest.raises(ValueError, match="T002-T001 is given twice"):
+        _make(scans, targets, obs, scale_bars=bars)
+    with pytest.raises(ValueError, match="scale bar 1 must be"):
+        _make(scans, targets, obs, scale_bars=[("T001", "T002", 1.0)])
+    with pytest.raises(ValueError, match="positive length"):
+        _make(scans, targets, obs, scale_bars=[("T001", "T002", 0.0, 1e-4)])
+    net = _make(scans, targets, obs, scale_bars=[("T001", "T002", 1.0, 1e-4)])
+    assert net.scale_bar_targets.tolist() == [[0, 1]]
+
+
+def test_wrong_argument_types_name_the_argument(rows):
+    scans, targets, obs = rows
+    with pytest.raises(TypeError, match="scans must be a sequence of scan names"):
+        tj.make_network("S1", list(targets), obs)
+    with pytest.raises(TypeError, match="observations must be an \\(n, 3\\) array of numbers"):
+        tj.make_network(list(scans), list(targets), [["a", "b", "c"]] * len(scans))
+    with pytest.raises(TypeError, match="sigma_range must be a number"):
+        _make(scans, targets, obs, sigma_range="0.5 mm")
+    with pytest.raises(ValueError, match="architecture 'hybird'"):
+        _make(scans, targets, obs, architecture="hybird")
+    with pytest.raises(ValueError, match="3 instrument names"):
+        _make(scans, targets, obs, instruments=["a", "b", "c"])
+    net = _make(scans, targets, obs)
+    with pytest.raises(TypeError, match="network must be a tlsjax Network, got str.*read_network"):
+        tj.calibrate("obs.csv", tj.CalibrationModel())
+    with pytest.raises(
+        TypeError, match="model must be a tlsjax CalibrationModel.*Scanner.*wrap it"
+    ):
+        tj.calibrate(net, tj.Scanner())
+    with pytest.raises(TypeError, match="options must be a tlsjax SolverOptions"):
+        tj.calibrate(net, None, {"max_iterations": 3})
+    with pytest.raises(TypeError, match="testing must be a TestingOptions"):
+        tj.calibrate_and_test(net, None, None, {"vce": False})
+    with pytest.raises(TypeError, match="observations_path must be a file path"):
+        tj.read_network(net)
+
+
+def test_dropping_single_targets_may_not_empty_a_scan(rows):
+    scans, targets, obs = rows
+    # S6 sees only targets that no other scan sees: dropping them leaves nothing of S6.
+    own = [f"X{i}" for i in range(6)]
+    s = np.append(scans, ["S6"] * 6)
+    t = np.append(targets, own)
+    o = np.vstack([obs, obs[scans == "S6"][:6]])
+    keep = s != "S6"
+    keep[-6:] = True
+    with pytest.raises(ValueError, match="scan\\(s\\) S6 observe only targets seen in no other"):
+        _make(s[keep], t[keep], o[keep], drop_single_targets=True)
+    with pytest.raises(ValueError, match="every target is seen in one scan only"):
+        _make(["S1"] * 6, own, obs[:6], drop_single_targets=True)
+
+
+def test_repeated_plane_points_are_refused(rows, plane_table):
+    t = plane_table
+    idx = np.r_[np.arange(len(t.scans)), 5]
+    twice = _subset(t, idx)
+    with pytest.raises(
+        ValueError, match=rf"line {t.rows[5]}: duplicate point of plane {t.primitives[5]}"
+    ):
+        tj.make_plane_network(twice)

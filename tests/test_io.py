@@ -6,6 +6,7 @@ import re
 import numpy as np
 import pytest
 
+import tlsjax as tj
 from tlsjax._adjustment._network import ObservationTable
 from tlsjax._io._tables import parse_unit_column, read_observations, read_scans, write_observations
 
@@ -416,7 +417,11 @@ def test_read_scans(tmp_path):
 
 
 def test_read_scans_without_sigmas_levels_nothing(tmp_path):
+    # Levelling angles without sigma columns are refused (issue 13: they were dropped silently).
     path = write(tmp_path, "scan,omega_rad,phi_rad\nS1,0.001,0.002\n", "scans.csv")
+    with pytest.raises(ValueError, match=where(path, 2, "omega_rad") + ".*no sigma columns"):
+        read_scans(path)
+    path = write(tmp_path, "scan,omega_rad,phi_rad\nS1,,\n", "empty.csv")
     assert read_scans(path) == {}
     path = write(tmp_path, "scan\n", "only.csv")
     assert read_scans(path) == {}
@@ -493,3 +498,57 @@ def test_scan_unknown_column(tmp_path):
     path = write(tmp_path, "", "empty.csv")
     with pytest.raises(ValueError, match=where(path, 1) + ".*empty file"):
         read_scans(path)
+
+
+# --------------------------------------------------------------------------------------------
+# Issue 13: file-system failures and angle ranges at the boundary
+# --------------------------------------------------------------------------------------------
+
+
+def test_a_directory_or_binary_file_is_one_line(tmp_path):
+    with pytest.raises(ValueError, match=f"{re.escape(str(tmp_path))}: is a directory, not a CSV"):
+        read_observations(tmp_path)
+    with pytest.raises(ValueError, match="is a directory, not a CSV"):
+        read_scans(tmp_path)
+    with pytest.raises(ValueError, match="is a directory, not a plane file"):
+        tj.read_network(planes=tmp_path)
+    binary = tmp_path / "scan.e57"
+    binary.write_bytes(bytes(range(256)) * 4)
+    with pytest.raises(ValueError, match="scan.e57, line 1: not a text CSV file"):
+        read_observations(binary)
+    with pytest.raises(FileNotFoundError):
+        read_observations(tmp_path / "missing.csv")
+
+
+@pytest.mark.parametrize(
+    "row, column, message",
+    [
+        ("S1,T1,10,720,0", "hz_deg", r"hz = 720 \(720 deg\) is two turns or more"),
+        ("S1,T1,10,-725,0", "hz_deg", "hz = -725 .*two turns or more"),
+        ("S1,T1,10,10,-120", "el_deg", r"el = -120 \(-120 deg\) is below -90 deg"),
+        ("S1,T1,10,10,270", "el_deg", "el = 270 .*not below 270 deg"),
+    ],
+)
+def test_angles_beyond_any_scanner_are_refused_before_wrapping(tmp_path, row, column, message):
+    path = write(tmp_path, HEAD + row + "\n")
+    with pytest.raises(ValueError, match=where(path, 2, column) + ": " + message):
+        read_observations(path)
+
+
+def test_degrees_in_a_radian_column_are_caught(tmp_path):
+    path = write(
+        tmp_path, "scan,target,range_m,hz_rad,el_rad\nS1,T1,10,0.5,0.1\nS1,T2,9,126.03,-7.05\n"
+    )
+    with pytest.raises(ValueError, match=where(path, 3, "hz_rad") + ".*two turns"):
+        read_observations(path)
+
+
+def test_elevation_past_the_zenith_needs_a_panoramic_file(tmp_path):
+    rows = "".join(
+        f"S{j},T{t},{5 + t},{20 * t + 100 * j},{-10 + 3 * t}\n" for j in (1, 2) for t in range(6)
+    )
+    path = write(tmp_path, HEAD + rows.replace("S2,T5,10,300,5", "S2,T5,10,300,95"))
+    with pytest.raises(ValueError, match=where(path, 13) + ": el of scan S2, target T5 = 95 deg"):
+        tj.read_network(path)
+    with pytest.raises(ValueError, match=where(path, 13) + ".*a hybrid scanner observes"):
+        tj.read_network(path, architecture="hybrid")

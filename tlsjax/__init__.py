@@ -38,6 +38,7 @@ from ._inference._statistics import ap_t_tests as ap_t_tests
 from ._inference._statistics import global_test as global_test
 from ._inference._testing import TestedCalibration as TestedCalibration
 from ._inference._testing import TestingOptions as TestingOptions
+from ._inference._testing import VCEResult as VCEResult
 from ._inference._testing import calibrate_and_test as calibrate_and_test
 from ._io._plane_files import load_planes as load_planes
 from ._io._plane_files import save_planes as save_planes

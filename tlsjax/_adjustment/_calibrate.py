@@ -22,7 +22,7 @@ import numpy as np
 
 from ._config import CalibrationModel, SolverOptions
 from ._families import Params
-from ._network import Network
+from ._network import Network, check_calibration_arguments
 from ._plan import build_plan, initial_params
 from ._quality import quality
 from ._result import CalibrationResult, assemble
@@ -58,11 +58,7 @@ class Adjustment:
         model: CalibrationModel | None = None,
         options: SolverOptions | None = None,
     ):
-        if not isinstance(network, Network):
-            raise TypeError(
-                f"network must be a tlsjax.Network (tj.read_network(...), tj.make_network(...)), "
-                f"got {type(network).__name__}"
-            )
+        check_calibration_arguments(network, model, options, "analyze")
         self.network = network
         self.model = model or CalibrationModel()
         self.options = options or SolverOptions()
@@ -171,10 +167,7 @@ def calibrate(
     ``throw=True`` a failed result raises ``RuntimeError``. ``initial`` optionally gives
     (targets (t, 3), eops (s, 6)[, planes (k, 4)]) instead of the computed approximate values.
     """
-    if model is not None and not isinstance(model, CalibrationModel):
-        raise TypeError(f"model must be a tlsjax.CalibrationModel, got {type(model).__name__}")
-    if options is not None and not isinstance(options, SolverOptions):
-        raise TypeError(f"options must be a tlsjax.SolverOptions, got {type(options).__name__}")
+    check_calibration_arguments(network, model, options, "calibrate")
     res = analyze(network, model, options).solve(initial=initial)
     if throw and not res.ok:
         raise RuntimeError(res.message)

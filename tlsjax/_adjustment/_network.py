@@ -8,6 +8,7 @@ connectivity) and builds the index plan once: which observations share a target,
 from __future__ import annotations
 
 import dataclasses
+import os
 from collections import defaultdict
 from collections.abc import Mapping, Sequence
 
@@ -171,6 +172,145 @@ def _where(source, rows):
 #: Fewest points on a plane: three determine it, a fourth gives the first redundancy.
 MIN_PLANE_POINTS = 4
 
+ARCHITECTURES = ("hybrid", "panoramic")
+_HALF_PI, _TWO_PI = 0.5 * np.pi, 2.0 * np.pi
+#: Rounding allowance at the limits of the angle ranges [rad].
+_ANGLE_SLACK = 1e-9
+#: How far a panoramic hz may stray outside [0, 180) deg: the APs and the noise of a direction
+#: near a face boundary push it across by arc minutes at most.
+PANORAMIC_HZ_SLACK = np.radians(1.0)
+
+
+def _deg(x) -> str:
+    return f"{np.degrees(x):.6g} deg"
+
+
+def check_angles(obs, architecture, where, what) -> None:
+    """Angle ranges of SPEC section 1, row by row; raise a ValueError naming the first bad row.
+
+    Any scanner: ``|hz| < 720 deg`` (a reading one turn off is still a direction; two turns are
+    not, e.g. degrees in a ``_rad`` column) and el in [-90, 270) deg. Hybrid: el in [-90, 90] deg.
+    Panoramic: hz in [0, 180) deg (wrapped, with :data:`PANORAMIC_HZ_SLACK`); el past 90 deg is
+    the second face. ``architecture=None``: elevations past 90 deg occur only on a panoramic
+    scanner, so they are refused when some hz is outside the panoramic range.
+    """
+    hz, el = obs[:, 1], obs[:, 2]
+    checks = [
+        (np.abs(hz) >= 2 * _TWO_PI, "hz", "is two turns or more (|hz| must be below 720 deg)"),
+        (el < -_HALF_PI - _ANGLE_SLACK, "el", "is below -90 deg (the nadir)"),
+        (el >= 1.5 * np.pi, "el", "is not below 270 deg"),
+    ]
+    past_zenith = el > _HALF_PI + _ANGLE_SLACK
+    wrapped = np.mod(hz + PANORAMIC_HZ_SLACK, _TWO_PI) - PANORAMIC_HZ_SLACK
+    outside_panoramic = wrapped >= np.pi + PANORAMIC_HZ_SLACK
+    if architecture is None and past_zenith.any() and outside_panoramic.any():
+        # Only a panoramic scanner's second face observes past the zenith, and then every hz
+        # is in [0, 180) deg: the elevation is the suspect, and the hz row shows why.
+        k = int(np.argmax(outside_panoramic))
+        checks.append(
+            (
+                past_zenith,
+                "el",
+                f"is beyond 90 deg, which only the second face of a panoramic scanner observes, but "
+                f"{where(k)} has hz = {_deg(hz[k])}, outside the panoramic hz range [0, 180) deg",
+            )
+        )
+    if architecture == "hybrid":
+        checks.append(
+            (
+                past_zenith,
+                "el",
+                "is beyond 90 deg: a hybrid scanner observes el in [-90, 90] deg",
+            )
+        )
+    elif architecture == "panoramic":
+        checks.append(
+            (outside_panoramic, "hz", "is not in [0, 180) deg, the hz range of a panoramic scanner")
+        )
+    for bad, name, why in checks:
+        rows = np.flatnonzero(bad)
+        if rows.size:
+            i = rows[0]
+            value = hz[i] if name == "hz" else el[i]
+            raise ValueError(
+                f"{where(i)}: {name} of {what(i)} = {_deg(value)} ({value:.6g} rad) {why}; "
+                "check the value and the unit of the column"
+            )
+
+
+def _check_type(value, name: str, kinds, expected: str) -> None:
+    if not isinstance(value, kinds):
+        raise TypeError(f"{name} must be {expected}, got {type(value).__name__}")
+
+
+def _names(values, argument: str, what: str, n: int, source: str) -> list[str]:
+    """One name per observation row; a single string is refused (it is not one per row)."""
+    if isinstance(values, (str, bytes)) or not hasattr(values, "__len__"):
+        raise TypeError(
+            f"{argument} must be a sequence of {what} names, one per observation row, "
+            f"got {type(values).__name__}"
+        )
+    names = [str(v) for v in values]
+    if len(names) != n:
+        raise ValueError(
+            f"{source}: {n} observations but {len(names)} {what} names in {argument} (one per row)"
+        )
+    empty = [i for i, v in enumerate(names) if not v.strip()]
+    if empty:
+        raise ValueError(f"{source}: the {what} name of row {empty[0]} is empty")
+    return names
+
+
+def _as_observations(observations, source: str) -> np.ndarray:
+    try:
+        obs = np.asarray(observations, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise TypeError(
+            f"observations must be an (n, 3) array of numbers [range m, hz rad, el rad]: {err}"
+        ) from None
+    if obs.size == 0:
+        obs = obs.reshape(0, 3)
+    if obs.ndim != 2 or obs.shape[1] != 3:
+        raise ValueError(
+            f"{source}: observations must have shape (n, 3) [range, hz, el], got {obs.shape}"
+        )
+    return obs
+
+
+def _check_options(architecture, sigma_range, sigma_hz, sigma_el, min_targets_per_scan) -> None:
+    if architecture is not None and architecture not in ARCHITECTURES:
+        raise ValueError(f"architecture {architecture!r} is not one of {ARCHITECTURES} or None")
+    for name, value in (
+        ("sigma_range", sigma_range),
+        ("sigma_hz", sigma_hz),
+        ("sigma_el", sigma_el),
+    ):
+        if isinstance(value, (bool, str)) or not isinstance(value, (int, float, np.number)):
+            raise TypeError(f"{name} must be a number [m or rad], got {type(value).__name__}")
+    if isinstance(min_targets_per_scan, bool) or not isinstance(
+        min_targets_per_scan, (int, np.integer)
+    ):
+        raise TypeError(
+            f"min_targets_per_scan must be an integer, got {type(min_targets_per_scan).__name__}"
+        )
+    if min_targets_per_scan < 3:
+        raise ValueError(
+            f"min_targets_per_scan must be at least 3 (three targets determine a pose), got {min_targets_per_scan}"
+        )
+
+
+def _check_plane_duplicates(p_scans, p_names, p_obs, p_where) -> None:
+    """A plane has many points per scan, but the same point twice (one row repeated) would
+    count one observation twice: refuse identical (scan, plane, range, hz, el) rows."""
+    seen: dict[tuple, int] = {}
+    for i, key in enumerate(zip(p_scans, p_names, map(tuple, p_obs.tolist()))):
+        if key in seen:
+            raise ValueError(
+                f"{p_where(i)}: duplicate point of plane {key[1]} in scan {key[0]} "
+                f"(the same observation as {p_where(seen[key])})"
+            )
+        seen[key] = i
+
 
 def make_network(
     scans: Sequence[str],
@@ -191,6 +331,7 @@ def make_network(
     source: str = "<arrays>",
     rows=None,
     planes=None,
+    architecture: str | None = None,
 ) -> Network:
     """Validate observations and build a :class:`Network`.
 
@@ -201,6 +342,8 @@ def make_network(
     ``control`` maps target -> (xyz [m], sigma [m] scalar or 3-vector).
     ``scale_bars`` is a list of (target_a, target_b, length [m], sigma [m]).
     ``rows`` (optional) gives the file line of each row for error messages.
+    ``architecture`` ("hybrid", "panoramic" or None) selects the angle ranges checked
+    (SPEC section 1, :func:`check_angles`); None accepts either, judged from the elevations.
 
     ``planes``: plane observations (one row per point on a plane in a scan, SPEC sections 4
     and 11) as an :class:`~tlsjax._io.ObservationTable` of kind "plane" (from
@@ -209,20 +352,11 @@ def make_network(
     ``planes`` the target rows may be empty (a plane network) or not (a combined network).
     See :func:`make_plane_network`.
     """
-    obs = np.asarray(observations, dtype=np.float64)
-    if obs.size == 0:
-        obs = obs.reshape(0, 3)
-    n = obs.shape[0] if obs.ndim == 2 else -1
-    if obs.ndim != 2 or obs.shape[1] != 3:
-        raise ValueError(
-            f"{source}: observations must have shape (n, 3) [range, hz, el], got {obs.shape}"
-        )
-    scans = [str(s) for s in scans]
-    targets = [str(t) for t in targets]
-    if len(scans) != n or len(targets) != n:
-        raise ValueError(
-            f"{source}: {n} observations but {len(scans)} scan names and {len(targets)} target names"
-        )
+    _check_options(architecture, sigma_range, sigma_hz, sigma_el, min_targets_per_scan)
+    obs = _as_observations(observations, source)
+    n = obs.shape[0]
+    scans = _names(scans, "scans", "scan", n, source)
+    targets = _names(targets, "targets", "target", n, source)
     if n == 0 and planes is None:
         raise ValueError(f"{source}: no observations")
     rows = np.arange(n) if rows is None else np.asarray(rows)
@@ -237,6 +371,7 @@ def make_network(
         lambda i: f"scan {scans[i]}, target {targets[i]}",
         source,
     )
+    check_angles(obs, architecture, where, lambda i: f"scan {scans[i]}, target {targets[i]}")
     seen: dict[tuple[str, str], int] = {}
     for i, key in enumerate(zip(scans, targets)):
         if key in seen:
@@ -245,7 +380,11 @@ def make_network(
             )
         seen[key] = i
 
-    inst_rows = ["default"] * n if instruments is None else [str(x) for x in instruments]
+    inst_rows = (
+        ["default"] * n
+        if instruments is None
+        else _names(instruments, "instruments", "instrument", n, source)
+    )
     scan_instrument: dict[str, str] = {}
     for i, (s, ins) in enumerate(zip(scans, inst_rows)):
         if scan_instrument.setdefault(s, ins) != ins:
@@ -284,6 +423,10 @@ def make_network(
             lambda i: f"scan {p_scans[i]}, plane {p_names[i]}",
             p_src,
         )
+        check_angles(
+            p_obs, architecture, p_where, lambda i: f"scan {p_scans[i]}, plane {p_names[i]}"
+        )
+        _check_plane_duplicates(p_scans, p_names, p_obs, p_where)
         clash = sorted(set(p_names) & set(targets))
         if clash:
             raise ValueError(
@@ -309,12 +452,15 @@ def make_network(
                 "to determine a plane with redundancy"
             )
 
+    lev_entries = _levelling_entries(levelling, source)
+    control = _control_entries(control, source)
+    bars = _scale_bar_entries(scale_bars, source)
+
     # Targets seen in one scan only add three unknowns and three observations: no redundancy.
     scans_of_target: dict[str, set] = defaultdict(set)
     for s, t in zip(scans, targets):
         scans_of_target[t].add(s)
-    control = dict(control or {})
-    bar_targets = {str(a) for a, b, *_ in scale_bars} | {str(b) for a, b, *_ in scale_bars}
+    bar_targets = {a for a, _, _, _ in bars} | {b for _, b, _, _ in bars}
     single = sorted(
         t
         for t, ss in scans_of_target.items()
@@ -329,6 +475,7 @@ def make_network(
             )
         keep = np.array([t not in set(single) for t in targets])
         dropped = tuple(single)
+        _check_left_after_dropping(scans, keep, p_scans, dropped, source)
         obs, sig = obs[keep], sig[keep]
         scans = [s for s, k in zip(scans, keep) if k]
         targets = [t for t, k in zip(targets, keep) if k]
@@ -374,42 +521,28 @@ def make_network(
 
     lev = np.zeros((len(scan_names), 2))
     lev_sigma = np.full((len(scan_names), 2), np.inf)
-    for s, d in (levelling or {}).items():
+    for s, (values, sg) in lev_entries.items():
         if s not in s_code:
             raise ValueError(f"{source}: levelling given for scan {s}, which has no observations")
-        lev[s_code[s]] = (d.get("omega", 0.0), d.get("phi", 0.0))
-        sg = np.array([d["sigma_omega"], d["sigma_phi"]], dtype=np.float64)
-        if not np.all(np.isfinite(sg) & (sg > 0)):
-            raise ValueError(
-                f"{source}: levelling sigmas of scan {s} must be positive and finite, got {sg}"
-            )
+        lev[s_code[s]] = values
         lev_sigma[s_code[s]] = sg
 
     c_idx, c_xyz, c_sig = [], [], []
     for t, (xyz, sg) in control.items():
         if t not in t_code:
             raise ValueError(f"{source}: control point {t} is not observed in any scan")
-        xyz = np.asarray(xyz, dtype=np.float64).reshape(3)
-        sg = np.broadcast_to(np.asarray(sg, dtype=np.float64), (3,))
-        if not (np.all(np.isfinite(xyz)) and np.all(np.isfinite(sg) & (sg > 0))):
-            raise ValueError(
-                f"{source}: control point {t} needs finite coordinates and positive sigmas"
-            )
         c_idx.append(t_code[t])
         c_xyz.append(xyz)
-        c_sig.append(np.array(sg))
+        c_sig.append(sg)
 
     b_idx, b_len, b_sig = [], [], []
-    for bar in scale_bars:
-        a, b, length, sg = bar
+    for a, b, length, sg in bars:
         for t in (a, b):
-            if str(t) not in t_code:
+            if t not in t_code:
                 raise ValueError(f"{source}: scale bar end {t} is not observed in any scan")
-        if not (np.isfinite(length) and length > 0 and np.isfinite(sg) and sg > 0):
-            raise ValueError(f"{source}: scale bar {a}-{b} needs a positive length and sigma")
-        b_idx.append((t_code[str(a)], t_code[str(b)]))
-        b_len.append(float(length))
-        b_sig.append(float(sg))
+        b_idx.append((t_code[a], t_code[b]))
+        b_len.append(length)
+        b_sig.append(sg)
 
     return Network(
         scans=scan_names,
@@ -438,6 +571,144 @@ def make_network(
     )
 
 
+#: Largest levelling reading accepted [rad]: a dual-axis compensator works within a few arc
+#: minutes of the vertical, so a reading of more than a degree is a unit or sign mistake.
+MAX_LEVELLING = np.radians(1.0)
+_LEVELLING_KEYS = ("omega", "phi", "sigma_omega", "sigma_phi")
+
+
+def _levelling_entries(levelling, source: str) -> dict:
+    """scan -> ((omega, phi), (sigma_omega, sigma_phi)) [rad], checked; omega and phi default
+    to 0 (a levelled scan), the sigmas are required (they are the observation's weight)."""
+    if levelling is None:
+        return {}
+    _check_type(
+        levelling,
+        "levelling",
+        Mapping,
+        "a mapping scan -> {omega, phi, sigma_omega, sigma_phi} [rad]",
+    )
+    out = {}
+    for scan, d in levelling.items():
+        _check_type(
+            d,
+            f"levelling[{scan!r}]",
+            Mapping,
+            "a mapping with keys omega, phi, sigma_omega, sigma_phi [rad]",
+        )
+        unknown = sorted(set(map(str, d)) - set(_LEVELLING_KEYS))
+        if unknown:
+            raise ValueError(
+                f"{source}: levelling of scan {scan}: unknown key(s) {', '.join(unknown)}; "
+                f"accepted: {', '.join(_LEVELLING_KEYS)} [rad]"
+            )
+        missing = [k for k in ("sigma_omega", "sigma_phi") if k not in d]
+        if missing:
+            raise ValueError(
+                f"{source}: levelling of scan {scan} has no {' and no '.join(missing)} [rad]; a levelling "
+                "observation needs its sigma (e.g. 10 arc seconds = 4.85e-5 rad for a compensator)"
+            )
+        try:
+            v = np.array(
+                [d.get("omega", 0.0), d.get("phi", 0.0), d["sigma_omega"], d["sigma_phi"]],
+                dtype=np.float64,
+            )
+        except (TypeError, ValueError):
+            raise TypeError(
+                f"levelling of scan {scan}: values must be numbers [rad], got {dict(d)!r}"
+            ) from None
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"{source}: levelling of scan {scan} is not finite: {dict(d)!r}")
+        if not np.all(v[2:] > 0):
+            raise ValueError(
+                f"{source}: levelling sigmas of scan {scan} must be positive and finite, got {v[2:]}"
+            )
+        if np.any(np.abs(v[:2]) > MAX_LEVELLING):
+            raise ValueError(
+                f"{source}: levelling of scan {scan}: omega = {_deg(v[0])}, phi = {_deg(v[1])}; a compensator "
+                f"reads within {_deg(MAX_LEVELLING)} of the vertical: check the values and their unit (rad)"
+            )
+        out[str(scan)] = (v[:2], v[2:])
+    return out
+
+
+def _control_entries(control, source: str) -> dict:
+    """target -> (xyz (3,) [m], sigma (3,) [m]), checked."""
+    if control is None:
+        return {}
+    _check_type(control, "control", Mapping, "a mapping target -> (xyz [m], sigma [m])")
+    out = {}
+    for t, entry in control.items():
+        try:
+            xyz, sg = entry
+            xyz = np.asarray(xyz, dtype=np.float64).reshape(3)
+            sg = np.broadcast_to(np.asarray(sg, dtype=np.float64), (3,)).copy()
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"{source}: control point {t} must be (xyz [m], sigma [m] scalar or 3-vector), got {entry!r}"
+            ) from None
+        if not (np.all(np.isfinite(xyz)) and np.all(np.isfinite(sg) & (sg > 0))):
+            raise ValueError(
+                f"{source}: control point {t} needs finite coordinates and positive sigmas"
+            )
+        out[str(t)] = (xyz, sg)
+    return out
+
+
+def _scale_bar_entries(scale_bars, source: str) -> list:
+    """[(target_a, target_b, length [m], sigma [m])], checked: two distinct targets, a positive
+    length and sigma, each pair once."""
+    if scale_bars is None:
+        return []
+    if isinstance(scale_bars, (str, bytes, Mapping)) or not hasattr(scale_bars, "__iter__"):
+        raise TypeError(
+            f"scale_bars must be a sequence of (target_a, target_b, length [m], sigma [m]), got {type(scale_bars).__name__}"
+        )
+    out, seen = [], {}
+    for k, bar in enumerate(scale_bars):
+        try:
+            a, b, length, sg = bar
+            length, sg = float(length), float(sg)
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"{source}: scale bar {k + 1} must be (target_a, target_b, length [m], sigma [m]), got {bar!r}"
+            ) from None
+        a, b = str(a), str(b)
+        if a == b:
+            raise ValueError(
+                f"{source}: scale bar {k + 1} joins target {a} to itself; a scale bar needs two targets"
+            )
+        if not (np.isfinite(length) and length > 0 and np.isfinite(sg) and sg > 0):
+            raise ValueError(
+                f"{source}: scale bar {a}-{b} needs a positive length and sigma, got {length} and {sg}"
+            )
+        pair = frozenset((a, b))
+        if pair in seen:
+            raise ValueError(
+                f"{source}: scale bar {a}-{b} is given twice (bars {seen[pair]} and {k + 1})"
+            )
+        seen[pair] = k + 1
+        out.append((a, b, length, sg))
+    return out
+
+
+def _check_left_after_dropping(scans, keep, p_scans, dropped, source) -> None:
+    """Dropping single targets must leave every scan (and the network) something to adjust."""
+    left = {s for s, k in zip(scans, keep) if k} | set(p_scans)
+    gone = [s for s in dict.fromkeys(scans) if s not in left]
+    names = ", ".join(dropped[:10]) + (" ..." if len(dropped) > 10 else "")
+    if not left:
+        raise ValueError(
+            f"{source}: every target is seen in one scan only ({names}); nothing is left to adjust "
+            "after dropping them: a self-calibration needs targets seen from several scans"
+        )
+    if gone:
+        raise ValueError(
+            f"{source}: scan(s) {', '.join(gone)} observe only targets seen in no other scan; "
+            f"dropping them ({names}) leaves nothing of those scans"
+        )
+
+
 def make_plane_network(planes, **kwargs) -> Network:
     """A plane network (no targets) from a plane ObservationTable; keywords as :func:`make_network`
     (sigmas, levelling, instruments through the table)."""
@@ -464,4 +735,60 @@ def _check_connected(scan_names, target_names, scan_index, target_index, source)
         raise ValueError(
             f"{source}: scan(s) {', '.join(missing)} are disconnected from scan {scan_names[0]}: "
             "no chain of scans sharing at least 3 targets or planes links them"
+        )
+
+
+def check_calibration_arguments(network, model, options, where: str = "calibrate") -> None:
+    """Types of the arguments of an entry point, and the network's angles against the
+    architecture of each instrument's scanner (SPEC section 1); one-line TypeError/ValueError."""
+    from ._config import CalibrationModel, SolverOptions  # _config is above this module
+
+    if not isinstance(network, Network):
+        hint = (
+            f"read the file with tlsjax.read_network({os.fspath(network)!r})"
+            if isinstance(network, (str, os.PathLike))
+            else "build one with tlsjax.make_network(...) or tlsjax.read_network(...)"
+        )
+        raise TypeError(
+            f"{where}: network must be a tlsjax Network, got {type(network).__name__}; {hint}"
+        )
+    if model is not None and not isinstance(model, CalibrationModel):
+        hint = "; wrap it: CalibrationModel(scanner)" if type(model).__name__ == "Scanner" else ""
+        raise TypeError(
+            f"{where}: model must be a tlsjax CalibrationModel or None, got {type(model).__name__}{hint}"
+        )
+    if options is not None and not isinstance(options, SolverOptions):
+        raise TypeError(
+            f"{where}: options must be a tlsjax SolverOptions or None, got {type(options).__name__}"
+        )
+    scanners = (model or CalibrationModel()).scanner
+    for code, instrument in enumerate(network.instruments):
+        scanner = scanners if not isinstance(scanners, Mapping) else scanners.get(instrument)
+        if scanner is not None:  # else the plan names the instrument without a scanner
+            _check_instrument_angles(network, code, scanner.architecture)
+
+
+def _check_instrument_angles(network, code: int, architecture: str) -> None:
+    """:func:`check_angles` on the target and plane rows of instrument ``code``."""
+    for kind, obs, scan_index, index, names in (
+        ("target", network.observations, network.scan_index, network.target_index, network.targets),
+        (
+            "plane",
+            network.plane_observations,
+            network.plane_scan_index,
+            network.plane_index,
+            network.planes,
+        ),
+    ):
+        rows = np.flatnonzero(network.instrument_of_scan[scan_index] == code)
+
+        def what(i, rows=rows, kind=kind, scan_index=scan_index, index=index, names=names):
+            j = rows[i]
+            return f"scan {network.scans[scan_index[j]]}, {kind} {names[index[j]]} ({architecture} scanner)"
+
+        check_angles(
+            obs[rows],
+            architecture,
+            lambda i, rows=rows, kind=kind: f"{network.source}, {kind} row {rows[i]}",
+            what,
         )

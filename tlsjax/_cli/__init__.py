@@ -1,8 +1,10 @@
 """Command line: ``tlsjax demo | simulate | calibrate | extract-planes | montecarlo | compare``.
 
 Every subcommand is a thin layer over the public API. Bad input is reported as one line
-naming the file, line, scan, target or parameter (exit code 2); a calibration that fails
-(non-convergence, rank defect) exits with 1 after writing what it has.
+naming the file, line, scan, target or parameter (exit code 2), and so is every file-system
+failure (naming the path); a calibration that fails (non-convergence, rank defect, variance
+components that stop early) exits with 1 after writing what it has. An unexpected error is one
+line too (exit code 3); ``TLSJAX_DEBUG=1`` shows its traceback.
 """
 
 from __future__ import annotations
@@ -12,7 +14,7 @@ import os
 import sys
 
 from ._calibrate import add_calibrate_parser
-from ._common import EXIT_BAD_INPUT
+from ._common import EXIT_BAD_INPUT, EXIT_INTERNAL
 from ._compare import add_compare_parser
 from ._extract import add_extract_parser
 from ._montecarlo import add_montecarlo_parser
@@ -53,21 +55,41 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _one_line(text) -> str:
+    lines = [x.strip() for x in str(text).splitlines() if x.strip()]
+    return lines[0] if lines else ""
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     _enable_compilation_cache()
+    prefix = f"tlsjax {args.command}: error:"
     try:
         return args.func(args)
     except ValueError as exc:
-        print(f"tlsjax {args.command}: error: {exc}", file=sys.stderr)
+        print(f"{prefix} {_one_line(exc)}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except FileNotFoundError as exc:
-        print(f"tlsjax {args.command}: error: {exc.filename}: no such file", file=sys.stderr)
+        print(f"{prefix} {exc.filename}: no such file", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except OSError as exc:
+        # Any other file-system failure (a directory, no permission, a full disk): one line.
+        where = exc.filename if exc.filename is not None else "file system"
+        print(f"{prefix} {where}: {exc.strerror or exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except ImportError as exc:
         # Optional dependencies (open3d, pye57) are named in the message.
-        print(f"tlsjax {args.command}: error: {exc}", file=sys.stderr)
+        print(f"{prefix} {_one_line(exc)}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except Exception as exc:
+        if os.environ.get("TLSJAX_DEBUG"):
+            raise
+        print(
+            f"tlsjax {args.command}: internal error: {type(exc).__name__}: {_one_line(exc)} "
+            "(please report it; TLSJAX_DEBUG=1 shows the traceback)",
+            file=sys.stderr,
+        )
+        return EXIT_INTERNAL
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -72,6 +72,20 @@ def add_calibrate_parser(sub):
         "plane points bias it)",
     )
     c.add_argument(
+        "--screen",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="with VCE, remove gross errors before it (robust group scales, family-wise level "
+        "--screen-alpha); default on: VCE on data with blunders inflates the factors until the "
+        "blunders look normal",
+    )
+    c.add_argument(
+        "--screen-alpha",
+        type=float,
+        default=0.001,
+        help="family-wise significance level of the screening before VCE (default 0.001)",
+    )
+    c.add_argument(
         "--snoop",
         action="store_true",
         help="Baarda data snooping: remove rejected observations, re-adjust",
@@ -124,10 +138,11 @@ def _calibrate(args) -> int:
     from .._adjustment._config import CalibrationModel, SolverOptions
     from .._io._tables import read_network
     from .._model._scanner import Scanner
-    from .._report._text import ap_table, summary
 
     if args.observations is None and args.planes is None:
         raise ValueError("give an observation CSV, --planes FILE, or both")
+    check_outputs(args.json, args.plots)  # before any work: a bad path fails in a second
+    scanner = Scanner(architecture=args.architecture, aps=args.aps, unit_length=args.unit_length)
     net = read_network(
         args.observations,
         args.scans,
@@ -136,6 +151,7 @@ def _calibrate(args) -> int:
         sigma_range=args.sigma_range_mm * 1e-3,
         sigma_hz=args.sigma_hz_arcsec * ARCSEC,
         sigma_el=args.sigma_el_arcsec * ARCSEC,
+        architecture=args.architecture,
     )
     if args.vce is None:
         args.vce = not net.has_planes
@@ -148,7 +164,6 @@ def _calibrate(args) -> int:
         print(
             f"dropped {len(net.dropped)} target(s) seen in one scan only: {', '.join(net.dropped)}"
         )
-    scanner = Scanner(architecture=args.architecture, aps=args.aps, unit_length=args.unit_length)
     model = CalibrationModel(
         scanner,
         datum=args.datum,
@@ -163,49 +178,78 @@ def _calibrate(args) -> int:
     if net.has_planes:
         parts.append(f"{len(net.planes)} planes, {net.plane_observations.shape[0]} plane points")
     print(f"{net.source}: " + ", ".join(parts))
-    extra, mask = {}, None
+    extra, mask, tested = {}, None, None
     if args.select:
-        from .._inference._selection import SelectionOptions, select_aps
-
-        # Selection runs on the a priori weights; the chosen set is then weighted and tested.
-        sel = select_aps(
-            net,
-            model,
-            start=args.aps,
-            candidates=args.select_candidates,
-            options=SelectionOptions(alpha=args.select_alpha, max_correlation=args.max_correlation),
-        )
-        print(sel.report())
-        print()
-        scanner = dataclasses.replace(scanner, aps=tuple(sel.aps))
-        model = dataclasses.replace(model, scanner=scanner)
-        extra["selection"] = {"aps": list(sel.aps), "n_fits": sel.n_fits}
+        model, scanner = _select(args, net, model, scanner, extra)
     if args.vce or args.snoop:
-        from .._inference._testing import TestingOptions, calibrate_and_test
-
-        tested = calibrate_and_test(
-            net,
-            model,
-            solver,
-            TestingOptions(
-                vce=args.vce,
-                snooping=args.snoop,
-                alpha=args.snoop_alpha,
-                bonferroni=args.bonferroni,
-                removal=args.snoop_removal,
-            ),
-        )
+        tested = _test(args, net, model, solver)
         res, mask = tested.calibration, tested.mask
         extra.update(tested.json_fields())
-        print(tested.summary())
     else:
         res = calibrate(net, model, solver)
     print(f"({time.perf_counter() - t0:.2f} s)")
-    print(summary(res))
-    print()
-    print(ap_table(res))
+    report(res, after_vce=tested is not None and tested.weights_fitted)
     write_outputs(res, args.json, args.plots, extra=extra, scanner=scanner, mask=mask)
-    return EXIT_OK if res.ok else EXIT_FAILED
+    ok = res.ok and (tested is None or tested.ok)
+    return EXIT_OK if ok else EXIT_FAILED
+
+
+def _select(args, net, model, scanner, extra):
+    """Stepwise AP selection on the a priori weights; the chosen set is then weighted and
+    tested."""
+    from .._inference._selection import SelectionOptions, select_aps
+
+    sel = select_aps(
+        net,
+        model,
+        start=args.aps,
+        candidates=args.select_candidates,
+        options=SelectionOptions(alpha=args.select_alpha, max_correlation=args.max_correlation),
+    )
+    print(sel.report())
+    print()
+    scanner = dataclasses.replace(scanner, aps=tuple(sel.aps))
+    extra["selection"] = {"aps": list(sel.aps), "n_fits": sel.n_fits}
+    return dataclasses.replace(model, scanner=scanner), scanner
+
+
+def _test(args, net, model, solver):
+    from .._inference._testing import TestingOptions, calibrate_and_test
+
+    tested = calibrate_and_test(
+        net,
+        model,
+        solver,
+        TestingOptions(
+            vce=args.vce,
+            screening=args.screen,
+            screening_alpha=args.screen_alpha,
+            snooping=args.snoop,
+            alpha=args.snoop_alpha,
+            bonferroni=args.bonferroni,
+            removal=args.snoop_removal,
+        ),
+    )
+    print(tested.summary())
+    return tested
+
+
+def report(res, *, after_vce: bool = False, truth=None):
+    """Print the summary and the AP table; a failed adjustment prints no estimates (they would
+    look plausible and be wrong)."""
+    from .._report._text import ap_table, summary
+
+    print(summary(res, after_vce=after_vce))
+    print()
+    print(ap_table(res, truth=truth))
+
+
+def check_outputs(json_path=None, plots_dir=None):
+    """Refuse unwritable output paths before any work (one line naming the path)."""
+    from .._io._json import check_output_dir, check_output_file
+
+    check_output_file(json_path, "--json ")
+    check_output_dir(plots_dir, "--plots ")
 
 
 def write_outputs(res, json_path, plots_dir, *, extra=None, scanner=None, mask=None):
@@ -216,8 +260,13 @@ def write_outputs(res, json_path, plots_dir, *, extra=None, scanner=None, mask=N
         write_json(res, json_path, extra=extra)
         print(f"wrote {json_path}")
     if plots_dir:
-        a = plot_residuals(
-            res, os.path.join(plots_dir, "residuals.png"), scanner=scanner, mask=mask
-        )
-        b = plot_ap_correlations(res, os.path.join(plots_dir, "ap_correlations.png"))
+        try:
+            a = plot_residuals(
+                res, os.path.join(plots_dir, "residuals.png"), scanner=scanner, mask=mask
+            )
+            b = plot_ap_correlations(res, os.path.join(plots_dir, "ap_correlations.png"))
+        except OSError as err:
+            raise ValueError(
+                f"--plots {plots_dir}: cannot be written ({err.strerror or err})"
+            ) from None
         print(f"wrote {a} and {b}")

@@ -2,9 +2,6 @@
 
 from __future__ import annotations
 
-import json
-import pathlib
-
 from .._adjustment._network import DEFAULT_SIGMA_RANGE
 from .._inference._compat import APSet, CompatibilityOptions, compatibility_test
 from .._model._scanner import Scanner
@@ -35,6 +32,9 @@ def add_compare_parser(subparsers):
 
 def cli_compare(args) -> int:
     """CLI handler: prints the report; exit code 0 compatible, 1 not compatible."""
+    from .._io._json import check_output_file, write_json_file
+
+    check_output_file(args.json, "--json ")  # before the simulations run
     s1, s2 = APSet.from_json(args.set1), APSet.from_json(args.set2)
     room = Room.parse(args.room)
     sc = Scanner(architecture=args.architecture, aps=(), unit_length=args.unit_length)
@@ -68,5 +68,5 @@ def cli_compare(args) -> int:
             "alpha": res.alpha,
             "n_failed": res.n_failed,
         }
-        pathlib.Path(args.json).write_text(json.dumps(out, indent=2) + "\n")
+        write_json_file(args.json, out, "--json ")  # strict: undefined values are null
     return 0 if res.compatible else 1

@@ -48,10 +48,13 @@ def cli_extract(args) -> int:
 
     from .._clouds._extract import ExtractionConfig, extract_planes
     from .._clouds._match import match_planes
+    from .._io._json import check_output_file
     from .._io._plane_files import read_poses, save_planes
     from .._io._point_clouds import read_point_clouds
     from .._io._tables import write_observations
 
+    check_output_file(args.out, "--out ")  # before the extraction runs
+    check_output_file(args.csv, "--csv ")
     clouds = []
     for path in args.scans:
         clouds.extend(read_point_clouds(path, architecture=args.architecture))

@@ -32,14 +32,20 @@ def add_montecarlo_parser(subparsers):
 
 
 def cli_montecarlo(args) -> int:
-    """CLI handler: prints the table; exit code 0 when every realisation converged."""
-    import json
-    import pathlib
-
+    """CLI handler: prints the table; exit code 0 when every realisation converged. Failed
+    realisations are explained by a plain calibration of the noise-free design (the reason
+    ``tlsjax calibrate`` would give, e.g. an AP that needs an independent scale)."""
+    from .._io._json import check_output_file, write_json_file
     from .._report._plots import plot_monte_carlo
     from .._simulation._montecarlo import monte_carlo
     from .._simulation._room import Room, simulate
 
+    check_output_file(args.json, "--json ")  # before the realisations run
+    check_output_file(args.png, "--png ")
+    if args.runs < 2:
+        raise ValueError(
+            f"--runs {args.runs}: an empirical sigma needs at least 2 realisations (1,000 is usual)"
+        )
     room = Room.parse(args.room, n_targets=args.targets)
     sim = simulate(
         room, architecture=args.architecture, tilted=not args.levelled, aps=args.aps, seed=0
@@ -56,8 +62,29 @@ def cli_montecarlo(args) -> int:
     )
     print(res.table())
     print(f"compile {res.compile_s:.1f} s, {res.runs} realisations in {res.run_s:.2f} s")
+    summary = res.summary()
+    if not res.ok.all():
+        summary["diagnosis"] = _diagnose(sim)
+        print(f"why realisations fail: {summary['diagnosis']}")
     if args.png:
-        plot_monte_carlo(res, args.png)
+        try:
+            plot_monte_carlo(res, args.png)
+        except OSError as err:
+            raise ValueError(
+                f"--png {args.png}: cannot be written ({err.strerror or err})"
+            ) from None
     if args.json:
-        pathlib.Path(args.json).write_text(json.dumps(res.summary(), indent=2) + "\n")
+        write_json_file(args.json, summary, "--json ")  # strict: undefined values are null
+        print(f"wrote {args.json}")
     return 0 if res.ok.all() else 1
+
+
+def _diagnose(sim) -> str:
+    """The message of a plain calibration of the design's own (noise-free) network."""
+    from .._adjustment._calibrate import calibrate
+    from .._adjustment._config import CalibrationModel
+
+    res = calibrate(sim.network, CalibrationModel(sim.scanner))
+    if res.result == 0:
+        return "the design itself calibrates (converged); the failures depend on the noise draws"
+    return res.message

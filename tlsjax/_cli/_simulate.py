@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 
-from ._calibrate import write_outputs
+from ._calibrate import check_outputs, report, write_outputs
 from ._common import EXIT_FAILED, EXIT_OK, scanner_args
 
 
@@ -65,6 +64,7 @@ def add_simulate_parser(sub):
 def _write_simulation(
     sim, obs_path, scans_path, truth_path=None, length_unit="m", angle_unit="deg"
 ):
+    from .._io._json import make_parent, write_json_file
     from .._io._tables import (
         levelling_of_network,
         table_from_network,
@@ -74,34 +74,41 @@ def _write_simulation(
 
     for p in (obs_path, scans_path, truth_path):
         if p:
-            os.makedirs(os.path.dirname(os.path.abspath(p)), exist_ok=True)
+            make_parent(p)
     write_observations(
         obs_path, table_from_network(sim.network), length_unit=length_unit, angle_unit=angle_unit
     )
     write_scans(scans_path, levelling_of_network(sim.network))
     if truth_path:
         net = sim.network
-        with open(truth_path, "w", encoding="utf-8") as fh:
-            json.dump(
-                {
-                    "units": "SI: metres, radians",
-                    "architecture": sim.scanner.architecture,
-                    "aps": {k: float(v) for k, v in sim.true_aps.items()},
-                    "targets": {t: sim.true_targets[i].tolist() for i, t in enumerate(net.targets)},
-                    "eops": {s: sim.true_eops[j].tolist() for j, s in enumerate(net.scans)},
-                },
-                fh,
-                indent=2,
-            )
+        write_json_file(
+            truth_path,
+            {
+                "units": "SI: metres, radians",
+                "architecture": sim.scanner.architecture,
+                "aps": {k: float(v) for k, v in sim.true_aps.items()},
+                "targets": {t: sim.true_targets[i].tolist() for i, t in enumerate(net.targets)},
+                "eops": {s: sim.true_eops[j].tolist() for j, s in enumerate(net.scans)},
+            },
+            "--truth ",
+        )
 
 
 def _simulate(args) -> int:
+    from .._io._json import check_output_file
     from .._simulation._room import Room, simulate
 
     if args.scale_bars:
         raise ValueError(
             "--scale-bars: the target CSV contract has no scale-bar columns yet; use the Python API"
         )
+    scans_path = args.scans_out or os.path.splitext(args.out)[0] + "_scans.csv"
+    for path, option in (
+        (args.out, "--out "),
+        (scans_path, "--scans-out "),
+        (args.truth, "--truth "),
+    ):
+        check_output_file(path, option)
     room = Room.parse(args.room, n_targets=args.targets)
     sim = simulate(
         room,
@@ -112,7 +119,6 @@ def _simulate(args) -> int:
         noise=not args.no_noise,
         unit_length=args.unit_length,
     )
-    scans_path = args.scans_out or os.path.splitext(args.out)[0] + "_scans.csv"
     _write_simulation(sim, args.out, scans_path, args.truth, args.length_unit, args.angle_unit)
     net = sim.network
     print(
@@ -126,9 +132,9 @@ def _simulate(args) -> int:
 def _demo(args) -> int:
     from .._adjustment._calibrate import calibrate
     from .._adjustment._config import CalibrationModel
-    from .._report._text import ap_table, summary
     from .._simulation._room import simulate
 
+    check_outputs(os.path.join(args.out, "report.json"), args.out)
     t0 = time.perf_counter()
     sim = simulate(
         architecture=args.architecture,
@@ -145,10 +151,7 @@ def _demo(args) -> int:
     )
     res = calibrate(net, CalibrationModel(sim.scanner))
     print(f"self-calibration: {time.perf_counter() - t0:.1f} s including compilation")
-    print(summary(res))
-    print()
-    print(ap_table(res, truth=sim.true_aps))
-    os.makedirs(args.out, exist_ok=True)
+    report(res, truth=sim.true_aps)
     _write_simulation(
         sim,
         os.path.join(args.out, "observations.csv"),

@@ -48,7 +48,7 @@ import numpy as np
 
 from .._adjustment._linalg import spd_inverse
 from .._adjustment._network import DEFAULT_SIGMA_ANGLE, DEFAULT_SIGMA_RANGE
-from .._model._aps import ap_corrections, get_ap, resolve_aps
+from .._model._aps import ap_corrections, get_ap, on_reregistration, resolve_aps
 from .._model._geometry import cartesian_from_spherical, rigid_fit, spherical_from_cartesian
 from .._model._points import distorted_observations
 from .._model._scanner import Scanner
@@ -354,6 +354,10 @@ def _compiled(
 
     v, m = jnp.zeros(na), jnp.zeros((na, na))
     return compile_batched(one, (jax.random.PRNGKey(0), v, v, m, m, v, m, m), chunk)
+
+
+# Keyed on AP names, not on their bases: emptied when a term is re-registered.
+on_reregistration(_compiled.cache_clear)
 
 
 def compatibility_test(

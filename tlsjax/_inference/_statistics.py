@@ -111,3 +111,63 @@ def ap_t_tests(result, alpha: float = 0.05) -> tuple:
             )
         )
     return tuple(out)
+
+
+def group_variance_test(omega: float, redundancy: float, alpha: float = 0.05) -> dict:
+    """Test of one group's variance factor with its a priori sigmas (as JAG3D reports per
+    group): ``Omega_g = v_g^T P_g v_g ~ chi^2(r_g)`` when the group's a priori sigmas are right,
+    ``r_g`` the sum of its redundancy numbers; two-sided at ``alpha`` like :func:`global_test`.
+    ``factor`` is the estimate ``Omega_g / r_g`` (None where r_g is 0)."""
+    if not (redundancy > 0 and np.isfinite(omega)):
+        return {**global_test(float("nan"), 0.0, alpha), "dof": redundancy, "factor": None}
+    out = global_test(float(np.sqrt(omega / redundancy)), float(redundancy), alpha)
+    return {**out, "factor": float(omega / redundancy)}
+
+
+#: Sigma ratios that a unit mix-up produces, the dimension they apply to, and what each
+#: suggests (the units of SPEC section 11).
+UNIT_MIXUPS = (
+    (180.0 / np.pi, "angle", "degrees vs radians"),
+    (200.0 / np.pi, "angle", "gon vs radians"),
+    (3600.0, "angle", "degrees vs arc seconds"),
+    (648000.0 / np.pi, "angle", "radians vs arc seconds"),
+    (1000.0, "length", "millimetres vs metres"),
+)
+#: A variance factor whose sigma ratio is beyond this (either way) is named in a warning.
+PLAUSIBLE_SIGMA_RATIO = 5.0
+#: A sigma ratio within this factor of a unit ratio is named as that unit mix-up.
+UNIT_MATCH = 1.15
+
+
+def suspected_units(sigma_ratio: float, dimension: str | None = None) -> tuple[str, ...]:
+    """The unit mix-ups of :data:`UNIT_MIXUPS` (of ``dimension``, "length" or "angle", or any)
+    whose ratio (or its inverse) is within :data:`UNIT_MATCH` of ``sigma_ratio`` (e.g. 57.3 ->
+    degrees vs radians)."""
+    if not (np.isfinite(sigma_ratio) and sigma_ratio > 0):
+        return ()
+    lr = abs(np.log(sigma_ratio))
+    return tuple(
+        what
+        for r, dim, what in UNIT_MIXUPS
+        if dimension in (None, dim) and abs(lr - np.log(r)) < np.log(UNIT_MATCH)
+    )
+
+
+def implausible_factor(group: str, factor: float) -> str | None:
+    """A sentence for a variance factor that says the a priori sigmas of ``group`` are far off
+    (sigma ratio beyond :data:`PLAUSIBLE_SIGMA_RATIO`), naming a suspected unit mix-up; None
+    for a plausible factor."""
+    if not np.isfinite(factor) or factor <= 0:
+        return f"{group}: the variance factor {factor} is not a variance"
+    ratio = float(np.sqrt(factor))
+    if 1 / PLAUSIBLE_SIGMA_RATIO <= ratio <= PLAUSIBLE_SIGMA_RATIO:
+        return None
+    size = f"{ratio:.3g} times too small" if ratio > 1 else f"{1 / ratio:.3g} times too large"
+    text = f"{group}: variance factor {factor:.4g}: the a priori sigmas are about {size}"
+    dimension = (
+        "length" if group.startswith("range") else None if group.startswith("all") else "angle"
+    )
+    units = suspected_units(ratio, dimension)
+    if units:
+        text += f"; a factor of {max(ratio, 1 / ratio):.4g} in sigma suggests a unit mix-up ({' or '.join(units)})"
+    return text

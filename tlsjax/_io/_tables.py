@@ -99,10 +99,24 @@ class _Located:
         return ValueError(", ".join(where) + ": " + message)
 
 
+def open_text(path, what: str = "CSV file"):
+    """``open(path)`` for reading text; a directory, a missing or unreadable file is one
+    ``ValueError`` naming the path (FileNotFoundError stays one: it is the usual mistake)."""
+    source = os.fspath(path)
+    if os.path.isdir(source):
+        raise ValueError(f"{source}: is a directory, not a {what}")
+    try:
+        # utf-8-sig: spreadsheet programs often write a byte-order mark before the header.
+        return open(source, newline="", encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise
+    except OSError as err:
+        raise ValueError(f"{source}: cannot be read ({err.strerror or err})") from None
+
+
 def _read_rows(path, loc: _Located):
     """Header (list of (line, names)) and data rows as (line, fields), blank lines skipped."""
-    # utf-8-sig: spreadsheet programs often write a byte-order mark before the header.
-    with open(path, newline="", encoding="utf-8-sig") as fh:
+    with open_text(path) as fh:
         reader = csv.reader(fh, delimiter=",", strict=True)
         records = []
         last = 0
@@ -114,6 +128,8 @@ def _read_rows(path, loc: _Located):
                 records.append((start, fields))
         except csv.Error as err:
             raise loc.error(f"malformed CSV: {err}", last + 1) from None
+        except UnicodeDecodeError:
+            raise loc.error("not a text CSV file (it is not UTF-8 text)", last + 1) from None
     if not records:
         raise loc.error("empty file: no header", 1)
     (header_line, header), data = records[0], records[1:]
@@ -182,12 +198,34 @@ def _cells(data, columns, loc):
         yield line, {q: (f.strip(), name, factor) for (name, q, factor), f in zip(columns, fields)}
 
 
+def _check_directions(row, cells, line, loc) -> None:
+    """|hz| below two turns and el in [-90, 270) deg, before hz is wrapped: 720 deg would wrap
+    to a plausible 0, and degrees in a ``_rad`` column exceed the limits (SPEC section 1). A
+    reading one turn off (370 deg) is a direction; the architecture's own limits are checked by
+    make_network."""
+    limits = (
+        ("hz", abs(row[1]) >= 2 * _TWO_PI, "is two turns or more (|hz| must be below 720 deg)"),
+        ("el", row[2] < -0.5 * math.pi - 1e-9, "is below -90 deg (the nadir)"),
+        ("el", row[2] >= 1.5 * math.pi, "is not below 270 deg"),
+    )
+    for q, bad, why in limits:
+        if bad:
+            text, name, _ = cells[q]
+            raise loc.error(
+                f"{q} = {text} ({math.degrees(row[1 if q == 'hz' else 2]):.6g} deg) {why}: "
+                f"check the value and the unit in the column name",
+                line,
+                name,
+            )
+
+
 def read_observations(path) -> ObservationTable:
     """Read a target or plane observation CSV (SPEC section 11) into SI units.
 
     The kind comes from the presence of a ``target`` or a ``plane`` column; hz is wrapped into
     [0, 2pi), el is left as given (panoramic elevations reach past pi/2).
     """
+    _check_path(path, "path")
     source = os.fspath(path)
     loc = _Located(source)
     header_line, names, data = _read_rows(path, loc)
@@ -234,6 +272,7 @@ def read_observations(path) -> ObservationTable:
             raise loc.error(
                 f"range must be positive, got {cells['range'][0]!r}", line, cells["range"][1]
             )
+        _check_directions(obs[i], cells, line, loc)
         for j, q in enumerate(sigma_qs):
             if q in cells:
                 text, name, factor = cells[q]
@@ -281,8 +320,10 @@ def read_scans(path) -> dict[str, dict[str, float]]:
 
     Columns ``scan`` and any of ``omega_<u>``, ``phi_<u>`` (default 0), ``sigma_omega_<u>``,
     ``sigma_phi_<u>``. A scan is levelled when both its sigma cells are filled; scans with both
-    empty are left out of the result.
+    empty are left out of the result. Levelling angles in a file without sigma columns are
+    refused (they could not be weighted, and dropping them would go unnoticed).
     """
+    _check_path(path, "path")
     source = os.fspath(path)
     loc = _Located(source)
     header_line, names, data = _read_rows(path, loc)
@@ -317,6 +358,16 @@ def read_scans(path) -> dict[str, dict[str, float]]:
             else:
                 values[q] = math.nan
         empty = [q for q in ("sigma_omega", "sigma_phi") if math.isnan(values[q])]
+        angles = [q for q in ("omega", "phi") if not math.isnan(values[q])]
+        if angles and "sigma_omega" not in seen:
+            # Without sigmas the angles cannot be weighted; dropping them would be silent.
+            raise loc.error(
+                f"scan '{scan}' has a levelling angle but the file has no sigma columns; give "
+                "sigma_omega_<unit> and sigma_phi_<unit> (e.g. sigma_omega_arcsec: a compensator "
+                "is good to a few arc seconds), or leave the angle columns out",
+                line,
+                seen[angles[0]],
+            )
         if len(empty) == 2:
             continue
         if empty:
@@ -442,11 +493,21 @@ def levelling_of_network(net) -> dict:
     }
 
 
+def _check_path(value, name: str) -> None:
+    if not isinstance(value, (str, os.PathLike)):
+        raise TypeError(
+            f"{name} must be a file path (str or os.PathLike), got {type(value).__name__}"
+        )
+
+
 def read_planes(path) -> ObservationTable:
     """Plane observations from a plane CSV (SPEC section 11) or from the ``.npz`` of
     ``tlsjax extract-planes`` (matched across scans; its kept points, sigmas from the defaults
     and the incidence angles of the extraction)."""
+    _check_path(path, "planes")
     source = os.fspath(path)
+    if os.path.isdir(source):
+        raise ValueError(f"{source}: is a directory, not a plane file (.csv or .npz)")
     if source.lower().endswith(".npz"):
         from ._plane_files import load_planes
 
@@ -483,6 +544,9 @@ def read_network(
     """
     from .._adjustment._network import make_network
 
+    for value, name in ((observations_path, "observations_path"), (scans_path, "scans_path")):
+        if value is not None:
+            _check_path(value, name)
     if observations_path is None and planes is None:
         raise ValueError("give an observation file, a planes file, or both")
     table = read_observations(observations_path) if observations_path is not None else None

@@ -4,13 +4,23 @@ Every AP is one coefficient times one basis function of the observations (rho, t
 in one observation group. The correction of group g is ``Delta_g = sum_k c_k b_k(l)`` over the
 active terms of that group, evaluated at the observations ``l`` (SPEC section 3). Built-in and
 user-registered terms go through the same table, so they behave identically.
+
+Compiled code and the registry: basis functions are looked up here when a model is traced, so a
+compiled function depends on the registry. Every registration gets a fresh ``token``; a
+:class:`~tlsjax.Scanner` keeps the tokens of its terms (part of its equality and hash, hence of
+every cache key it enters), and replacing a term (``overwrite=True``) clears JAX's compilation
+caches and every cache registered with :func:`on_reregistration`, so no compiled function can
+return a result of a replaced basis.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import inspect
+import itertools
 from collections.abc import Callable
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -34,9 +44,30 @@ class APTerm:
     basis: Callable
     unit: str
     description: str = ""
+    token: int = 0  # unique per registration: a replaced term never compares equal
 
 
 _REGISTRY: dict[str, APTerm] = {}
+_TOKENS = itertools.count(1)
+#: Functions that empty a cache of compiled code (called when a term is replaced).
+_CACHE_CLEARERS: list[Callable[[], None]] = []
+
+
+def on_reregistration(clear: Callable[[], None]) -> Callable[[], None]:
+    """Register ``clear`` (e.g. ``functools.lru_cache(...).cache_clear``), called whenever a
+    registered AP term is replaced: caches of compiled functions that hold AP names without a
+    :class:`Scanner` (whose tokens would change the key) must be emptied then."""
+    _CACHE_CLEARERS.append(clear)
+    return clear
+
+
+def _invalidate_compiled() -> None:
+    # A replaced basis was traced into every function compiled with its name; JAX's caches key
+    # them on static arguments that may not change (an old Scanner object, a tuple of names),
+    # so they are emptied: the next call re-traces with the registry as it is now.
+    jax.clear_caches()
+    for clear in _CACHE_CLEARERS:
+        clear()
 
 
 def register_ap(
@@ -51,10 +82,16 @@ def register_ap(
     """Register an empirical AP term; it then behaves exactly like the built-in ones.
 
     ``basis(rho, theta, alpha, scanner)`` must be written with ``jax.numpy`` so that it can be
-    traced and differentiated.
+    traced and differentiated; it is checked here (called on sample observations of both
+    architectures, traced with :func:`jax.eval_shape` and differentiated), so a wrong basis is
+    refused at registration rather than deep inside an adjustment. Replacing a term
+    (``overwrite=True``) empties the caches of compiled code (see the module docstring): the
+    next adjustment uses the new basis.
     """
     if not isinstance(name, str) or not name.strip() or any(c.isspace() for c in name):
         raise ValueError(f"AP name {name!r} must be a non-empty string without spaces")
+    if name in PRESETS:
+        raise ValueError(f"AP name {name!r} is the name of an AP preset; choose another name")
     if group not in GROUP_INDEX:
         raise ValueError(f"AP {name}: group {group!r} is not one of {GROUPS}")
     if unit not in _UNITS:
@@ -65,9 +102,79 @@ def register_ap(
         raise ValueError(f"AP {name} is already registered; pass overwrite=True to replace it")
     if not callable(basis):
         raise ValueError(f"AP {name}: basis must be callable (rho, theta, alpha, scanner) -> array")
-    term = APTerm(name, group, basis, unit, description)
-    _REGISTRY[name] = term
+    if not isinstance(description, str):
+        raise ValueError(
+            f"AP {name}: description must be a string, got {type(description).__name__}"
+        )
+    check_basis(name, basis)
+    return _store(APTerm(name, group, basis, unit, description, next(_TOKENS)))
+
+
+def _store(term: APTerm) -> APTerm:
+    replaced = term.name in _REGISTRY
+    _REGISTRY[term.name] = term
+    if replaced:
+        _invalidate_compiled()
     return term
+
+
+#: Sample observations for :func:`check_basis`: ranges 0.5..60 m, all directions, and
+#: elevations away from the zenith (where sec and tan of the built-in terms are unbounded).
+_SAMPLE_RHO = np.array([0.5, 1.7, 4.0, 9.3, 21.0, 60.0])
+_SAMPLE_THETA = np.array([0.0, 0.9, 2.1, 3.3, 4.6, 6.1])
+_SAMPLE_ALPHA = np.array([-1.2, -0.6, -0.1, 0.3, 0.8, 1.3])
+
+
+def _probe_basis(basis, scanner):
+    """The basis at the samples, its abstract output for a (2, 3) batch, and its gradients."""
+    args = tuple(jnp.asarray(a) for a in (_SAMPLE_RHO, _SAMPLE_THETA, _SAMPLE_ALPHA))
+    out = basis(*args, scanner)
+    batch = jax.ShapeDtypeStruct((2, 3), jnp.float64)
+    shaped = jax.eval_shape(lambda r, t, a: basis(r, t, a, scanner), batch, batch, batch)
+    grads = jax.grad(lambda *l: jnp.sum(basis(*l, scanner)), argnums=(0, 1, 2))(*args)
+    return out, shaped, grads
+
+
+def check_basis(name: str, basis: Callable) -> None:
+    """Refuse a basis that cannot serve as an AP term, with a one-line ``ValueError``.
+
+    The basis must accept ``(rho, theta, alpha, scanner)``, return one finite float per
+    observation for observation arrays of any shape (checked on samples and under
+    :func:`jax.eval_shape` for a 2-d batch), for both architectures, and be differentiable by
+    JAX with finite derivatives (the adjustment differentiates the corrections).
+    """
+    from ._scanner import Scanner  # _scanner imports this module
+
+    try:
+        inspect.signature(basis).bind(1.0, 2.0, 3.0, None)
+    except TypeError:
+        raise ValueError(
+            f"AP {name}: basis must take four arguments (rho, theta, alpha, scanner)"
+        ) from None
+    except ValueError:  # some builtins have no signature; the calls below check them
+        pass
+    for arch in ("hybrid", "panoramic"):
+        what = f"AP {name}: basis(rho, theta, alpha, scanner) for a {arch} scanner"
+        try:
+            out, shaped, grads = _probe_basis(basis, Scanner(architecture=arch, aps=()))
+        except Exception as err:  # any failure of user code is reported the same way
+            first = str(err).splitlines()[0] if str(err) else ""
+            raise ValueError(
+                f"{what} fails: {type(err).__name__}: {first} (write it with jax.numpy so that "
+                "it can be traced and differentiated)"
+            ) from None
+        shape = np.shape(out)
+        if shape != _SAMPLE_RHO.shape or getattr(shaped, "shape", None) != (2, 3):
+            raise ValueError(
+                f"{what} returns shape {shape} for {_SAMPLE_RHO.shape[0]} observations; it must "
+                "return one value per observation (e.g. jnp.ones_like(rho) for a constant)"
+            )
+        if not np.issubdtype(np.asarray(out).dtype, np.floating):
+            raise ValueError(f"{what} returns {np.asarray(out).dtype} values; they must be floats")
+        if not np.all(np.isfinite(np.asarray(out))):
+            raise ValueError(f"{what} is not finite at the sample observations")
+        if not all(np.all(np.isfinite(np.asarray(g))) for g in grads):
+            raise ValueError(f"{what} has non-finite derivatives at the sample observations")
 
 
 def get_ap(name: str) -> APTerm:
@@ -224,8 +331,9 @@ _BUILTIN = [
         "elevation vs horizontal direction, 120 deg period (cosine)",
     ),
 ]
+# The built-in terms are trusted (and checking them would import Scanner before it exists).
 for _name, _group, _basis, _unit, _desc in _BUILTIN:
-    register_ap(_name, _group, _basis, _unit, _desc)
+    _store(APTerm(_name, _group, _basis, _unit, _desc, next(_TOKENS)))
 
 #: Named AP sets. "chow2013" is the full 24-term model of Chow et al. 2013 eqs. (4)-(6).
 PRESETS: dict[str, tuple[str, ...]] = {
@@ -278,6 +386,11 @@ def resolve_aps(aps) -> tuple[str, ...]:
                 raise ValueError(f"AP {name} is listed twice in {aps!r}")
             names.append(name)
     return tuple(names)
+
+
+def ap_tokens(names) -> tuple[int, ...]:
+    """Registration tokens of the terms ``names`` (they change when a term is replaced)."""
+    return tuple(get_ap(n).token for n in names)
 
 
 def ap_corrections(coefficients, names: tuple[str, ...], l, scanner):

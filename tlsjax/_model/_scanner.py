@@ -6,7 +6,7 @@ import dataclasses
 
 import numpy as np
 
-from ._aps import resolve_aps
+from ._aps import ap_tokens, resolve_aps
 
 ARCHITECTURES = ("hybrid", "panoramic")
 
@@ -18,13 +18,16 @@ class Scanner:
     ``architecture``: "hybrid" (one face, theta in [0, 2pi), alpha in [-pi/2, pi/2]) or
     "panoramic" (two faces, theta in [0, pi), alpha in [-pi/2, 3pi/2)). ``aps``: names or
     presets, e.g. ``"A0 B6 B7 C0"`` or ``"chow2013"``. ``unit_length`` U [m] of the cyclic
-    terms A3/A4, ``unit_length_2`` of A5/A6.
+    terms A3/A4, ``unit_length_2`` of A5/A6. ``ap_tokens`` (set here, not an argument) are
+    the registration tokens of the APs: a Scanner made after a term was re-registered differs
+    from one made before, so no compiled function traced with the old basis is reused for it.
     """
 
     architecture: str = "hybrid"
     aps: tuple = ("A0", "B6", "B7", "C0")
     unit_length: float = 1.2
     unit_length_2: float = 0.6
+    ap_tokens: tuple = dataclasses.field(init=False, repr=False, default=())
 
     def __post_init__(self):
         if self.architecture not in ARCHITECTURES:
@@ -32,6 +35,7 @@ class Scanner:
                 f"scanner architecture {self.architecture!r} is not one of {ARCHITECTURES}"
             )
         object.__setattr__(self, "aps", resolve_aps(self.aps))
+        object.__setattr__(self, "ap_tokens", ap_tokens(self.aps))
         for name, u in (("unit_length", self.unit_length), ("unit_length_2", self.unit_length_2)):
             if not (np.isfinite(u) and u > 0):
                 raise ValueError(f"scanner {name} must be a positive length in metres, got {u}")

@@ -1,16 +1,19 @@
-"""The result JSON of SPEC section 11: SI units, strict JSON (undefined values are null)."""
+"""The result JSON of SPEC section 11: SI units, strict JSON (undefined values are null),
+written atomically (:mod:`tlsjax._io._json`)."""
 
 from __future__ import annotations
 
-import json
 import math
-import os
 
 import numpy as np
 
 from .._inference._statistics import global_test
+from .._io._json import to_json_value, write_json_file
 from .._model._aps import get_ap
 from ._text import EOP_NAMES
+
+#: Result codes whose estimates are numbers (converged, possibly with non-estimable APs held).
+_ESTIMATES_VALID = (0, 2)
 
 
 def _num(x):
@@ -25,8 +28,45 @@ def result_to_dict(res, *, alpha: float = 0.05) -> dict:
     """The result JSON of SPEC section 11 (SI units), with the global test and the AP covariance.
 
     Non-estimable APs have ``value`` and ``sigma`` null and are listed in ``not_estimable``
-    with the parameter each is confounded with; they are never reported as numbers.
+    with the parameter each is confounded with; they are never reported as numbers. Scan
+    parameters the network does not determine (``rank_deficient``) are null too, and a failed
+    adjustment (no convergence, rank defect, non-finite values) reports no estimates at all:
+    its numbers would look plausible and be wrong (``estimates`` says why).
     """
+    d = _result_dict(res, alpha)
+    if int(res.result) not in _ESTIMATES_VALID:
+        _withhold_estimates(d, res.message)
+    return to_json_value(d)
+
+
+def _withhold_estimates(d: dict, reason: str) -> None:
+    """Null every estimate and sigma of a failed adjustment, in place."""
+    for a in d["aps"].values():
+        for k in ("value", "sigma", "t", "max_abs_corr", "max_corr_with"):
+            a[k] = None
+    for e in d["eops"].values():
+        for k in EOP_NAMES:
+            e[k] = None
+            e["sigma"][k] = None
+    d["ap_covariance"] = None
+    d["sigma0"] = None
+    d["global_test"] = global_test(float("nan"), d["dof"] or 0.0)
+    for p in d.get("planes", {}).values():
+        p["normal"], p["d"] = [None, None, None], None
+        p["sigma"] = {k: None for k in p["sigma"]}
+    d["estimates"] = f"withheld: the adjustment failed ({reason})"
+
+
+def _undetermined(res) -> set:
+    """(scan, EOP name) pairs of the scan parameters named in ``res.rank_deficient``."""
+    out = set()
+    for name in res.rank_deficient:
+        head, _, scan = str(name).partition("[")
+        out.add((scan.rstrip("]"), head))
+    return out
+
+
+def _result_dict(res, alpha: float) -> dict:
     aps = {}
     for i, name in enumerate(res.ap_names):
         base = name.split("[")[0]
@@ -39,10 +79,17 @@ def result_to_dict(res, *, alpha: float = 0.05) -> dict:
             "max_corr_with": res.ap_max_corr_with[i] or None,
             "description": get_ap(base).description,
         }
+    undetermined = _undetermined(res)
     eops = {
         s: {
-            **{k: _num(res.eops[j, c]) for c, k in enumerate(EOP_NAMES)},
-            "sigma": {k: _num(res.eop_sigmas[j, c]) for c, k in enumerate(EOP_NAMES)},
+            **{
+                k: None if (s, k) in undetermined else _num(res.eops[j, c])
+                for c, k in enumerate(EOP_NAMES)
+            },
+            "sigma": {
+                k: None if (s, k) in undetermined else _num(res.eop_sigmas[j, c])
+                for c, k in enumerate(EOP_NAMES)
+            },
         }
         for j, s in enumerate(res.scans)
     }
@@ -77,6 +124,7 @@ def result_to_dict(res, *, alpha: float = 0.05) -> dict:
             for n, w, c in res.weakly_determined
         ],
         "rank_deficient": list(res.rank_deficient),
+        "estimates": "valid",
         **_planes_dict(res),
     }
 
@@ -117,11 +165,9 @@ def _planes_dict(res) -> dict:
 
 def write_json(res, path, *, extra: dict | None = None, **kw) -> dict:
     """Write :func:`result_to_dict` (updated with ``extra``, e.g. the ``outliers`` and
-    ``variance_components`` of :func:`tlsjax.calibrate_and_test`) as strict JSON."""
+    ``variance_components`` of :func:`tlsjax.calibrate_and_test`) as strict JSON (NaN and
+    infinities are null), atomically: the file is complete or not written. A path that cannot
+    be written is a one-line ValueError naming it."""
     d = result_to_dict(res, **kw)
     d.update(extra or {})
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    with open(path, "w", encoding="utf-8") as fh:
-        json.dump(d, fh, indent=2, allow_nan=False)
-        fh.write("\n")
-    return d
+    return write_json_file(path, d)

@@ -20,6 +20,9 @@ def ap_table(res, truth: dict | None = None) -> str:
     if truth is not None:
         head += f" {'true':>10}"
     lines = [head, "-" * len(head)]
+    if int(res.result) not in (0, 2):
+        # A failed adjustment's numbers would look plausible and be wrong.
+        return "\n".join(lines + [f"no estimates: the adjustment failed ({res.message})"])
     not_est = {n: r for n, _, r in res.not_estimable}
     weak = {n for n, _, _ in res.weakly_determined}
     for i, name in enumerate(res.ap_names):
@@ -44,8 +47,9 @@ def ap_table(res, truth: dict | None = None) -> str:
     return "\n".join(lines)
 
 
-def summary(res, alpha: float = 0.05) -> str:
-    """A few lines: result, sigma0 with the global test, redundancy, flags."""
+def summary(res, alpha: float = 0.05, *, after_vce: bool = False) -> str:
+    """A few lines: result, sigma0 with the global test, redundancy, flags. ``after_vce``: the
+    weights were fitted to these residuals (VCE), so sigma0 is no test of them."""
     gt = global_test(res.sigma0, res.dof, alpha)
     red = res.redundancy_summary()
     out = [
@@ -58,7 +62,12 @@ def summary(res, alpha: float = 0.05) -> str:
             f"{len(res.planes)} planes, {int(res.plane_used.any(axis=1).sum())} plane points)"
         ),
     ]
-    if gt["statistic"] is not None:
+    if after_vce and gt["statistic"] is not None:
+        out.append(
+            f"sigma0 = {res.sigma0:.4f} with variance factors fitted to these residuals: not a test "
+            "(the global test with the a priori sigmas is above)"
+        )
+    elif gt["statistic"] is not None:
         out.append(
             f"sigma0 = {res.sigma0:.4f} (s0^2 = {res.sigma0**2:.4f}); global test chi^2 = {gt['statistic']:.1f}, "
             f"{100 * (1 - alpha):.0f}% interval [{gt['lower']:.1f}, {gt['upper']:.1f}]: "

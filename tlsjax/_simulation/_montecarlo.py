@@ -44,7 +44,7 @@ from .._adjustment._config import CalibrationModel
 from .._adjustment._linalg import forward_substitution, spd_inverse
 from .._adjustment._normal import matvec_t, outer
 from .._adjustment._result import MAX_ITERATIONS, NONFINITE, RESULT_MESSAGES, SUCCESS
-from .._model._aps import ap_corrections, get_ap
+from .._model._aps import ap_corrections, get_ap, on_reregistration
 from .._model._geometry import is_face2, spherical_from_cartesian, wrap_angle
 from .._model._levelling import compensator_reading
 from .._model._points import distorted_observations, point_geometry, predict_point
@@ -385,6 +385,8 @@ def _realisation(design: _Design, seed_key, tolerance, max_iterations, index):
 # Compiled chunk functions per (simulation, model, AP draw sigmas, chunk, devices): the seed,
 # tolerance and iteration limit are traced arguments, so changing them never recompiles.
 _COMPILED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+# A simulation's own scanner may predate a re-registered AP: empty the cache then.
+on_reregistration(_COMPILED.clear)
 
 
 def _compiled_chunk(simulation, model, ap_sigma, chunk: int):
