@@ -54,3 +54,32 @@ def test_clean_planes_lose_almost_nothing(clouds):
     # Without removals the final adjustment is the plain one.
     if len(s.removed) == 0:
         np.testing.assert_allclose(s.calibration.ap_values, plain.ap_values, rtol=1e-9)
+
+
+def test_cli_screens_plane_points_by_default(clouds, tmp_path, capsys):
+    import json
+
+    from tlsjax._adjustment._network import ObservationTable
+    from tlsjax._cli import main
+    from tlsjax._io._tables import write_observations
+
+    pc, _, net, bad = clouds
+    table = ObservationTable(
+        kind="plane",
+        source="<test>",
+        scans=tuple(net.scans[j] for j in net.plane_scan_index),
+        primitives=tuple(net.planes[k] for k in net.plane_index),
+        observations=net.plane_observations,
+        sigmas=net.plane_sigmas,
+        incidence=None,
+        instruments=None,
+        rows=np.arange(len(net.plane_index)),
+    )
+    path, out = tmp_path / "planes.csv", tmp_path / "r.json"
+    write_observations(path, table)
+    assert main(["calibrate", "--planes", str(path), "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "plane outlier screening" in printed
+    js = json.loads(out.read_text())
+    assert js["plane_screening"]["n_removed"] >= len(bad)
+    assert js["n_plane_points"] == len(net.plane_index) - js["plane_screening"]["n_removed"]

@@ -77,7 +77,8 @@ def add_calibrate_parser(sub):
         default=True,
         help="with VCE, remove gross errors before it (robust group scales, family-wise level "
         "--screen-alpha); default on: VCE on data with blunders inflates the factors until the "
-        "blunders look normal",
+        "blunders look normal. With planes: screen the plane points (IGG-III reweighting, "
+        "family-wise removal, then the a priori weights)",
     )
     c.add_argument(
         "--screen-alpha",
@@ -155,10 +156,15 @@ def _calibrate(args) -> int:
     )
     if args.vce is None:
         args.vce = not net.has_planes
-    if net.has_planes and (args.vce or args.snoop):
+    if net.has_planes and args.vce:
         raise ValueError(
-            "--vce and --snoop are for target networks; with planes the weights are held fixed "
-            "(SPEC section 5): run without them"
+            "--vce is for target networks; with planes the weights are held fixed (SPEC section "
+            "5): run without it (plane points are screened for outliers by --screen, the default)"
+        )
+    if net.has_planes and net.has_targets and args.snoop:
+        raise ValueError(
+            "--snoop of a combined network is not supported: the plane points are screened "
+            "(--screen); snoop the targets in a target-only calibration"
         )
     if net.dropped:
         print(
@@ -181,7 +187,9 @@ def _calibrate(args) -> int:
     extra, mask, tested = {}, None, None
     if args.select:
         model, scanner = _select(args, net, model, scanner, extra)
-    if args.vce or args.snoop:
+    if net.has_planes and (args.screen or args.snoop):
+        res = _screen(net, model, solver, extra)
+    elif args.vce or args.snoop:
         tested = _test(args, net, model, solver)
         res, mask = tested.calibration, tested.mask
         extra.update(tested.json_fields())
@@ -211,6 +219,16 @@ def _select(args, net, model, scanner, extra):
     scanner = dataclasses.replace(scanner, aps=tuple(sel.aps))
     extra["selection"] = {"aps": list(sel.aps), "n_fits": sel.n_fits}
     return dataclasses.replace(model, scanner=scanner), scanner
+
+
+def _screen(net, model, solver, extra):
+    """Outlier screening of the plane points (tj.screen_planes); the final adjustment."""
+    from .._inference._robust import screen_planes
+
+    screened = screen_planes(net, model, solver)
+    print(screened.summary())
+    extra.update(screened.json_fields())
+    return screened.calibration
 
 
 def _test(args, net, model, solver):

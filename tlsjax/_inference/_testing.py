@@ -811,7 +811,8 @@ def calibrate_and_test(
     if network.has_planes:
         raise ValueError(
             f"{network.source}: variance components and data snooping are for target networks; with "
-            "planes the weights are held fixed (SPEC section 5); use calibrate()"
+            "planes the weights are held fixed (SPEC section 5); screen plane points for outliers "
+            "with tlsjax.screen_planes(network, model)"
         )
     s = _Session(network, model, options, testing)
     s.crit = _snooping_critical_value(testing, int(network.observations.size))
