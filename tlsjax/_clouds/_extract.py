@@ -33,6 +33,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from .._adjustment._network import ObservationTable
+from .._io._optional import require
 from .._model._geometry import cartesian_from_spherical
 
 
@@ -159,13 +160,8 @@ class ExtractedPlanes:
 
 
 def _require_open3d():
-    try:
-        import open3d as o3d
-    except ImportError as err:  # also raised when a system library of open3d is missing
-        raise ImportError(
-            f"plane extraction needs open3d: pip install 'tlsjax[open3d]' ({err})"
-        ) from err
-    return o3d
+    # A missing system library (libusb, libGL, libgomp) is named with its Debian package.
+    return require("open3d", "plane extraction")
 
 
 def fit_plane(x):
