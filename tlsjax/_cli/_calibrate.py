@@ -34,6 +34,11 @@ def add_calibrate_parser(sub):
     c.add_argument("--json", help="write the result JSON here")
     c.add_argument("--plots", help="write residual and correlation plots into this folder")
     c.add_argument(
+        "--report",
+        metavar="HTML",
+        help="also write the calibration report: one self-contained HTML file",
+    )
+    c.add_argument(
         "--drop-single-targets",
         action="store_true",
         help="drop targets seen in one scan only (reported)",
@@ -163,7 +168,7 @@ def _calibrate(args) -> int:
     if net.has_planes:
         parts.append(f"{len(net.planes)} planes, {net.plane_observations.shape[0]} plane points")
     print(f"{net.source}: " + ", ".join(parts))
-    extra, mask = {}, None
+    extra, mask, mdb = {}, None, None
     if args.select:
         from .._inference._selection import SelectionOptions, select_aps
 
@@ -195,7 +200,7 @@ def _calibrate(args) -> int:
                 removal=args.snoop_removal,
             ),
         )
-        res, mask = tested.calibration, tested.mask
+        res, mask, mdb = tested.calibration, tested.mask, tested.mdb
         extra.update(tested.json_fields())
         print(tested.summary())
     else:
@@ -204,8 +209,43 @@ def _calibrate(args) -> int:
     print(summary(res))
     print()
     print(ap_table(res))
+    extra.update(_report_fields(res, scanner, args, mask, mdb))
     write_outputs(res, args.json, args.plots, extra=extra, scanner=scanner, mask=mask)
+    if args.report:
+        _write_report(res, args.report, extra, scanner, mask)
     return EXIT_OK if res.ok else EXIT_FAILED
+
+
+def _report_fields(res, scanner, args, mask, mdb) -> dict:
+    """JSON fields for ``tlsjax correct`` (scanner settings) and the report (reliability,
+    provenance with the input files' SHA-256)."""
+    from .._report._html import provenance, reliability_summary, scanner_settings
+
+    fields = {
+        "scanner": scanner_settings(scanner),
+        "provenance": provenance([args.observations, args.planes, args.scans]),
+    }
+    if res.network is not None and res.network.has_targets:
+        fields["reliability"] = reliability_summary(res, mdb=mdb, mask=mask)
+    return fields
+
+
+def _write_report(res, path, extra, scanner, mask):
+    import base64
+    import tempfile
+
+    from .._report._html import write_html_report
+    from .._report._json import result_to_dict
+    from .._report._plots import plot_residuals
+
+    doc = result_to_dict(res)
+    doc.update(extra)
+    with tempfile.TemporaryDirectory() as tmp:  # the AP correlations are drawn from the JSON
+        png = plot_residuals(res, os.path.join(tmp, "residuals.png"), scanner=scanner, mask=mask)
+        with open(png, "rb") as fh:
+            plots = {"residuals": base64.b64encode(fh.read()).decode("ascii")}
+    write_html_report(doc, path, plots=plots)
+    print(f"wrote {path}")
 
 
 def write_outputs(res, json_path, plots_dir, *, extra=None, scanner=None, mask=None):

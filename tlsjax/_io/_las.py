@@ -115,9 +115,9 @@ def open_las(source: str):
     return _laspy_call(source, "not a readable LAS/LAZ file", laspy.open, source)
 
 
-def iter_las_chunks(reader, source: str, chunk: int = LAS_CHUNK):
+def iter_las_chunks(reader, source: str, chunk: int | None = None):
     """Yield the point records of a laspy reader chunk by chunk, errors as one line."""
-    it = _laspy_call(source, "cannot read the points", reader.chunk_iterator, chunk)
+    it = _laspy_call(source, "cannot read the points", reader.chunk_iterator, chunk or LAS_CHUNK)
     while True:
         pts = _laspy_call(source, "points unreadable", next, it, None)
         if pts is None:
