@@ -5,9 +5,8 @@ import dataclasses
 import json
 
 import numpy as np
-import pytest
-
 import open3d  # noqa: F401  (CI fails, not skips, without it)
+import pytest
 
 import tlsjax as tj
 from tlsjax._cli import main
