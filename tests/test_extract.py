@@ -3,6 +3,7 @@
 import argparse
 import dataclasses
 import json
+import pathlib
 
 import numpy as np
 import open3d  # noqa: F401  (CI fails, not skips, without it)
@@ -19,6 +20,7 @@ from tlsjax._io._tables import read_observations, write_observations
 from tlsjax._simulation._point_clouds import CloudDesign, simulate_point_clouds
 
 DEG = np.pi / 180
+DATA = pathlib.Path(__file__).parent / "data"
 MIN_FOUND = 0.95  # fraction of a plane's points in a scan that extraction must find
 
 
@@ -401,3 +403,21 @@ def test_clutter_gives_no_false_planes(room):
     found[ex.point_index] = True
     for k in visible:
         assert found[label == k].mean() > MIN_FOUND
+
+
+def test_cli_on_a_real_scan(tmp_path, capsys):
+    # An industrial room scanned by a real scanner (every 7th point of pye57's
+    # pumpAVisualReferenceImage.e57, tests/data/README.md): the largest plane is the floor of the
+    # levelled scan, about 1.9 m below the scanner, and every plane is a surface of mm RMS.
+    from tlsjax._cli import main as cli
+
+    src = DATA / "pump_every7th.e57"
+    assert cli(["extract-planes", str(src), "--out", str(tmp_path / "p.npz")]) == 0
+    out = capsys.readouterr().out
+    assert "22172 of 22172 points" in out and "RMS [mm]" in out
+    planes = load_planes(tmp_path / "p.npz")
+    assert len(planes.planes) >= 5
+    n, d = planes.planes[0, :3], planes.planes[0, 3]
+    assert abs(n[2]) > np.cos(np.radians(1.0)) and 1.8 < abs(d) < 2.0
+    for p in planes.summary():
+        assert p["rms"] < ExtractionConfig().max_rms and p["n_scans"] == 1
