@@ -59,21 +59,30 @@ def cli_correct(args) -> int:
     names = [os.path.basename(p) for p in args.scans]
     if len(set(names)) != len(names):
         raise ValueError(f"scan files with the same name would overwrite each other in {args.out}")
-    os.makedirs(args.out, exist_ok=True)
+    try:
+        os.makedirs(args.out, exist_ok=True)
+    except OSError as err:
+        raise ValueError(f"{args.out}: cannot create the output folder ({err.strerror})") from None
     aps = ", ".join(f"{n}" for n in cal.scanner.aps) or "none"
     print(f"{args.calibration}: {cal.scanner.architecture} scanner, APs {aps}")
     for note in cal.notes:
         print(f"warning: {note}", file=sys.stderr)
     for path in args.scans:
         out = os.path.join(args.out, os.path.basename(path))
-        for scan in correct_point_cloud(
-            path,
-            cal,
-            out,
-            poses=poses,
-            precision=args.precision,
-            progress=not args.no_progress and sys.stderr.isatty(),
-        ):
+        try:
+            scans = correct_point_cloud(
+                path,
+                cal,
+                out,
+                poses=poses,
+                precision=args.precision,
+                progress=not args.no_progress and sys.stderr.isatty(),
+            )
+        except (FileNotFoundError, ValueError, ImportError):
+            raise
+        except OSError as err:  # an unwritable folder, a full disk: one line
+            raise ValueError(f"{out}: cannot write ({err.strerror or err})") from None
+        for scan in scans:
             print(scan.line())
             for note in scan.notes:
                 print(f"warning: {note}", file=sys.stderr)

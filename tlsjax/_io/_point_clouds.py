@@ -379,10 +379,13 @@ def read_point_clouds(
         raise ValueError(f"{source}: the file is empty")
     stem = os.path.splitext(os.path.basename(source))[0]
     poses = poses or {}
-    return tuple(
-        _finish(raw, source, architecture, poses.get(raw.name))
-        for raw in _raw_scans(path, source, kind, stem)
-    )
+    try:
+        raws = _raw_scans(path, source, kind, stem)
+    except (FileNotFoundError, ImportError, ValueError):
+        raise
+    except OSError as err:  # permissions, a device error: one line, never a traceback
+        raise ValueError(f"{source}: cannot read the file ({err.strerror or err})") from None
+    return tuple(_finish(raw, source, architecture, poses.get(raw.name)) for raw in raws)
 
 
 def write_xyz(path, points) -> None:
