@@ -249,3 +249,17 @@ def test_from_a_target_calibration_end_to_end(tmp_path, capsys):
     before = np.sqrt(np.mean(np.sum((x - truth) ** 2, axis=1)))
     after = np.sqrt(np.mean(np.sum((scan.points - truth) ** 2, axis=1)))
     assert before > 0.005 and after < 0.1 * before
+
+
+def test_map_coordinates_are_refused_not_corrected(tmp_path, sim, capsys):
+    # A public LAS file in UTM coordinates (PDAL's simple.laz) has no scan pose: applying scanner
+    # APs to map coordinates would give a plausible but wrong cloud, so it is refused.
+    import pathlib
+
+    pc, *_ = sim
+    cal = _cal_json(tmp_path / "cal.json", pc)
+    src = pathlib.Path(__file__).parent / "data" / "simple.laz"
+    assert main(["correct", str(cal), str(src), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "simple.laz" in err[0] and "map coordinates" in err[0]
+    assert not (tmp_path / "o" / "simple.laz").exists()

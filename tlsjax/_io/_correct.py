@@ -35,6 +35,7 @@ import numpy as np
 from .._model._aps import ap_corrections, get_ap
 from .._model._geometry import TWO_PI, cartesian_from_spherical, rotation_matrix
 from .._model._scanner import ARCHITECTURES, Scanner
+from ._point_clouds import MAP_SCALE_RANGE
 
 #: Points per compiled correction step.
 CHUNK = 1 << 16
@@ -210,6 +211,13 @@ def correct_points(
     if pose is not None:
         R = rotation_matrix(*np.asarray(pose, dtype=np.float64)[3:], xp=np)
         x = (x - pose[:3]) @ R.T
+    if len(x) and np.median(np.linalg.norm(x, axis=1)) > MAP_SCALE_RANGE:
+        # The APs act on the scanner's own observations; map coordinates would give a
+        # plausible-looking but wrong correction.
+        raise ValueError(
+            f"points have a median range of {np.median(np.linalg.norm(x, axis=1)):.4g} m: map "
+            "coordinates, not a scan in its scanner's frame; give the scan's pose (--poses)"
+        )
     names = calibration.scanner.aps
     coeffs = jnp.asarray(calibration.values)
     cov = jnp.asarray(

@@ -105,15 +105,23 @@ def correct_point_cloud(
     stem = os.path.splitext(os.path.basename(src))[0]
     poses = poses or {}
     args = (src, dst, calibration, precision, progress)
-    if kind == "las":
-        return (_correct_las(*args, stem, poses.get(stem)),)
-    if kind in ("ptx", "xyz"):
-        return _correct_text(*args, stem, kind)
-    if kind == "ply":
-        return (_correct_ply(*args, stem),)
-    if kind == "e57":
+    if kind == "pcd":
+        raise ValueError(f"{src}: correcting PCD files is not supported; convert to PLY")
+    try:
+        if kind == "las":
+            return (_correct_las(*args, stem, poses.get(stem)),)
+        if kind in ("ptx", "xyz"):
+            return _correct_text(*args, stem, kind)
+        if kind == "ply":
+            return (_correct_ply(*args, stem),)
         return _correct_e57(*args, stem)
-    raise ValueError(f"{src}: correcting {kind.upper()} files is not supported; convert to PLY")
+    except BaseException as err:
+        for leftover in (dst, dst + ".sigma_mm.txt"):  # no half-written output stays behind
+            if os.path.exists(leftover) and not os.path.samefile(leftover, src):
+                os.remove(leftover)
+        if isinstance(err, ValueError) and not str(err).startswith(src):
+            raise ValueError(f"{src}: {err}") from None
+        raise
 
 
 # --- LAS/LAZ -----------------------------------------------------------------------------
