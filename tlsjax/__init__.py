@@ -40,9 +40,16 @@ from ._inference._testing import TestedCalibration as TestedCalibration
 from ._inference._testing import TestingOptions as TestingOptions
 from ._inference._testing import VCEResult as VCEResult
 from ._inference._testing import calibrate_and_test as calibrate_and_test
+from ._io._correct import Calibration as Calibration
+from ._io._correct import correct_points as correct_points
+from ._io._correct_files import CorrectedScan as CorrectedScan
+from ._io._correct_files import correct_point_cloud as correct_point_cloud
+from ._io._las import write_las as write_las
 from ._io._plane_files import load_planes as load_planes
 from ._io._plane_files import save_planes as save_planes
+from ._io._ply import write_ply as write_ply
 from ._io._point_clouds import PointCloudScan as PointCloudScan
+from ._io._point_clouds import PointCloudWarning as PointCloudWarning
 from ._io._point_clouds import read_point_clouds as read_point_clouds
 from ._io._tables import read_network as read_network
 from ._io._tables import read_observations as read_observations
@@ -54,6 +61,8 @@ from ._model._aps import register_ap as register_ap
 from ._model._aps import registered_aps as registered_aps
 from ._model._aps import resolve_aps as resolve_aps
 from ._model._scanner import Scanner as Scanner
+from ._report._html import report_from_json as report_from_json
+from ._report._html import write_html_report as write_html_report
 from ._report._json import result_to_dict as result_to_dict
 from ._report._json import write_json as write_json
 from ._report._plots import plot_ap_correlations as plot_ap_correlations

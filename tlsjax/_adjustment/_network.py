@@ -372,8 +372,11 @@ def make_network(
         source,
     )
     check_angles(obs, architecture, where, lambda i: f"scan {scans[i]}, target {targets[i]}")
-    seen: dict[tuple[str, str], int] = {}
-    for i, key in enumerate(zip(scans, targets)):
+    seen: dict[tuple, int] = {}
+    # A panoramic scanner may see a target in both faces of one scan (the two-face design):
+    # the face (elevation beyond 90 deg) is part of what makes an observation unique.
+    face2 = obs[:, 2] > np.pi / 2
+    for i, key in enumerate(zip(scans, targets, face2.tolist())):
         if key in seen:
             raise ValueError(
                 f"{where(i)}: duplicate observation of target {key[1]} in scan {key[0]} (also {where(seen[key])})"
@@ -458,8 +461,8 @@ def make_network(
 
     # Targets seen in one scan only add three unknowns and three observations: no redundancy.
     scans_of_target: dict[str, set] = defaultdict(set)
-    for s, t in zip(scans, targets):
-        scans_of_target[t].add(s)
+    for s, t, f in zip(scans, targets, face2.tolist()):
+        scans_of_target[t].add((s, f))  # both faces of one scan also give redundancy
     bar_targets = {a for a, _, _, _ in bars} | {b for _, b, _, _ in bars}
     single = sorted(
         t

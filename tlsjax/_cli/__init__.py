@@ -1,4 +1,5 @@
-"""Command line: ``tlsjax demo | simulate | calibrate | extract-planes | montecarlo | compare``.
+"""Command line: ``tlsjax demo | simulate | calibrate | extract-planes | correct | report |
+montecarlo | compare``.
 
 Every subcommand is a thin layer over the public API. Bad input is reported as one line
 naming the file, line, scan, target or parameter (exit code 2), and so is every file-system
@@ -16,8 +17,10 @@ import sys
 from ._calibrate import add_calibrate_parser
 from ._common import EXIT_BAD_INPUT, EXIT_INTERNAL
 from ._compare import add_compare_parser
+from ._correct import add_correct_parser
 from ._extract import add_extract_parser
 from ._montecarlo import add_montecarlo_parser
+from ._report import add_report_parser
 from ._simulate import add_demo_parser, add_simulate_parser
 
 
@@ -48,6 +51,8 @@ def build_parser() -> argparse.ArgumentParser:
         add_simulate_parser,
         add_calibrate_parser,
         add_extract_parser,
+        add_correct_parser,
+        add_report_parser,
         add_montecarlo_parser,
         add_compare_parser,
     ):

@@ -34,6 +34,11 @@ def add_calibrate_parser(sub):
     c.add_argument("--json", help="write the result JSON here")
     c.add_argument("--plots", help="write residual and correlation plots into this folder")
     c.add_argument(
+        "--report",
+        metavar="HTML",
+        help="also write the calibration report: one self-contained HTML file",
+    )
+    c.add_argument(
         "--drop-single-targets",
         action="store_true",
         help="drop targets seen in one scan only (reported)",
@@ -142,7 +147,7 @@ def _calibrate(args) -> int:
 
     if args.observations is None and args.planes is None:
         raise ValueError("give an observation CSV, --planes FILE, or both")
-    check_outputs(args.json, args.plots)  # before any work: a bad path fails in a second
+    check_outputs(args.json, args.plots, args.report)  # before any work: fails in a second
     scanner = Scanner(architecture=args.architecture, aps=args.aps, unit_length=args.unit_length)
     net = read_network(
         args.observations,
@@ -184,20 +189,23 @@ def _calibrate(args) -> int:
     if net.has_planes:
         parts.append(f"{len(net.planes)} planes, {net.plane_observations.shape[0]} plane points")
     print(f"{net.source}: " + ", ".join(parts))
-    extra, mask, tested = {}, None, None
+    extra, mask, tested, mdb = {}, None, None, None
     if args.select:
         model, scanner = _select(args, net, model, scanner, extra)
     if net.has_planes and (args.screen or args.snoop):
         res = _screen(net, model, solver, extra)
     elif args.vce or args.snoop:
         tested = _test(args, net, model, solver)
-        res, mask = tested.calibration, tested.mask
+        res, mask, mdb = tested.calibration, tested.mask, tested.mdb
         extra.update(tested.json_fields())
     else:
         res = calibrate(net, model, solver)
     print(f"({time.perf_counter() - t0:.2f} s)")
     report(res, after_vce=tested is not None and tested.weights_fitted)
+    extra.update(_report_fields(res, scanner, args, mask, mdb))
     write_outputs(res, args.json, args.plots, extra=extra, scanner=scanner, mask=mask)
+    if args.report:
+        _write_report(res, args.report, extra, scanner, mask)
     ok = res.ok and (tested is None or tested.ok)
     return EXIT_OK if ok else EXIT_FAILED
 
@@ -262,12 +270,45 @@ def report(res, *, after_vce: bool = False, truth=None):
     print(ap_table(res, truth=truth))
 
 
-def check_outputs(json_path=None, plots_dir=None):
+def check_outputs(json_path=None, plots_dir=None, report_path=None):
     """Refuse unwritable output paths before any work (one line naming the path)."""
     from .._io._json import check_output_dir, check_output_file
 
     check_output_file(json_path, "--json ")
     check_output_dir(plots_dir, "--plots ")
+    check_output_file(report_path, "--report ")
+
+
+def _report_fields(res, scanner, args, mask, mdb) -> dict:
+    """JSON fields for ``tlsjax correct`` (scanner settings) and the report (reliability,
+    provenance with the input files' SHA-256)."""
+    from .._report._html import provenance, reliability_summary, scanner_settings
+
+    fields = {
+        "scanner": scanner_settings(scanner),
+        "provenance": provenance([args.observations, args.planes, args.scans]),
+    }
+    if res.network is not None and res.network.has_targets:
+        fields["reliability"] = reliability_summary(res, mdb=mdb, mask=mask)
+    return fields
+
+
+def _write_report(res, path, extra, scanner, mask):
+    import base64
+    import tempfile
+
+    from .._report._html import write_html_report
+    from .._report._json import result_to_dict
+    from .._report._plots import plot_residuals
+
+    doc = result_to_dict(res)
+    doc.update(extra)
+    with tempfile.TemporaryDirectory() as tmp:  # the AP correlations are drawn from the JSON
+        png = plot_residuals(res, os.path.join(tmp, "residuals.png"), scanner=scanner, mask=mask)
+        with open(png, "rb") as fh:
+            plots = {"residuals": base64.b64encode(fh.read()).decode("ascii")}
+    write_html_report(doc, path, plots=plots)
+    print(f"wrote {path}")
 
 
 def write_outputs(res, json_path, plots_dir, *, extra=None, scanner=None, mask=None):

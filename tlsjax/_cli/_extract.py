@@ -14,7 +14,7 @@ def add_extract_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "extract-planes",
         help="extract and match planes from point clouds",
-        description="Extract planes from scans (PLY/PCD/XYZ/PTX/E57, coordinates in scanner space), match "
+        description="Extract planes from scans (E57, PTX, LAS/LAZ, PLY, PCD, XYZ), match "
         "them across scans with the scan poses, write them as .npz and optionally as a plane "
         "observation CSV.",
     )
@@ -38,8 +38,36 @@ def add_extract_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--min-points", type=int, default=ExtractionConfig.min_points)
     p.add_argument("--csv", help="also write the plane observations CSV (SPEC section 11)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cli_extract)
     return p
+
+
+def read_scan_files(paths, architecture, poses_path=None, *, out=None):
+    """Read point-cloud files for a subcommand: one line per scan (points kept of stored, pose)
+    and one ``warning:`` line per note (dropped points, map-scale coordinates) on stderr."""
+    import sys
+    import warnings
+
+    from .._io._plane_files import read_poses
+    from .._io._point_clouds import PointCloudWarning, read_point_clouds
+
+    out = out or sys.stdout
+    poses = read_poses(poses_path) if poses_path else None
+    clouds = []
+    for path in paths:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PointCloudWarning)  # printed below, once
+            scans = read_point_clouds(path, architecture=architecture, poses=poses)
+        for c in scans:
+            pose = "no pose" if c.pose is None else "pose " + " ".join(f"{v:.6g}" for v in c.pose)
+            print(
+                f"{path}: scan {c.name}: {len(c.points)} of {c.n_stored} points, {pose}", file=out
+            )
+            for note in c.notes:
+                print(f"warning: {note}", file=sys.stderr)
+        clouds.extend(scans)
+    return clouds, poses
 
 
 def cli_extract(args) -> int:
@@ -49,20 +77,16 @@ def cli_extract(args) -> int:
     from .._clouds._extract import ExtractionConfig, extract_planes
     from .._clouds._match import match_planes
     from .._io._json import check_output_file
-    from .._io._plane_files import read_poses, save_planes
-    from .._io._point_clouds import read_point_clouds
+    from .._io._plane_files import save_planes
     from .._io._tables import write_observations
 
     check_output_file(args.out, "--out ")  # before the extraction runs
     check_output_file(args.csv, "--csv ")
-    clouds = []
-    for path in args.scans:
-        clouds.extend(read_point_clouds(path, architecture=args.architecture))
+    clouds, table = read_scan_files(args.scans, args.architecture, args.poses)
     names = [c.name for c in clouds]
     if len(set(names)) != len(names):
         raise ValueError(f"scan names are not unique: {names}")
-    if args.poses:
-        table = read_poses(args.poses)
+    if table is not None:
         missing = [n for n in names if n not in table]
         if missing:
             raise ValueError(f"{args.poses}: no pose for scan(s) {', '.join(missing)}")
@@ -78,7 +102,13 @@ def cli_extract(args) -> int:
     config = ExtractionConfig(
         distance_threshold=args.distance_threshold, min_points=args.min_points, budget=args.budget
     )
-    planes = extract_planes([c.observations for c in clouds], config, names=names, seed=args.seed)
+    planes = extract_planes(
+        [c.observations for c in clouds],
+        config,
+        names=names,
+        seed=args.seed,
+        progress=not args.no_progress and sys.stderr.isatty(),
+    )
     if poses is not None:
         planes = match_planes(planes, poses)
     save_planes(args.out, planes)
@@ -91,7 +121,13 @@ def cli_extract(args) -> int:
     )
     print(
         f"{len(names)} scan(s), {len(planes.patch_scan)} patches, {matched}, "
-        f"{len(planes.point_patch)} points -> {args.out}",
-        file=sys.stdout,
+        f"{len(planes.point_patch)} points -> {args.out}"
     )
+    if planes.planes is not None:
+        print("plane  scans  patches   points  RMS [mm]  max patch angle [deg]")
+        for p in planes.summary():
+            print(
+                f"{p['plane']:5s} {p['n_scans']:6d} {p['n_patches']:8d} {p['n_points']:8d} "
+                f"{p['rms'] * 1e3:9.2f} {np.degrees(p['max_patch_angle']):22.2f}"
+            )
     return 0

@@ -33,6 +33,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from .._adjustment._network import ObservationTable
+from .._io._optional import require
 from .._model._geometry import cartesian_from_spherical
 
 
@@ -132,6 +133,13 @@ class ExtractedPlanes:
     def point_scan(self) -> np.ndarray:
         return self.patch_scan[self.point_patch]
 
+    def summary(self) -> list[dict]:
+        """Per global plane: scans, patches and points supporting it, RMS [m] of the points
+        from it, largest patch angle [rad] (:func:`~tlsjax._clouds._match.plane_summary`)."""
+        from ._match import plane_summary
+
+        return plane_summary(self)
+
     def to_table(self) -> ObservationTable:
         """Plane observations (SPEC section 11): one row per kept point of a matched plane.
 
@@ -159,13 +167,8 @@ class ExtractedPlanes:
 
 
 def _require_open3d():
-    try:
-        import open3d as o3d
-    except ImportError as err:  # also raised when a system library of open3d is missing
-        raise ImportError(
-            f"plane extraction needs open3d: pip install 'tlsjax[open3d]' ({err})"
-        ) from err
-    return o3d
+    # A missing system library (libusb, libGL, libgomp) is named with its Debian package.
+    return require("open3d", "plane extraction")
 
 
 def fit_plane(x):
@@ -192,8 +195,9 @@ def _refine(x, rejection, max_iter=20):
     return keep, n, d, rms, w
 
 
-def _extract_scan(o3d, obs, config: ExtractionConfig, seed_seq):
-    """Patches of one scan: list of (indices, n, d, rms)."""
+def _extract_scan(o3d, obs, config: ExtractionConfig, seed_seq, bar=None):
+    """Patches of one scan: list of (indices, n, d, rms); ``bar`` (tqdm) counts the points
+    assigned to patches or left over."""
     x = cartesian_from_spherical(np.asarray(obs, dtype=np.float64), xp=np)
     rho = np.linalg.norm(x, axis=1)
     u = x / rho[:, None]
@@ -247,9 +251,13 @@ def _extract_scan(o3d, obs, config: ExtractionConfig, seed_seq):
             ):
                 continue
             pool[members[keep]] = False
+            if bar is not None:
+                bar.update(int(keep.sum()))
             if d > 0:  # normal towards the scanner at the origin
                 n, d = -n, -d
             patches.append((members[keep], n, d, rms))
+    if bar is not None:
+        bar.update(int(pool.sum()))  # the rest: clutter, edges, planes too small
     return patches
 
 
@@ -259,13 +267,17 @@ def extract_planes(
     *,
     names: Sequence[str] | None = None,
     seed: int = 0,
+    progress: bool = False,
 ) -> ExtractedPlanes:
     """Extract plane patches from each scan's observations (see the module docstring).
 
     ``scans``: one (n_j, 3) array of (rho [m], theta [rad], alpha [rad]) per scan, hybrid or
     panoramic (both faces map to the same scanner-space point). ``names``: scan names (default
-    S1, S2, ...). ``seed`` makes RANSAC and the budget sampling repeatable.
+    S1, S2, ...). ``seed`` makes RANSAC and the budget sampling repeatable. ``progress``: a
+    progress bar over the points of all scans.
     """
+    from tqdm.auto import tqdm
+
     o3d = _require_open3d()
     config = config or ExtractionConfig()
     names = tuple(names) if names is not None else tuple(f"S{j + 1}" for j in range(len(scans)))
@@ -273,6 +285,8 @@ def extract_planes(
         raise ValueError(f"{len(names)} scan names for {len(scans)} scans")
     root = np.random.SeedSequence(seed)
     children = root.spawn(len(scans))
+    total = sum(len(o) for o in scans)
+    bar = tqdm(total=total, disable=not progress, unit="pt", unit_scale=True)
     p_scan, p_n, p_d, p_rms, p_cnt, pt_patch, pt_index, pt_obs, pt_inc = (
         [],
         [],
@@ -293,7 +307,8 @@ def extract_planes(
         ransac_seed, budget_seed = ss.spawn(2)
         rng = np.random.default_rng(budget_seed)
         x = cartesian_from_spherical(obs, xp=np)
-        for members, n, d, rms in _extract_scan(o3d, obs, config, ransac_seed):
+        bar.set_description(f"planes of scan {names[j]}")
+        for members, n, d, rms in _extract_scan(o3d, obs, config, ransac_seed, bar):
             sel = members
             if config.budget is not None and len(members) > config.budget:
                 sel = np.sort(rng.choice(members, size=int(config.budget), replace=False))
@@ -308,6 +323,8 @@ def extract_planes(
             pt_obs.append(obs[sel])
             xs = x[sel]
             pt_inc.append(np.arccos(np.clip(np.abs(xs @ n) / np.linalg.norm(xs, axis=1), 0.0, 1.0)))
+
+    bar.close()
 
     def cat(parts, empty_shape):
         return np.concatenate(parts) if parts else np.zeros(empty_shape)

@@ -1,9 +1,14 @@
 """Matching plane patches across scans into global planes (host side, numpy).
 
 Matching turns every patch into object space with the scan poses, ``n = R^T n_s``,
-``d = d_s + n . S`` (from ``x = R (X - S)``), and joins patches (union-find) whose normals agree
-within ``max_angle``, whose centroids lie within ``max_offset`` of each other's plane and whose
-points come within ``overlap_distance`` of each other. Each joined set is one global plane.
+``d = d_s + n . S`` (from ``x = R (X - S)``). Two patches are candidates when their normals agree
+within ``max_angle``, their centroids lie within ``max_offset`` of each other's plane, and their
+points come within ``overlap_distance`` of each other (patches of one scan that are coplanar need
+no overlap: an occluded floor is one plane). Candidates are joined greedily, closest in angle
+first, and a join is made only if *every* patch of the joined set is within the limits of every
+other patch and of the set's least-squares plane (complete linkage): a chain of matches, each
+within 3 deg of its neighbour, cannot gather patches 5 deg apart. Each joined set is one global
+plane.
 """
 
 from __future__ import annotations
@@ -22,11 +27,15 @@ class MatchingConfig:
     """Thresholds for joining patches into global planes: ``max_angle`` [rad] between normals,
     ``max_offset`` [m] of a centroid from the other plane, ``overlap_distance`` h [m] between
     the nearest points of two patches, tested on a voxel grid of size h (patches closer than h
-    are always joined, patches farther apart than 2 sqrt(3) h never; ``None`` skips the test)."""
+    pass, patches farther apart than 2 sqrt(3) h never; ``None`` skips the test).
+    ``merge_coplanar_in_scan``: patches of one scan within the angle and offset limits need no
+    overlap (an occluded floor is one plane). The limits hold between every two patches of a
+    plane and between each patch and the plane's fit, not only between neighbours."""
 
     max_angle: float = 3.0 * DEG
     max_offset: float = 0.05
     overlap_distance: float | None = 0.5
+    merge_coplanar_in_scan: bool = True
 
     def __post_init__(self):
         if not (0 < self.max_angle < np.pi / 2):
@@ -41,20 +50,85 @@ class MatchingConfig:
             )
 
 
-def _union_find(n, edges):
-    parent = np.arange(n)
+class _Moments:
+    """Point counts, sums and second moments per patch, so that the least-squares plane of any
+    union of patches costs one 3 x 3 eigenproblem."""
 
-    def find(a):
-        while parent[a] != a:
-            parent[a] = parent[parent[a]]
-            a = parent[a]
-        return a
+    def __init__(self, X, patch, P):
+        self.origin = X.mean(axis=0) if len(X) else np.zeros(3)  # no cancellation in map frames
+        Y = X - self.origin
+        self.n = np.bincount(patch, minlength=P).astype(np.float64)
+        self.s = np.zeros((P, 3))
+        np.add.at(self.s, patch, Y)
+        self.ss = np.zeros((P, 3, 3))
+        np.add.at(self.ss, patch, Y[:, :, None] * Y[:, None, :])
 
+    def plane(self, members):
+        n = self.n[members].sum()
+        c = self.s[members].sum(axis=0) / n
+        cov = self.ss[members].sum(axis=0) / n - np.outer(c, c)
+        _, V = np.linalg.eigh(cov)
+        return V[:, 0], float(V[:, 0] @ (c + self.origin))
+
+
+def _compatible(members, N, D, C, moments, config) -> bool:
+    """Every pair of patches within the angle and offset limits, and every patch within them
+    of the joined set's least-squares plane."""
+    m = np.asarray(members)
+    cos_min = np.cos(config.max_angle)
+    if (np.abs(N[m] @ N[m].T) < cos_min - 1e-12).any():
+        return False
+    off = np.abs(C[m] @ N[m].T - D[m][None, :])
+    if (np.maximum(off, off.T) > config.max_offset).any():
+        return False
+    n, d = moments.plane(m)
+    return bool(
+        (np.abs(N[m] @ n) >= cos_min - 1e-12).all()
+        and (np.abs(C[m] @ n - d) <= config.max_offset).all()
+    )
+
+
+def _join(P, edges, N, D, C, moments, config):
+    """Greedy complete-linkage joining of candidate pairs (closest in angle first)."""
+    group = np.arange(P)
+    members = {p: [p] for p in range(P)}
     for a, b in edges:
-        ra, rb = find(a), find(b)
-        if ra != rb:
-            parent[max(ra, rb)] = min(ra, rb)
-    return np.array([find(a) for a in range(n)])
+        ga, gb = group[a], group[b]
+        if ga == gb:
+            continue
+        joined = members[ga] + members[gb]
+        if not _compatible(joined, N, D, C, moments, config):
+            continue
+        members[ga] = joined
+        for p in members.pop(gb):
+            group[p] = ga
+    return group
+
+
+def _overlapping(X, point_patch, P, iu, ju, h):
+    """Pairs whose points come within h of each other, tested on a voxel grid of size h: nearest
+    points closer than h always fall in neighbouring voxels, and neighbouring voxels are never
+    more than 2 sqrt(3) h apart."""
+    cell = np.floor(X / h).astype(np.int64)
+    cell -= cell.min(axis=0) - 1 if len(cell) else 0
+    span = cell.max(axis=0) + 2 if len(cell) else np.ones(3, dtype=np.int64)
+    key = (cell[:, 0] * span[1] + cell[:, 1]) * span[2] + cell[:, 2]
+    offsets = np.array(
+        [
+            (a * span[1] + b) * span[2] + c
+            for a in (-1, 0, 1)
+            for b in (-1, 0, 1)
+            for c in (-1, 0, 1)
+        ]
+    )
+    keys = [np.unique(key[point_patch == p]) for p in range(P)]
+    return np.array(
+        [
+            np.isin(keys[b], (keys[a][:, None] + offsets[None, :]).ravel()).any()
+            for a, b in zip(iu, ju)
+        ],
+        dtype=bool,
+    )
 
 
 def match_planes(
@@ -96,32 +170,16 @@ def match_planes(
     off_ij = np.abs(C @ N.T - D[None, :])  # centroid i from plane j
     close = angle_ok & (np.maximum(off_ij, off_ij.T) <= config.max_offset)
     iu, ju = np.nonzero(np.triu(close, 1))
-    if config.overlap_distance is None:
-        edges = list(zip(iu, ju))
-    else:
-        # Overlap on a voxel grid of size h: nearest points closer than h always fall in
-        # neighbouring voxels, and neighbouring voxels are never more than 2 sqrt(3) h apart.
-        h = config.overlap_distance
-        cell = np.floor(X / h).astype(np.int64)
-        cell -= cell.min(axis=0) - 1 if len(cell) else 0
-        span = cell.max(axis=0) + 2 if len(cell) else np.ones(3, dtype=np.int64)
-        key = (cell[:, 0] * span[1] + cell[:, 1]) * span[2] + cell[:, 2]
-        offsets = np.array(
-            [
-                (a * span[1] + b) * span[2] + c
-                for a in (-1, 0, 1)
-                for b in (-1, 0, 1)
-                for c in (-1, 0, 1)
-            ]
-        )
-        keys = [np.unique(key[planes.point_patch == p]) for p in range(P)]
-        edges = [
-            (a, b)
-            for a, b in zip(iu, ju)
-            if np.isin(keys[b], (keys[a][:, None] + offsets[None, :]).ravel()).any()
-        ]
-    roots = _union_find(P, edges)
-    uniq, group = np.unique(roots, return_inverse=True)
+    keep = np.ones(len(iu), dtype=bool)
+    if config.overlap_distance is not None:
+        keep = _overlapping(X, planes.point_patch, P, iu, ju, config.overlap_distance)
+        if config.merge_coplanar_in_scan:
+            keep |= planes.patch_scan[iu] == planes.patch_scan[ju]
+    iu, ju = iu[keep], ju[keep]
+    order = np.lexsort((off_ij[iu, ju] + off_ij[ju, iu], -np.abs(cos[iu, ju])))
+    moments = _Moments(X, planes.point_patch, P)
+    group = _join(P, zip(iu[order], ju[order]), N, D, C, moments, config)
+    uniq, group = np.unique(group, return_inverse=True)
     counts = np.bincount(group[planes.point_patch], minlength=len(uniq))
     order = np.argsort(-counts, kind="stable")
     rank = np.empty_like(order)
@@ -138,3 +196,37 @@ def match_planes(
             n, d = -n, -d
         params[g] = (*n, d)
     return dataclasses.replace(planes, patch_plane=patch_plane, poses=poses, planes=params)
+
+
+def plane_summary(planes: ExtractedPlanes) -> list[dict]:
+    """Per global plane of matched ``planes``: the scans, patches and points that support it,
+    the RMS [m] of the kept points' orthogonal distances from it (object space) and the largest
+    angle [rad] between one of its patches and the plane."""
+    if planes.planes is None or planes.poses is None:
+        raise ValueError("planes are not matched across scans yet: call match_planes first")
+    R = np.stack([rotation_matrix(*p[3:], xp=np) for p in planes.poses])
+    x = cartesian_from_spherical(planes.observations, xp=np)
+    s_pt = planes.point_scan
+    X = np.einsum("mji,mj->mi", R[s_pt], x) + planes.poses[s_pt, :3]
+    N = np.einsum("pji,pj->pi", R[planes.patch_scan], planes.patch_normal)
+    out = []
+    pp = planes.point_plane
+    for g, (nx, ny, nz, d) in enumerate(planes.planes):
+        n = np.array([nx, ny, nz])
+        members = np.flatnonzero(planes.patch_plane == g)
+        r = X[pp == g] @ n - d
+        cosang = np.clip(np.abs(N[members] @ n), 0.0, 1.0)
+        out.append(
+            {
+                "plane": f"P{g + 1}",
+                "normal": n.tolist(),
+                "d": float(d),
+                "n_scans": int(len(np.unique(planes.patch_scan[members]))),
+                "n_patches": int(len(members)),
+                "n_points": int(len(r)),
+                "n_inliers": int(planes.patch_inliers[members].sum()),
+                "rms": float(np.sqrt(np.mean(r**2))) if len(r) else float("nan"),
+                "max_patch_angle": float(np.arccos(cosang.min())) if len(members) else 0.0,
+            }
+        )
+    return out

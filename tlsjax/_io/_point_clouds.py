@@ -5,18 +5,32 @@ observations of the chosen architecture: range ``rho = |x|``, ``theta = atan2(y,
 [0, 2pi), ``alpha = atan2(z, hypot(x, y))``; a panoramic scanner sees the directions with
 hybrid ``theta >= pi`` in its second face, ``(theta - pi, pi - alpha)``.
 
-Formats:
+Formats (by extension):
 
-- PLY, PCD (open3d) and XYZ (plain text, read here so that errors name the line): coordinates
-  in scanner space, no pose.
+- XYZ/TXT (plain text, read here so that errors name the line), PLY (``plyfile``) and PCD (read
+  here: ascii and binary; open3d for ``binary_compressed``): coordinates in scanner space; the
+  pose, if any, comes from a poses file (used to match planes across scans).
 - PTX (Leica plain text; a file may hold several scans one after another). Each scan starts with
   a 10-line header: columns, rows, the scanner's registered position (3 numbers), its registered
   x, y, z axes (3 lines of 3), and a 4 x 4 transform written row-wise with the translation in its
   last row, so that ``[X Y Z 1] = [x y z 1] M``. Then columns x rows lines ``x y z [intensity
-  [r g b]]`` in the scanner's own frame; "0 0 0" marks a direction without return and is skipped.
+  [r g b]]`` in the scanner's own frame; "0 0 0" marks a direction without return.
   Hence ``R = M[:3, :3]`` and ``S = M[3, :3]`` in tlsjax's ``x = R (X - S)``.
-- E57 through ``pye57`` (optional; ``pip install pye57``): each scan's points are read untransformed
-  with the scan's pose ``X = Q x + t`` (quaternion Q), so ``R = Q^T``, ``S = t``.
+- E57 (``pye57``): each scan's points are read untransformed, in chunks, with the scan's pose
+  ``X = Q x + t`` (quaternion Q), so ``R = Q^T``, ``S = t``; points flagged invalid by
+  ``cartesianInvalidState``/``sphericalInvalidState`` are dropped and counted.
+- LAS/LAZ (``laspy``, LAZ through its ``lazrs`` backend): a LAS file holds *object-space*
+  (registered, often map) coordinates. With the scan's pose, from a poses file or from the
+  ``tlsjax`` pose record that :func:`~tlsjax._io._las.write_las` stores in the header, the points
+  are taken to scanner space by ``x = R (X - S)``; without a pose they are taken as scanner space.
+
+A pose given in a poses file (``poses`` argument) replaces the one stored in the file.
+
+Readers never guess silently: a failure is one ``ValueError`` line naming the file and the cause;
+points dropped (non-finite, flagged invalid, exactly at the origin, i.e. "no return") are counted
+in :attr:`PointCloudScan.notes`, and so are coordinates that look like a map frame (median range
+beyond :data:`MAP_SCALE_RANGE`) without a pose; each note is also issued as a
+:class:`PointCloudWarning`.
 """
 
 from __future__ import annotations
@@ -32,12 +46,26 @@ import numpy as np
 from .._model._geometry import TWO_PI, angles_from_matrix, rotation_matrix, spherical_from_cartesian
 from .._model._scanner import ARCHITECTURES
 
+#: A median range beyond this [m] is not a terrestrial laser scan in its own frame: the
+#: coordinates are in a map or project frame and the scan's pose is missing or wrong.
+MAP_SCALE_RANGE = 5000.0
+
+
+class PointCloudWarning(UserWarning):
+    """Suspicious content of a point-cloud file (dropped points, map-scale coordinates)."""
+
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class PointCloudScan:
     """One scan read from a file: scanner-space ``points`` (n, 3) [m], their ``observations``
     (n, 3) = (rho [m], theta [rad], alpha [rad]) in ``architecture``, and the ``pose`` (6,) =
-    (Xs, Ys, Zs, omega, phi, kappa) stored in the file, or None."""
+    (Xs, Ys, Zs, omega, phi, kappa) stored in the file or given, or None.
+
+    ``index`` (n,): row of each kept point in the scan as stored in the file; ``n_stored``:
+    points stored for the scan; ``notes``: what was dropped or looks suspicious, with counts;
+    ``frame``: "scanner" when the file holds scanner-space coordinates, "object" when they were
+    taken to scanner space with ``pose`` (LAS/LAZ).
+    """
 
     name: str
     source: str
@@ -45,6 +73,24 @@ class PointCloudScan:
     observations: np.ndarray
     pose: np.ndarray | None
     architecture: str
+    index: np.ndarray | None = None
+    n_stored: int = 0
+    notes: tuple = ()
+    frame: str = "scanner"
+
+
+@dataclasses.dataclass
+class RawScan:
+    """What a format reader hands on: coordinates in the file's frame, as stored (n, 3), the
+    pose stored in the file (or None), whether the coordinates are object space, and notes."""
+
+    name: str
+    points: np.ndarray
+    pose: np.ndarray | None = None
+    object_frame: bool = False
+    notes: list = dataclasses.field(default_factory=list)
+    index: np.ndarray | None = None  # row of each point in the file's scan (None: 0..n-1)
+    n_stored: int | None = None
 
 
 def observations_from_points(points, architecture: str = "hybrid") -> np.ndarray:
@@ -73,15 +119,72 @@ def _pose_from_transform(R_obj_from_scanner, translation) -> np.ndarray:
     )
 
 
-def _scan(name, source, points, pose, architecture):
-    if len(points) == 0:
-        raise ValueError(f"{source}: scan {name} has no points")
-    if not np.all(np.isfinite(points)):
-        raise ValueError(f"{source}: scan {name} has non-finite coordinates")
-    if np.any(np.all(points == 0.0, axis=1)):
-        raise ValueError(f"{source}: scan {name} has points at the scanner origin (range 0)")
+def to_scanner(X, pose) -> np.ndarray:
+    """Scanner-space points ``x = R (X - S)`` of object-space points X (n, 3)."""
+    R = rotation_matrix(*np.asarray(pose, dtype=np.float64)[3:], xp=np)
+    return (np.asarray(X, dtype=np.float64) - pose[:3]) @ R.T
+
+
+def to_object(x, pose) -> np.ndarray:
+    """Object-space points ``X = R^T x + S`` of scanner-space points x (n, 3)."""
+    R = rotation_matrix(*np.asarray(pose, dtype=np.float64)[3:], xp=np)
+    return np.asarray(x, dtype=np.float64) @ R + pose[:3]
+
+
+def _finish(raw: RawScan, source: str, architecture: str, pose_given) -> PointCloudScan:
+    """Drop and count invalid points, take object-space files to scanner space, check scale."""
+    pts = np.asarray(raw.points, dtype=np.float64).reshape(-1, 3)
+    n_stored = raw.n_stored if raw.n_stored is not None else len(pts)
+    index = raw.index if raw.index is not None else np.arange(len(pts), dtype=np.int64)
+    notes = list(raw.notes)
+    where = f"{source}: scan {raw.name}"
+    finite = np.all(np.isfinite(pts), axis=1)
+    if not finite.all():
+        notes.append(
+            f"{where}: dropped {int((~finite).sum())} point(s) with non-finite coordinates"
+        )
+    zero = finite & np.all(pts == 0.0, axis=1)
+    if zero.any():
+        notes.append(
+            f"{where}: dropped {int(zero.sum())} point(s) at exactly (0, 0, 0) (no return)"
+        )
+    keep = finite & ~zero
+    pts, index = pts[keep], index[keep]
+    if len(pts) == 0:
+        why = "; ".join(n.split(": ", 2)[-1] for n in notes)
+        raise ValueError(
+            f"{where} has no valid points ({n_stored} stored{': ' if why else ''}{why})"
+        )
+    pose = raw.pose if pose_given is None else np.asarray(pose_given, dtype=np.float64)
+    if pose is not None and (pose.shape != (6,) or not np.all(np.isfinite(pose))):
+        raise ValueError(f"{where}: the pose must be 6 finite numbers, got {pose}")
+    frame = "scanner"
+    if raw.object_frame and pose is not None:
+        pts, frame = to_scanner(pts, pose), "object"
+    median = float(np.median(np.linalg.norm(pts, axis=1)))
+    if median > MAP_SCALE_RANGE:
+        why = (
+            "the pose does not bring them near the scanner"
+            if frame == "object"
+            else "taken as scanner space without a pose; give the scan's pose (--poses)"
+        )
+        notes.append(
+            f"{where}: {len(pts)} point(s) have a median range of {median:.4g} m, like map "
+            f"coordinates: {why}"
+        )
+    for note in notes:
+        warnings.warn(note, PointCloudWarning, stacklevel=3)
     return PointCloudScan(
-        name, source, points, observations_from_points(points, architecture), pose, architecture
+        raw.name,
+        source,
+        pts,
+        observations_from_points(pts, architecture),
+        pose,
+        architecture,
+        index=index,
+        n_stored=int(n_stored),
+        notes=tuple(notes),
+        frame=frame,
     )
 
 
@@ -126,34 +229,24 @@ def _numeric_block(lines, first_line: int, source: str, skip_comments: bool = Fa
     raise ValueError(f"{source}: could not read the coordinates")  # pragma: no cover
 
 
-def _read_xyz(path, source):
-    with open(path, encoding="utf-8") as fh:
-        lines = fh.read().splitlines()
+def _read_text(path, source):
+    try:
+        with open(path, encoding="utf-8") as fh:
+            return fh.read().splitlines()
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{source}: not a text file ({err.reason} at byte {err.start})") from None
+
+
+def _read_xyz(path, source, stem):
+    lines = _read_text(path, source)
     pts = _numeric_block(lines, 1, source, skip_comments=True) if lines else np.zeros((0, 3))
     if len(pts) == 0:
         raise ValueError(f"{source}: no points")
-    return pts
+    return [RawScan(stem, pts)]
 
 
-def _read_open3d(path, source):
-    try:
-        import open3d as o3d
-    except ImportError as err:
-        raise ImportError(
-            f"{source}: reading PLY/PCD needs open3d: pip install 'tlsjax[open3d]' ({err})"
-        ) from err
-    cloud = o3d.io.read_point_cloud(source)
-    pts = np.asarray(cloud.points, dtype=np.float64)
-    if len(pts) == 0:
-        raise ValueError(
-            f"{source}: open3d read no points (not a valid point-cloud file, or empty)"
-        )
-    return pts
-
-
-def _read_ptx(path, source, architecture, stem):
-    with open(path, encoding="utf-8") as fh:
-        lines = fh.read().splitlines()
+def _read_ptx(path, source, stem):
+    lines = _read_text(path, source)
     scans = []
     i = 0
     while True:
@@ -205,101 +298,94 @@ def _read_ptx(path, source, architecture, stem):
                 f"({cols} x {rows}), the file has {len(lines) - first}"
             )
         pts = _numeric_block(lines[first : first + n], first + 1, source)
-        pts = pts[~np.all(pts == 0.0, axis=1)]
         scans.append((pts, _pose_from_transform(A, M[3, :3])))
         i = first + n
     if not scans:
         raise ValueError(f"{source}: no PTX scan in the file")
     many = len(scans) > 1
-    return tuple(
-        _scan(f"{stem}_{k + 1}" if many else stem, source, p, pose, architecture)
-        for k, (p, pose) in enumerate(scans)
-    )
-
-
-def _read_e57(path, source, architecture, stem):
-    try:
-        import pye57
-    except ImportError as err:
-        raise ImportError(
-            f"{source}: reading E57 needs the pye57 package: pip install pye57 ({err})"
-        ) from err
-    try:
-        e57 = pye57.E57(source)
-    except Exception as err:  # libE57 raises its own exception type
-        raise ValueError(f"{source}: not a readable E57 file ({err})") from None
-    out = []
-    try:
-        n = e57.scan_count
-        for k in range(n):
-            header = e57.get_header(k)
-            data = e57.read_scan(k, transform=False, ignore_missing_fields=True)
-            if "cartesianX" in data:
-                pts = np.stack([data["cartesianX"], data["cartesianY"], data["cartesianZ"]], axis=1)
-            elif "sphericalRange" in data:
-                r, az, el = (
-                    data["sphericalRange"],
-                    data["sphericalAzimuth"],
-                    data["sphericalElevation"],
-                )
-                pts = np.stack(
-                    [r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az), r * np.sin(el)],
-                    axis=1,
-                )
-            else:
-                raise ValueError(
-                    f"{source}: scan {k} has neither Cartesian nor spherical coordinates"
-                )
-            pts = np.asarray(pts, dtype=np.float64)
-            pts = pts[~np.all(pts == 0.0, axis=1)]
-            pose = (
-                _pose_from_transform(header.rotation_matrix, header.translation)
-                if header.has_pose()
-                else None
-            )
-            name = f"{stem}_{k + 1}" if n > 1 else stem
-            out.append(_scan(name, source, pts, pose, architecture))
-    finally:
-        e57.close()
-    if not out:
-        raise ValueError(f"{source}: no scans in the E57 file")
-    return tuple(out)
+    return [
+        RawScan(f"{stem}_{k + 1}" if many else stem, p, pose) for k, (p, pose) in enumerate(scans)
+    ]
 
 
 _FORMATS = {
-    ".ply": "open3d",
-    ".pcd": "open3d",
+    ".ply": "ply",
+    ".pcd": "pcd",
     ".xyz": "xyz",
     ".txt": "xyz",
     ".ptx": "ptx",
     ".e57": "e57",
+    ".las": "las",
+    ".laz": "las",
 }
 
 
-def read_point_clouds(path, *, architecture: str = "hybrid") -> tuple[PointCloudScan, ...]:
-    """Read the scans of a point-cloud file (PLY, PCD, XYZ, PTX, E57; by extension).
-
-    Returns one :class:`PointCloudScan` per scan (PTX and E57 files may hold several; they are
-    named ``<stem>_1``, ``<stem>_2``, ...; a single scan is named after the file's stem). Bad
-    input raises ``ValueError`` naming the file (and the line for the text formats).
-    """
-    if architecture not in ARCHITECTURES:
-        raise ValueError(f"scanner architecture {architecture!r} is not one of {ARCHITECTURES}")
+def point_cloud_format(path) -> str:
+    """The format of a point-cloud file by its extension, or a ValueError naming the file."""
     source = os.fspath(path)
-    if not os.path.isfile(source):
-        raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), source)
-    stem, ext = os.path.splitext(os.path.basename(source))
+    ext = os.path.splitext(source)[1]
     kind = _FORMATS.get(ext.lower())
     if kind is None:
         raise ValueError(
             f"{source}: unknown point-cloud format {ext!r}; accepted: {', '.join(sorted(_FORMATS))}"
         )
+    return kind
+
+
+def _raw_scans(path, source, kind, stem):
+    if kind == "xyz":
+        return _read_xyz(path, source, stem)
     if kind == "ptx":
-        return _read_ptx(path, source, architecture, stem)
+        return _read_ptx(path, source, stem)
     if kind == "e57":
-        return _read_e57(path, source, architecture, stem)
-    pts = _read_xyz(path, source) if kind == "xyz" else _read_open3d(path, source)
-    return (_scan(stem, source, pts, None, architecture),)
+        from ._e57 import read_e57
+
+        return read_e57(source, stem)
+    if kind == "las":
+        from ._las import read_las
+
+        return read_las(source, stem)
+    if kind == "pcd":
+        from ._pcd import read_pcd
+
+        return read_pcd(source, stem)
+    from ._ply import read_ply
+
+    return read_ply(source, stem)
+
+
+def read_point_clouds(
+    path, *, architecture: str = "hybrid", poses=None
+) -> tuple[PointCloudScan, ...]:
+    """Read the scans of a point-cloud file (XYZ, PTX, PLY, PCD, E57, LAS, LAZ; by extension).
+
+    Returns one :class:`PointCloudScan` per scan (PTX and E57 files may hold several; they are
+    named ``<stem>_1``, ``<stem>_2``, ...; a single scan is named after the file's stem).
+    ``poses``: optional mapping scan name -> (Xs, Ys, Zs, omega, phi, kappa) (e.g. from
+    :func:`~tlsjax._io._plane_files.read_poses`) that replaces a pose stored in the file. Bad input
+    raises one-line ``ValueError`` naming the file (and the line for the text formats); dropped or
+    suspicious points are counted in each scan's ``notes`` and issued as
+    :class:`PointCloudWarning`.
+    """
+    if architecture not in ARCHITECTURES:
+        raise ValueError(f"scanner architecture {architecture!r} is not one of {ARCHITECTURES}")
+    source = os.fspath(path)
+    kind = point_cloud_format(source)
+    if os.path.isdir(source):
+        raise ValueError(f"{source}: is a folder, not a point-cloud file")
+    if not os.path.isfile(source):
+        raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), source)
+    if os.path.getsize(source) == 0:
+        raise ValueError(f"{source}: the file is empty")
+    stem = os.path.splitext(os.path.basename(source))[0]
+    poses = poses or {}
+    try:
+        raws = _raw_scans(path, source, kind, stem)
+    except (FileNotFoundError, ImportError, ValueError):
+        raise
+    except OSError as err:  # permissions, a device error: one line, never a traceback
+        raise ValueError(f"{source}: cannot read the file ({err.strerror or err})") from None
+    return tuple(_finish(raw, source, architecture, poses.get(raw.name)) for raw in raws)
 
 
 def write_xyz(path, points) -> None:

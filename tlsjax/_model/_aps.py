@@ -335,6 +335,59 @@ _BUILTIN = [
 for _name, _group, _basis, _unit, _desc in _BUILTIN:
     _store(APTerm(_name, _group, _basis, _unit, _desc, next(_TOKENS)))
 
+
+# NIST geometric error model of panoramic scanners with a spinning mirror (Muralikrishnan,
+# Ferrucci, Sawyer et al. 2015, "Volumetric performance evaluation of a laser scanner based on
+# geometric error model", Precision Engineering 40; Muralikrishnan, Wang, Rachakonda & Sawyer
+# 2017, "Terrestrial laser scanner geometric error model parameter correlations in the Two-face,
+# Length-consistency, and Network methods of self-calibration", Precision Engineering 52). With
+# H the horizontal angle, V the zenith angle and R the range, measured = true + error:
+#
+#   R_m = R + x2 sin V + x10
+#   H_m = H + x1z / (R tan V) + x3 / (R sin V) + x5z / tan V + 2 x6 / sin V + x7 / tan V
+#           + x8x sin H - x8y cos H + x11a cos 2H - x11b sin 2H
+#   V_m = V + x1n cos V / R + x2 cos V / R + x4 + x5n cos V + x9n cos V - x9z sin V
+#           + x12a cos 2V - x12b sin 2V
+#
+# x1n, x1z beam offset; x2 transit offset; x3 mirror offset; x4 vertical index offset; x5n, x5z
+# beam tilt; x6 mirror tilt; x7 transit tilt; x8x, x8y horizontal encoder eccentricity; x9n, x9z
+# vertical encoder eccentricity; x10 range (zero) offset; x11a, x11b and x12a, x12b second-order
+# scale errors of the horizontal and vertical encoders. In tlsjax's terms H = theta and
+# V = pi/2 - alpha (both faces: a face-2 elevation in (pi/2, 3pi/2) is a zenith angle in
+# (-pi, 0)), so sin V = cos alpha, cos V = sin alpha, 1/tan V = tan alpha, cos 2V = -cos 2alpha,
+# sin 2V = sin 2alpha, and Delta alpha = -Delta V. Each term is one coefficient times one basis
+# in one group, so x2's elevation part (x2 cos V / R) is carried by x1n, whose basis it shares
+# (the estimated x1n is x1n + x2); x7 has x5z's basis and x9n has x5n's, so each pair is one
+# estimable quantity: the "nist" preset leaves x7 and x9n out (they are registered for users
+# who fix the other of the pair). x6 takes the reduced form 2 (sec alpha - 1) for hybrid
+# scanners, as B6 does (the constant part is a rotation about the vertical axis, kappa).
+def _mirror_tilt(rho, theta, alpha, scanner):
+    return 2.0 * _collimation(rho, theta, alpha, scanner)
+
+
+_NIST = [
+    ("x1n", "el", lambda r, t, a, s: -jnp.sin(a) / r, "m", "NIST beam offset (normal; with x2's el part)"),
+    ("x1z", "hz", lambda r, t, a, s: jnp.tan(a) / r, "m", "NIST beam offset (vertical)"),
+    ("x2", "range", lambda r, t, a, s: jnp.cos(a), "m", "NIST transit offset"),
+    ("x3", "hz", lambda r, t, a, s: _sec(a) / r, "m", "NIST mirror offset"),
+    ("x4", "el", lambda r, t, a, s: -jnp.ones_like(a), "rad", "NIST vertical index offset"),
+    ("x5n", "el", lambda r, t, a, s: -jnp.sin(a), "rad", "NIST beam tilt (normal)"),
+    ("x5z", "hz", lambda r, t, a, s: jnp.tan(a), "rad", "NIST beam tilt (vertical)"),
+    ("x6", "hz", _mirror_tilt, "rad", "NIST mirror tilt"),
+    ("x7", "hz", lambda r, t, a, s: jnp.tan(a), "rad", "NIST transit tilt (basis of x5z)"),
+    ("x8x", "hz", lambda r, t, a, s: jnp.sin(t), "rad", "NIST horizontal encoder eccentricity (x)"),
+    ("x8y", "hz", lambda r, t, a, s: -jnp.cos(t), "rad", "NIST horizontal encoder eccentricity (y)"),
+    ("x9n", "el", lambda r, t, a, s: -jnp.sin(a), "rad", "NIST vertical encoder eccentricity (n; basis of x5n)"),
+    ("x9z", "el", lambda r, t, a, s: jnp.cos(a), "rad", "NIST vertical encoder eccentricity (z)"),
+    ("x10", "range", lambda r, t, a, s: jnp.ones_like(r), "m", "NIST range (zero) offset"),
+    ("x11a", "hz", lambda r, t, a, s: jnp.cos(2 * t), "rad", "NIST horizontal encoder 2nd-order scale (cos)"),
+    ("x11b", "hz", lambda r, t, a, s: -jnp.sin(2 * t), "rad", "NIST horizontal encoder 2nd-order scale (sin)"),
+    ("x12a", "el", lambda r, t, a, s: jnp.cos(2 * a), "rad", "NIST vertical encoder 2nd-order scale (cos)"),
+    ("x12b", "el", lambda r, t, a, s: jnp.sin(2 * a), "rad", "NIST vertical encoder 2nd-order scale (sin)"),
+]  # fmt: skip
+for _name, _group, _basis, _unit, _desc in _NIST:
+    _store(APTerm(_name, _group, _basis, _unit, _desc, next(_TOKENS)))
+
 #: Named AP sets. "chow2013" is the full 24-term model of Chow et al. 2013 eqs. (4)-(6).
 PRESETS: dict[str, tuple[str, ...]] = {
     "none": (),
@@ -363,6 +416,8 @@ PRESETS: dict[str, tuple[str, ...]] = {
         "C9",
         "C10",
     ),
+    # NIST model (Muralikrishnan et al. 2015, 2017), one term per estimable quantity (see above).
+    "nist": tuple(n for n, *_ in _NIST if n not in ("x7", "x9n")),
 }
 
 

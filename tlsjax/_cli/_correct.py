@@ -1,0 +1,89 @@
+"""``tlsjax correct CAL.json SCANS... --out DIR``: apply a calibration to point-cloud files."""
+
+from __future__ import annotations
+
+import os
+import sys
+
+from ._common import EXIT_OK
+
+
+def add_correct_parser(sub):
+    p = sub.add_parser(
+        "correct",
+        help="apply a calibration (result JSON) to point clouds",
+        description="Correct every point of each scan by l - Delta(l) with the calibration's APs "
+        "(SPEC section 11) and write the corrected file, same format and attributes, into --out.",
+    )
+    p.add_argument("calibration", help="result JSON of `tlsjax calibrate` (SPEC section 11)")
+    p.add_argument("scans", nargs="+", help="point-cloud files (E57, PTX, PLY, LAS/LAZ, XYZ)")
+    p.add_argument("--out", required=True, help="folder for the corrected files (same names)")
+    p.add_argument(
+        "--poses",
+        help="scan poses CSV for LAS/LAZ files without a stored pose (their coordinates are "
+        "object space; the correction is applied in scanner space)",
+    )
+    p.add_argument(
+        "--architecture",
+        choices=("hybrid", "panoramic"),
+        help="scanner architecture (default: the one stored in the calibration JSON)",
+    )
+    p.add_argument(
+        "--instrument", help="instrument whose AP block to apply (multi-instrument JSON)"
+    )
+    p.add_argument(
+        "--precision",
+        action="store_true",
+        help="also propagate each point's sigma from the AP covariance (LAS: extra dimension "
+        "calibration_sigma; PLY: vertex property; PTX/XYZ/E57: <file>.sigma_mm.txt)",
+    )
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.set_defaults(func=cli_correct)
+    return p
+
+
+def cli_correct(args) -> int:
+    from .._io._correct import Calibration
+    from .._io._correct_files import correct_point_cloud
+    from .._io._plane_files import read_poses
+    from .._io._point_clouds import point_cloud_format
+
+    cal = Calibration.from_json(
+        args.calibration, architecture=args.architecture, instrument=args.instrument
+    )
+    for path in args.scans:  # refuse unknown formats and missing files before writing anything
+        point_cloud_format(path)
+        if not os.path.isfile(path):
+            raise FileNotFoundError(2, "No such file or directory", path)
+    poses = read_poses(args.poses) if args.poses else None
+    names = [os.path.basename(p) for p in args.scans]
+    if len(set(names)) != len(names):
+        raise ValueError(f"scan files with the same name would overwrite each other in {args.out}")
+    try:
+        os.makedirs(args.out, exist_ok=True)
+    except OSError as err:
+        raise ValueError(f"{args.out}: cannot create the output folder ({err.strerror})") from None
+    aps = ", ".join(f"{n}" for n in cal.scanner.aps) or "none"
+    print(f"{args.calibration}: {cal.scanner.architecture} scanner, APs {aps}")
+    for note in cal.notes:
+        print(f"warning: {note}", file=sys.stderr)
+    for path in args.scans:
+        out = os.path.join(args.out, os.path.basename(path))
+        try:
+            scans = correct_point_cloud(
+                path,
+                cal,
+                out,
+                poses=poses,
+                precision=args.precision,
+                progress=not args.no_progress and sys.stderr.isatty(),
+            )
+        except (FileNotFoundError, ValueError, ImportError):
+            raise
+        except OSError as err:  # an unwritable folder, a full disk: one line
+            raise ValueError(f"{out}: cannot write ({err.strerror or err})") from None
+        for scan in scans:
+            print(scan.line())
+            for note in scan.notes:
+                print(f"warning: {note}", file=sys.stderr)
+    return EXIT_OK

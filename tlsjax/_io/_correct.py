@@ -1,0 +1,247 @@
+"""Applying a calibration to point clouds (SPEC section 11, "Applying a calibration").
+
+Each point's scanner-space observation ``l = (rho, theta, alpha)``, in the scanner's
+architecture (a panoramic scanner's second face as ``(theta - pi, pi - alpha)``, SPEC section 1),
+is replaced by
+
+    l' = l - Delta(l; AP),
+
+with ``Delta`` evaluated at the observed ``l`` exactly as in the adjustment (SPEC section 2,
+Chow et al. 2013 eqs. 4-6), and converted back to Cartesian coordinates in the file's frame
+(object-space files, e.g. registered LAS, go through the scan pose: ``x = R (X - S)``, then
+``X' = R^T x' + S``). Optionally each point gets the standard deviation of its corrected position
+propagated from the AP covariance, ``sigma = sqrt(trace(J C_AP J^T))`` with ``J = dX'/dAP`` by
+autodiff: the calibration's share of the point's uncertainty.
+
+Points a reader drops (non-finite, exactly at the origin, flagged invalid) are written back
+unchanged, so a corrected file has the input's points, order and attributes. The correction runs
+in chunks of one compiled size (:data:`CHUNK`), so memory does not grow with the scan; LAS/LAZ,
+PTX and XYZ files are also read and written chunk by chunk (a 50-million-point scan never sits
+in memory), PLY files are memory-mapped, and an E57 scan is read whole by pye57 (its writer
+takes whole scans; coordinates are written in single precision, about 1e-6 of the range).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._model._aps import ap_corrections, get_ap
+from .._model._geometry import TWO_PI, cartesian_from_spherical, rotation_matrix
+from .._model._scanner import ARCHITECTURES, Scanner
+from ._point_clouds import MAP_SCALE_RANGE
+
+#: Points per compiled correction step.
+CHUNK = 1 << 16
+
+
+@dataclasses.dataclass(frozen=True)
+class Calibration:
+    """An AP set to apply: the ``scanner`` (architecture, unit lengths, AP names), the AP
+    ``values`` [SI] in the order of ``scanner.aps`` and their ``covariance`` [SI^2] (or None).
+    ``notes``: what was assumed when it was read (e.g. a non-estimable AP taken as zero)."""
+
+    scanner: Scanner
+    values: np.ndarray
+    covariance: np.ndarray | None = None
+    source: str = "<arrays>"
+    notes: tuple = ()
+
+    def __post_init__(self):
+        v = np.asarray(self.values, dtype=np.float64).reshape(-1)
+        if v.shape != (len(self.scanner.aps),) or not np.all(np.isfinite(v)):
+            raise ValueError(
+                f"{self.source}: {len(self.scanner.aps)} APs need as many finite values, got {v}"
+            )
+        object.__setattr__(self, "values", v)
+        if self.covariance is not None:
+            C = np.asarray(self.covariance, dtype=np.float64)
+            if C.shape != (len(v), len(v)) or not np.all(np.isfinite(C)):
+                raise ValueError(
+                    f"{self.source}: the AP covariance must be finite {len(v)} x {len(v)}"
+                )
+            object.__setattr__(self, "covariance", 0.5 * (C + C.T))
+
+    @classmethod
+    def from_result(cls, result, scanner: Scanner) -> Calibration:
+        """From a :class:`~tlsjax.CalibrationResult` and the scanner it was calibrated with;
+        non-estimable APs (no value) are applied as zero."""
+        names = tuple(result.ap_names)
+        vals = np.nan_to_num(np.asarray(result.ap_values, dtype=np.float64), nan=0.0)
+        cov = getattr(result, "ap_covariance", None)
+        cov = None if cov is None else np.nan_to_num(np.asarray(cov, dtype=np.float64), nan=0.0)
+        return cls(dataclasses.replace(scanner, aps=names), vals, cov, "<CalibrationResult>")
+
+    @classmethod
+    def from_json(cls, path, *, architecture=None, instrument=None) -> Calibration:
+        """From a tlsjax result JSON (SPEC section 11). The architecture and unit lengths come
+        from the JSON's ``scanner`` section (written by ``tlsjax calibrate``) unless given."""
+        return _calibration_from_json(os.fspath(path), architecture, instrument)
+
+
+def _json_doc(source):
+    try:
+        with open(source, encoding="utf-8") as fh:
+            doc = json.load(fh)
+    except FileNotFoundError:
+        raise
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{source}: not a readable result JSON ({err})") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("aps"), dict):
+        raise ValueError(f"{source}: not a tlsjax result JSON (no 'aps' object)")
+    return doc
+
+
+def _scanner_from_doc(doc, source, architecture, names):
+    settings = doc.get("scanner") if isinstance(doc.get("scanner"), dict) else {}
+    arch = architecture or settings.get("architecture")
+    notes = []
+    if arch is None:
+        arch = "hybrid"
+        notes.append(
+            f"{source}: no scanner architecture stored; applying the APs as a hybrid scanner "
+            "(give --architecture)"
+        )
+    if arch not in ARCHITECTURES:
+        raise ValueError(f"{source}: scanner architecture {arch!r} is not one of {ARCHITECTURES}")
+    kw = {k: float(settings[k]) for k in ("unit_length", "unit_length_2") if k in settings}
+    return Scanner(architecture=arch, aps=names, **kw), notes
+
+
+def _calibration_from_json(source, architecture, instrument) -> Calibration:
+    doc = _json_doc(source)
+    aps = doc["aps"]
+    blocks = sorted({n.split("[", 1)[1].rstrip("]") for n in aps if "[" in n})
+    if blocks and instrument is None:
+        raise ValueError(
+            f"{source}: the calibration has AP blocks of several instruments "
+            f"({', '.join(blocks)}): choose one with --instrument"
+        )
+    if instrument is not None and instrument not in blocks:
+        raise ValueError(
+            f"{source}: no instrument {instrument!r} (instruments: {blocks or 'none'})"
+        )
+    keys = [n for n in aps if (instrument is None or n.endswith(f"[{instrument}]"))]
+    names = tuple(k.split("[", 1)[0] for k in keys)
+    for n in names:
+        try:
+            get_ap(n)
+        except ValueError as err:
+            raise ValueError(f"{source}: {err}") from None
+    scanner, notes = _scanner_from_doc(doc, source, architecture, names)
+    values = []
+    for k in keys:
+        entry = aps[k] if isinstance(aps[k], dict) else {}
+        v = entry.get("value")
+        if v is None:
+            notes.append(f"{source}: AP {k} is not estimable (no value): applied as zero")
+            v = 0.0
+        if not isinstance(v, (int, float)) or not np.isfinite(v):
+            raise ValueError(f"{source}: AP {k} has no numeric value ({v!r})")
+        values.append(float(v))
+    return Calibration(
+        scanner, np.array(values), _covariance(doc, keys, source), source, tuple(notes)
+    )
+
+
+def _covariance(doc, keys, source):
+    names = doc.get("ap_covariance_names")
+    rows = doc.get("ap_covariance")
+    if not names or rows is None:
+        sig = [(doc["aps"][k] or {}).get("sigma") for k in keys]
+        if any(s is None for s in sig):
+            return None
+        return np.diag(np.square(np.asarray(sig, dtype=np.float64)))
+    try:
+        idx = [list(names).index(k) for k in keys]
+        C = np.array([[np.nan if v is None else v for v in row] for row in rows], dtype=np.float64)
+        C = C[np.ix_(idx, idx)]
+    except (ValueError, IndexError, TypeError):
+        raise ValueError(f"{source}: ap_covariance does not match ap_covariance_names") from None
+    return np.nan_to_num(C, nan=0.0)  # a non-estimable AP: applied as zero, no variance
+
+
+def _observations(x, architecture):
+    """(rho, theta, alpha) of scanner-space points in jax, as the readers compute them."""
+    rho = jnp.sqrt(jnp.sum(x * x, axis=-1))
+    theta = jnp.mod(jnp.arctan2(x[..., 1], x[..., 0]), TWO_PI)
+    theta = jnp.where(theta >= TWO_PI, 0.0, theta)
+    alpha = jnp.arctan2(x[..., 2], jnp.hypot(x[..., 0], x[..., 1]))
+    if architecture == "panoramic":
+        face2 = theta >= np.pi
+        theta = jnp.where(face2, theta - np.pi, theta)
+        alpha = jnp.where(face2, np.pi - alpha, alpha)
+    return jnp.stack([rho, theta, alpha], axis=-1)
+
+
+@functools.partial(jax.jit, static_argnames=("scanner", "with_sigma"))
+def _correct_chunk(x, coeffs, cov, scanner: Scanner, with_sigma: bool):
+    """Corrected scanner-space points of one chunk and, if asked, their sigma [m]."""
+
+    def corrected(c, xi):
+        l = _observations(xi, scanner.architecture)
+        return cartesian_from_spherical(l - ap_corrections(c, scanner.aps, l, scanner))
+
+    out = jax.vmap(corrected, in_axes=(None, 0))(coeffs, x)
+    if not with_sigma:
+        return out, jnp.zeros(x.shape[0])
+    J = jax.vmap(jax.jacfwd(corrected), in_axes=(None, 0))(coeffs, x)  # (n, 3, k)
+    var = jnp.einsum("nik,kl,nil->n", J, cov, J)
+    return out, jnp.sqrt(jnp.maximum(var, 0.0))
+
+
+def correct_points(
+    points, calibration: Calibration, *, pose=None, precision: bool = False, on_chunk=None
+):
+    """Corrected points (n, 3) [m] in the frame of ``points`` (scanner space, or object space
+    when ``pose`` (6,) is given) and, with ``precision``, the sigma (n,) [m] of each corrected
+    position from the AP covariance (zeros otherwise). Points at the origin or non-finite are
+    returned unchanged with sigma 0. ``on_chunk(n)`` is called after each chunk (progress)."""
+    X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if precision and calibration.covariance is None:
+        raise ValueError(f"{calibration.source}: no AP covariance or sigmas to propagate")
+    valid = np.all(np.isfinite(X), axis=1) & ~np.all(X == 0.0, axis=1)
+    x = X[valid]
+    if pose is not None:
+        R = rotation_matrix(*np.asarray(pose, dtype=np.float64)[3:], xp=np)
+        x = (x - pose[:3]) @ R.T
+    if len(x) and np.median(np.linalg.norm(x, axis=1)) > MAP_SCALE_RANGE:
+        # The APs act on the scanner's own observations; map coordinates would give a
+        # plausible-looking but wrong correction.
+        raise ValueError(
+            f"points have a median range of {np.median(np.linalg.norm(x, axis=1)):.4g} m: map "
+            "coordinates, not a scan in its scanner's frame; give the scan's pose (--poses)"
+        )
+    names = calibration.scanner.aps
+    coeffs = jnp.asarray(calibration.values)
+    cov = jnp.asarray(
+        calibration.covariance
+        if calibration.covariance is not None
+        else np.zeros((len(names),) * 2)
+    )
+    out_x = np.empty_like(x)
+    sig = np.zeros(len(x))
+    # One compiled size for all chunks: CHUNK, or the next power of two for a small cloud.
+    size = min(CHUNK, max(256, 1 << int(np.ceil(np.log2(max(len(x), 1))))))
+    for i in range(0, len(x), size):
+        part = x[i : i + size]
+        pad = size - len(part)
+        block = np.concatenate([part, np.repeat(part[:1], pad, axis=0)]) if pad else part
+        c, s = _correct_chunk(jnp.asarray(block), coeffs, cov, calibration.scanner, precision)
+        out_x[i : i + len(part)] = np.asarray(c)[: len(part)]
+        sig[i : i + len(part)] = np.asarray(s)[: len(part)]
+        if on_chunk is not None:
+            on_chunk(len(part))
+    if pose is not None:
+        out_x = out_x @ R + pose[:3]
+    out = X.copy()
+    out[valid] = out_x
+    sigma = np.zeros(len(X))
+    sigma[valid] = sig
+    return out, sigma

@@ -1,0 +1,529 @@
+"""A calibration report a laboratory can file: one self-contained HTML page (no external
+resources; plots embedded as base64 PNG) made from the result JSON of SPEC section 11, which
+stays the machine-readable contract.
+
+Sections: what was calibrated (design summary), the global test, the AP table (value, a
+posteriori sigma, |t|, max |correlation| and the named partner, as in Chow et al. 2013, tables
+2-5), non-estimable and weakly determined APs, variance components, redundancy and reliability
+(minimal detectable bias ``MDB_i = delta0 sigma_i / sqrt(r_i)`` and Baarda's external reliability
+factor ``sqrt((1 - r_i) / r_i) delta0``, delta0 = 4.13 for alpha0 = 0.1 %, power 80 %) per group
+and per scan, outliers, plots, the scan poses, and what produced the report (tlsjax version,
+command, SHA-256 of each input file). A field that the calibration did not compute (e.g. the
+outliers of a run without data snooping) is shown as "not computed", never as zero.
+"""
+
+from __future__ import annotations
+
+import base64
+import datetime
+import hashlib
+import html
+import io
+import math
+import os
+import platform
+import shlex
+import sys
+
+import numpy as np
+
+from .._units import ARCSEC, DISPLAY_UNITS
+
+DELTA0 = 4.13
+_GROUPS = ("range", "hz", "el")
+_GROUP_UNIT = {
+    "range": ("mm", 1e3),
+    "hz": ('"', 1.0 / ARCSEC),
+    "el": ('"', 1.0 / ARCSEC),
+    "levelling": ('"', 1.0 / ARCSEC),
+}
+NOT_COMPUTED = "not computed"
+
+
+# --- what goes into the JSON for the report (called by the CLI) ---------------------------
+
+
+def sha256_of(path, block: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while chunk := fh.read(block):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def provenance(files=(), argv=None) -> dict:
+    """tlsjax version, command line, time (UTC), Python and platform, and the SHA-256 and size
+    of each input file."""
+    from .. import __version__
+
+    argv = sys.argv if argv is None else argv
+    inputs = []
+    for f in files:
+        if f and os.path.isfile(f):
+            inputs.append(
+                {"path": os.fspath(f), "bytes": os.path.getsize(f), "sha256": sha256_of(f)}
+            )
+    return {
+        "tlsjax_version": __version__,
+        "command": " ".join(shlex.quote(a) for a in argv),
+        "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "inputs": inputs,
+    }
+
+
+def scanner_settings(scanner) -> dict:
+    """Architecture, unit lengths and AP names: what ``tlsjax correct`` needs to apply the APs."""
+    return {
+        "architecture": scanner.architecture,
+        "unit_length": scanner.unit_length,
+        "unit_length_2": scanner.unit_length_2,
+        "aps": list(scanner.aps),
+    }
+
+
+def _stats(a) -> dict:
+    a = np.asarray(a, dtype=np.float64)
+    a = a[np.isfinite(a)]
+    if not a.size:
+        return {"mean": None, "max": None, "n": 0}
+    return {"mean": float(a.mean()), "max": float(a.max()), "n": int(a.size)}
+
+
+def reliability_summary(result, *, mdb=None, mask=None) -> dict:
+    """Internal reliability (MDB [m, rad]) and Baarda's external reliability factor
+    ``sqrt((1 - r) / r) delta0`` of the target observations, mean and max per group and per
+    scan. ``mdb``: the MDBs of :class:`~tlsjax.TestedCalibration` (default: from the a priori
+    sigmas and the redundancy numbers); ``mask``: the observations used."""
+    net = result.network
+    r = np.asarray(result.redundancy, dtype=np.float64)
+    if net is None or r.ndim != 2 or r.shape[0] == 0:
+        return {}
+    used = np.ones(r.shape, bool) if mask is None else np.asarray(mask, bool)
+    if result.used is not None and mask is None:
+        used = np.asarray(result.used, bool)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        if mdb is None:
+            mdb = np.where(r > 1e-12, DELTA0 * net.sigmas / np.sqrt(np.maximum(r, 1e-300)), np.inf)
+        ext = np.where(r > 1e-12, np.sqrt(np.maximum(1 - r, 0) / np.maximum(r, 1e-300)), np.inf)
+    mdb = np.where(used, mdb, np.nan)
+    ext = np.where(used, ext * DELTA0, np.nan)
+    out = {"delta0": DELTA0, "groups": {}, "per_scan": {}}
+    for g, name in enumerate(_GROUPS):
+        uncontrolled = int(np.sum(used[:, g] & ~np.isfinite(mdb[:, g])))
+        out["groups"][name] = {
+            "mdb": _stats(mdb[:, g]),
+            "external": _stats(ext[:, g]),
+            "uncontrolled": uncontrolled,
+        }
+    for j, s in enumerate(result.scans):
+        rows = net.scan_index == j
+        out["per_scan"][s] = {
+            name: {"mdb": _stats(mdb[rows, g]), "external": _stats(ext[rows, g])}
+            for g, name in enumerate(_GROUPS)
+        }
+    return out
+
+
+# --- rendering -------------------------------------------------------------------------------
+
+
+def _e(x) -> str:
+    return html.escape(str(x))
+
+
+def _fmt(v, digits=3, scale=1.0) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "&ndash;"
+    return f"{v * scale:.{digits}f}"
+
+
+def _table(head, rows, cls="") -> str:
+    th = "".join(f"<th>{h}</th>" for h in head)
+    body = "".join("<tr>" + "".join(f"<td>{c}</td>" for c in row) + "</tr>" for row in rows)
+    return f'<table class="{cls}"><thead><tr>{th}</tr></thead><tbody>{body}</tbody></table>'
+
+
+def _na(what: str, hint: str = "") -> str:
+    return f'<p class="na">{_e(what)}: {NOT_COMPUTED}{(" (" + _e(hint) + ")") if hint else ""}</p>'
+
+
+def _png(fig) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def _img(b64: str, alt: str) -> str:
+    return f'<figure><img alt="{_e(alt)}" src="data:image/png;base64,{b64}"><figcaption>{_e(alt)}</figcaption></figure>'
+
+
+def correlation_png(doc) -> str | None:
+    """The AP correlation matrix from the JSON's ``ap_covariance``, as base64 PNG."""
+    names, C = doc.get("ap_covariance_names"), doc.get("ap_covariance")
+    if not names or C is None:
+        return None
+    C = np.array([[np.nan if v is None else v for v in row] for row in C], dtype=np.float64)
+    s = np.sqrt(np.diag(C))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        R = C / np.outer(s, s)
+    from ._plots import _pyplot
+
+    plt = _pyplot()
+    n = len(names)
+    fig, ax = plt.subplots(figsize=(min(1.2 + 0.42 * n, 11), min(1.0 + 0.38 * n, 9.5)))
+    im = ax.imshow(R, vmin=-1, vmax=1, cmap="RdBu_r")
+    ax.set_xticks(range(n), names, rotation=90)
+    ax.set_yticks(range(n), names)
+    fig.colorbar(im, ax=ax, label="correlation [-]")
+    ax.set_title("AP correlation matrix (a posteriori)")
+    return _png(fig)
+
+
+def _ap_display(unit):
+    label, factor = DISPLAY_UNITS.get(unit, (unit, 1.0))
+    return label, factor
+
+
+def _section_design(doc) -> str:
+    sc = doc.get("scanner") or {}
+    eops = doc.get("eops") or {}
+    planes = doc.get("planes") or {}
+    rows = [
+        ("source", _e(doc.get("source") or "&ndash;")),
+        ("scanner architecture", _e(sc.get("architecture", NOT_COMPUTED))),
+        ("APs estimated", _e(" ".join(doc.get("aps", {})) or "none")),
+        ("scans", len(eops)),
+        ("planes", len(planes) if planes else "&ndash;"),
+        ("plane points", doc.get("n_plane_points", "&ndash;")),
+        ("observations n", doc.get("n_observations")),
+        ("unknowns u", doc.get("n_unknowns")),
+        ("degrees of freedom r = n - u + d", _fmt(doc.get("dof"), 0)),
+        ("datum", _e(doc.get("datum"))),
+        ("result", f"{doc.get('result')}: {_e(doc.get('message'))}"),
+        ("converged / iterations", f"{doc.get('converged')} / {doc.get('iterations')}"),
+    ]
+    if "selection" in doc:
+        rows.append(("AP selection", _e(" ".join(doc["selection"].get("aps", [])))))
+    return "<h2>Design and adjustment</h2>" + _table(("quantity", "value"), rows, "kv")
+
+
+def _section_global(doc) -> str:
+    g = doc.get("global_test") or {}
+    if g.get("statistic") is None:
+        return "<h2>Global test</h2>" + _na("global test", "no degrees of freedom")
+    verdict = "accepted" if g.get("accepted") else "rejected"
+    rows = [
+        ("a posteriori sigma0 [-]", _fmt(doc.get("sigma0"), 4)),
+        ("T = s0&sup2; r [-]", _fmt(g["statistic"], 1)),
+        (
+            f"two-sided bounds at &alpha; = {g['alpha']}",
+            f"{_fmt(g['lower'], 1)} .. {_fmt(g['upper'], 1)}",
+        ),
+        ("p-value", _fmt(g.get("p_value"), 4)),
+        ("a priori stochastic model", f'<b class="{verdict}">{verdict}</b>'),
+    ]
+    return "<h2>Global test (&chi;&sup2;)</h2>" + _table(("quantity", "value"), rows, "kv")
+
+
+def _section_aps(doc) -> str:
+    weak = {w["name"]: w for w in doc.get("weakly_determined") or []}
+    bad = {w["name"]: w for w in doc.get("not_estimable") or []}
+    rows = []
+    for name, a in (doc.get("aps") or {}).items():
+        label, f = _ap_display(a.get("unit"))
+        flag = "not estimable" if name in bad else ("weakly determined" if name in weak else "")
+        t = a.get("t")
+        rows.append(
+            (
+                f"<b>{_e(name)}</b>",
+                _e(a.get("description") or ""),
+                _fmt(a.get("value"), 3, f),
+                _fmt(a.get("sigma"), 3, f),
+                _e(label),
+                _fmt(abs(t) if t is not None else None, 1),
+                _fmt(a.get("max_abs_corr"), 2),
+                _e(a.get("max_corr_with")) if a.get("max_corr_with") else "&ndash;",
+                f'<span class="flag">{flag}</span>' if flag else "",
+            )
+        )
+    head = ("AP", "meaning", "value", "sigma", "unit", "|t|", "max |corr|", "with", "")
+    out = "<h2>Additional parameters</h2>" + (_table(head, rows, "aps") if rows else _na("APs"))
+    if bad:
+        items = "".join(
+            f"<li><b>{_e(n)}</b>: {_e(w.get('reason') or '')} (confounded with {_e(w.get('confounded_with'))})</li>"
+            for n, w in bad.items()
+        )
+        out += f"<h3>Not estimable</h3><ul>{items}</ul>"
+    else:
+        out += "<p>Not estimable: none.</p>"
+    if weak:
+        items = "".join(
+            f"<li><b>{_e(n)}</b>: |corr| {_fmt(w.get('max_abs_corr'), 3)} with {_e(w.get('correlated_with'))}</li>"
+            for n, w in weak.items()
+        )
+        out += f"<h3>Weakly determined (max |corr| above the threshold)</h3><ul>{items}</ul>"
+    else:
+        out += "<p>Weakly determined: none.</p>"
+    return out
+
+
+def _section_variance(doc) -> str:
+    vc = doc.get("variance_components") or {}
+    if not vc:
+        return "<h2>Variance components</h2>" + _na(
+            "variance components", "run calibrate with --vce (target networks)"
+        )
+    rows = []
+    items = vc.items() if isinstance(vc, dict) else [(v.get("group"), v) for v in vc]
+    for g, v in items:
+        if not isinstance(v, dict):
+            rows.append((_e(g), _e(v), "", "", "", ""))
+            continue
+        unit, f = _GROUP_UNIT.get(g, ("", 1.0))
+        rows.append(
+            (
+                _e(g),
+                _fmt(v.get("factor"), 4),
+                _fmt(v.get("a_priori_sigma"), 3, f) + f" {unit}",
+                _fmt(v.get("sigma"), 3, f) + f" {unit}",
+                _fmt(v.get("redundancy"), 1),
+                _e(v.get("n", "")),
+            )
+        )
+    head = ("group", "factor [-]", "a priori sigma", "estimated sigma", "r_g", "n")
+    return "<h2>Variance components</h2>" + _table(head, rows)
+
+
+def _section_redundancy(doc) -> str:
+    red = doc.get("redundancy") or {}
+    if not red:
+        return "<h2>Redundancy</h2>" + _na("redundancy numbers")
+    rows = [
+        (_e(k), _fmt(v.get("mean"), 3), _fmt(v.get("sum"), 1))
+        for k, v in red.items()
+        if k not in ("per_scan", "planes") and isinstance(v, dict)
+    ]
+    out = "<h2>Redundancy numbers</h2>" + _table(("group", "mean r_i", "sum r_i"), rows)
+    if red.get("planes"):
+        prow = [
+            (_e(k), _fmt(v.get("mean"), 3), _fmt(v.get("sum"), 1)) for k, v in red["planes"].items()
+        ]
+        out += "<h3>Plane points</h3>" + _table(("group", "mean r_i", "sum r_i"), prow)
+    per = red.get("per_scan") or {}
+    if per:
+        out += "<h3>Per scan</h3>" + _table(
+            ("scan", "mean r_i"), [(_e(s), _fmt(v.get("mean"), 3)) for s, v in per.items()]
+        )
+    return out
+
+
+def _mdb_cell(st, g):
+    unit, f = _GROUP_UNIT[g]
+    if not st or st.get("n", 0) == 0:
+        return "&ndash;"
+    return f"{_fmt(st['mean'], 2, f)} / {_fmt(st['max'], 2, f)} {unit}"
+
+
+def _section_reliability(doc) -> str:
+    rel = doc.get("reliability") or {}
+    if not rel:
+        return "<h2>Reliability</h2>" + _na(
+            "internal and external reliability", "target networks through tlsjax calibrate"
+        )
+    head = ("group", "MDB mean / max", "external factor mean / max [-]", "uncontrolled")
+    rows = [
+        (
+            g,
+            _mdb_cell(v.get("mdb"), g),
+            f"{_fmt(v['external']['mean'], 2)} / {_fmt(v['external']['max'], 2)}",
+            v.get("uncontrolled", 0),
+        )
+        for g, v in rel.get("groups", {}).items()
+    ]
+    out = (
+        f"<h2>Reliability (&delta;0 = {rel.get('delta0', DELTA0)})</h2>"
+        "<p>Internal: minimal detectable bias MDB = &delta;0 &sigma; / &radic;r. External: "
+        "Baarda's factor &radic;((1 - r)/r) &delta;0, the effect of an undetected MDB-sized error "
+        "on the unknowns in units of their sigma.</p>" + _table(head, rows)
+    )
+    per = rel.get("per_scan") or {}
+    if per:
+        prow = [
+            (_e(s),) + tuple(_mdb_cell(v.get(g, {}).get("mdb"), g) for g in _GROUPS)
+            for s, v in per.items()
+        ]
+        out += "<h3>MDB per scan (mean / max)</h3>" + _table(("scan", "range", "hz", "el"), prow)
+    return out
+
+
+def _section_outliers(doc) -> str:
+    if "snooping" not in doc:
+        return "<h2>Outliers</h2>" + _na("data snooping", "run calibrate with --snoop")
+    out = doc.get("outliers") or []
+    sn = doc["snooping"]
+    txt = f"<p>Baarda data snooping, critical value {_fmt(sn.get('critical_value'), 2)}: {len(out)} removal(s).</p>"
+    if not out:
+        return "<h2>Outliers</h2>" + txt
+    keys = [k for k in out[0] if not isinstance(out[0][k], (dict, list))]
+    rows = [
+        tuple(_e(o.get(k)) if not isinstance(o.get(k), float) else _fmt(o.get(k), 3) for k in keys)
+        for o in out
+    ]
+    return "<h2>Outliers</h2>" + txt + _table(keys, rows)
+
+
+def _section_eops(doc) -> str:
+    eops = doc.get("eops") or {}
+    if not eops:
+        return ""
+    rows = []
+    for s, e in eops.items():
+        sg = e.get("sigma") or {}
+        pos = tuple(
+            f"{_fmt(e.get(k), 4)} &plusmn; {_fmt(sg.get(k), 2, 1e3)}" for k in ("Xs", "Ys", "Zs")
+        )
+        ang = tuple(
+            f"{_fmt(e.get(k), 4, 180 / math.pi)} &plusmn; {_fmt(sg.get(k), 1, 1 / ARCSEC)}"
+            for k in ("omega", "phi", "kappa")
+        )
+        rows.append((_e(s),) + pos + ang)
+    head = ("scan", "Xs [m] &plusmn; [mm]", "Ys [m] &plusmn; [mm]", "Zs [m] &plusmn; [mm]")
+    head += tuple(f"{k} [deg] &plusmn; [&quot;]" for k in ("omega", "phi", "kappa"))
+    return "<h2>Scan poses</h2>" + _table(head, rows, "small")
+
+
+def _section_planes(doc) -> str:
+    planes = doc.get("planes") or {}
+    if not planes:
+        return ""
+    rows = [
+        (
+            _e(k),
+            " ".join(_fmt(v, 4) for v in p.get("normal", [])),
+            _fmt(p.get("d"), 4),
+            _fmt((p.get("sigma") or {}).get("d"), 3, 1e3),
+            p.get("n_points"),
+            p.get("n_scans"),
+        )
+        for k, p in planes.items()
+    ]
+    head = ("plane", "normal [-]", "d [m]", "sigma d [mm]", "points", "scans")
+    return "<h2>Planes</h2>" + _table(head, rows, "small")
+
+
+def _section_provenance(doc) -> str:
+    p = doc.get("provenance") or {}
+    if not p:
+        return "<h2>Produced by</h2>" + _na(
+            "provenance", "the JSON was not written by tlsjax calibrate"
+        )
+    rows = [
+        ("tlsjax version", _e(p.get("tlsjax_version"))),
+        ("command", f"<code>{_e(p.get('command'))}</code>"),
+        ("created (UTC)", _e(p.get("created_utc"))),
+        ("Python / platform", _e(f"{p.get('python')} / {p.get('platform')}")),
+    ]
+    files = [
+        (f"<code>{_e(f['path'])}</code>", f["bytes"], f"<code>{_e(f['sha256'])}</code>")
+        for f in p.get("inputs", [])
+    ]
+    return (
+        "<h2>Produced by</h2>"
+        + _table(("item", "value"), rows, "kv")
+        + ("<h3>Input files</h3>" + _table(("file", "bytes", "SHA-256"), files) if files else "")
+    )
+
+
+_CSS = """
+body{font-family:DejaVu Sans,Arial,sans-serif;margin:24px auto;max-width:1100px;color:#111;font-size:14px}
+h1{font-size:22px;border-bottom:2px solid #234;padding-bottom:4px}h2{font-size:18px;margin-top:28px;color:#234}
+h3{font-size:15px}table{border-collapse:collapse;margin:8px 0}td,th{border:1px solid #bbb;padding:3px 8px;text-align:right}
+th{background:#e8eef4}td:first-child,th:first-child{text-align:left}table.kv td:last-child{text-align:left}
+table.aps td:nth-child(2){text-align:left;font-size:12px;color:#444}.flag{color:#b00;font-weight:bold}
+.na{color:#777;font-style:italic}.accepted{color:#070}.rejected{color:#b00}table.small{font-size:12px}
+figure{margin:12px 0}img{max-width:100%;border:1px solid #ccc}figcaption{font-size:12px;color:#555}
+"""
+
+
+def render_html(doc: dict, plots: dict | None = None) -> str:
+    """The report page of a result JSON ``doc``; ``plots``: title -> base64 PNG (the AP
+    correlation matrix is drawn from the JSON when not given)."""
+    plots = dict(plots or {})
+    corr = correlation_png(doc)
+    if corr and not any("correlation" in k.lower() for k in plots):
+        plots["AP correlation matrix"] = corr
+    figs = "".join(_img(b, t) for t, b in plots.items())
+    if not any("residual" in k.lower() for k in plots):
+        figs = (
+            _na(
+                "residual plots",
+                "the JSON holds no residuals: use calibrate --report or --plots DIR",
+            )
+            + figs
+        )
+    title = f"tlsjax calibration report: {doc.get('source') or ''}"
+    body = "".join(
+        [
+            f"<h1>{_e(title)}</h1>",
+            _section_design(doc),
+            _section_global(doc),
+            _section_aps(doc),
+            _section_variance(doc),
+            _section_redundancy(doc),
+            _section_reliability(doc),
+            _section_outliers(doc),
+            "<h2>Plots</h2>" + figs,
+            _section_eops(doc),
+            _section_planes(doc),
+            _section_provenance(doc),
+        ]
+    )
+    return (
+        '<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">'
+        f"<title>{_e(title)}</title><style>{_CSS}</style></head><body>{body}</body></html>\n"
+    )
+
+
+def write_html_report(doc: dict, path, *, plots: dict | None = None) -> str:
+    """Write :func:`render_html` to ``path`` (atomically: a temporary file renamed)."""
+    path = os.fspath(path)
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    tmp = path + ".tmp"
+    with open(tmp, "w", encoding="utf-8") as fh:
+        fh.write(render_html(doc, plots))
+    os.replace(tmp, path)
+    return path
+
+
+def png_files(folder) -> dict:
+    """The PNG plots of a ``--plots`` folder as title -> base64."""
+    out = {}
+    for name in sorted(os.listdir(folder)):
+        if name.lower().endswith(".png"):
+            with open(os.path.join(folder, name), "rb") as fh:
+                title = os.path.splitext(name)[0].replace("_", " ")
+                out[title] = base64.b64encode(fh.read()).decode("ascii")
+    return out
+
+
+def report_from_json(json_path, html_path, *, plots_dir=None) -> str:
+    """``tlsjax report``: the HTML report of a result JSON file."""
+    import json
+
+    source = os.fspath(json_path)
+    try:
+        with open(source, encoding="utf-8") as fh:
+            doc = json.load(fh)
+    except FileNotFoundError:
+        raise
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{source}: not a readable result JSON ({err})") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("aps"), dict):
+        raise ValueError(f"{source}: not a tlsjax result JSON (no 'aps' object)")
+    plots = png_files(plots_dir) if plots_dir else None
+    return write_html_report(doc, html_path, plots=plots)
