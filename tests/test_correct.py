@@ -192,12 +192,14 @@ def test_bad_inputs_one_line(tmp_path, sim, capsys):
     src = tmp_path / "s.xyz"
     np.savetxt(src, x[:50])
     cal = _cal_json(tmp_path / "cal.json", pc)
-    (tmp_path / "junk.json").write_text("{not json")
+    junk = tmp_path / "not_written_by_tlsjax" / "junk.json"
+    junk.parent.mkdir()
+    junk.write_text("{not json")
     (tmp_path / "multi.json").write_text(
         json.dumps({"aps": {"A0[a]": {"value": 0.001}, "A0[b]": {"value": 0.002}}})
     )
     cases = [
-        ([str(tmp_path / "junk.json"), str(src)], "junk.json: not a readable result JSON"),
+        ([str(junk), str(src)], "junk.json: not a readable result JSON"),
         ([str(tmp_path / "multi.json"), str(src)], "choose one with --instrument"),
         ([str(cal), str(tmp_path / "s.foo")], "unknown point-cloud format"),
         ([str(cal), str(tmp_path / "missing.ptx")], "missing.ptx: no such file"),

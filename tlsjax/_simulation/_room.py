@@ -170,11 +170,12 @@ def simulate(
     ``levelling``. ``scale_bars`` > 0 adds that many scale bars between pairs of floor targets.
     Every target is visible from every scan (the paper's design; no field-of-view limit).
 
-    ``two_face``: the NIST two-face design (Muralikrishnan et al. 2015; Wang et al. 2017): one
-    levelled scan from the room's first station with a panoramic scanner, every target observed
-    in both faces, ``(theta, alpha)`` and ``(theta + pi, pi - alpha)`` (mod 2 pi), so that the
-    terms whose sign flips between the faces (collimation, trunnion, index, mirror tilt) are
-    seen without a second station.
+    ``two_face``: the NIST two-face design (Muralikrishnan et al. 2015; Wang et al. 2017) of a
+    panoramic scanner: the room's first station, two levelled scans with the head turned by 180
+    deg (kappa 0 and 180 deg), so that every target is observed once in each face, ``(theta,
+    alpha)`` in one scan and ``(theta, pi - alpha)`` in the other (SPEC section 1: hz in [0, 180)
+    deg in both faces). The terms whose sign flips between the faces (collimation, trunnion,
+    index, mirror tilt) are then seen without a second station.
     """
     room = room or Room()
     rng = np.random.default_rng(seed)
@@ -187,14 +188,12 @@ def simulate(
     if two_face:
         if architecture != "panoramic":
             raise ValueError("the two-face design needs a panoramic scanner (architecture)")
-        eops = np.array([[*room.stations[0], 0.0, 0.0, 0.0]])
+        eops = np.array([[*room.stations[0], 0.0, 0.0, 0.0], [*room.stations[0], 0.0, 0.0, np.pi]])
     else:
         eops = room_scans(room, tilted)
     n_t, n_s = len(X), len(eops)
     ti, si = np.meshgrid(np.arange(n_t), np.arange(n_s), indexing="xy")
     ti, si = ti.reshape(-1), si.reshape(-1)
-    if two_face:  # every observation twice: face 1 first, then face 2
-        ti, si = np.tile(ti, 2), np.tile(si, 2)
 
     # Geometry first: line of sight, incidence angle, face of a panoramic scanner.
     R = np.stack([rotation_matrix(*e[3:], xp=np) for e in eops])
@@ -204,8 +203,6 @@ def simulate(
     incidence = np.arccos(np.clip(cosb, 0.0, 1.0))
     hyb = spherical_from_cartesian(x, xp=np)
     face2 = (hyb[:, 1] >= np.pi) if architecture == "panoramic" else np.zeros(len(ti), dtype=bool)
-    if two_face:
-        face2 = np.arange(len(ti)) >= len(ti) // 2
     sig = np.stack(
         [
             sigma_range / np.cos(incidence),
