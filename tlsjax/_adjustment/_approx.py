@@ -578,7 +578,8 @@ def _register(a: _Prims, b: _Prims, cfg: ApproxConfig, current=None) -> _Fit | N
         if best is None or fit.score > best.score:
             best = fit
     if best is None:
-        return None
+        # No minimal set at all (e.g. only parallel planes): a fit that says so.
+        return _with_shared(_evaluate(np.eye(3), sh, cfg), sh)
     return _with_shared(_refine(best, sh, cfg), sh)
 
 
@@ -599,28 +600,24 @@ def approximate(net: Network, config: ApproxConfig | None = None) -> Approximati
     n_s = data.n_scans
     local = [_scan_prims(data, j, cfg) for j in range(n_s)]
     A, S, tree = _spanning_tree(net, data, local, cfg)
-    use_p = np.ones(len(data.pair_scan), dtype=bool)
-    use_t = np.ones(len(data.t_scan), dtype=bool)
     order = [j for j, _ in tree]
     for _ in range(cfg.rounds):
+        use_p, use_t = _consensus(data, A, S, cfg)
         for j in order:
-            _reregister(net, data, local, A, S, use_p, use_t, j, cfg, update=True)
+            _reregister(data, local, A, S, use_p, use_t, j, cfg)
+    use_p, use_t = _consensus(data, A, S, cfg)
     for j in order:
-        _reregister(net, data, local, A, S, use_p, use_t, j, cfg, update=False)
+        _check_determined(net, data, local, A, S, use_p, use_t, j, cfg)
     inconsistent = _inconsistencies(net, data, A, S, use_p, use_t, cfg)
     for item in inconsistent:
         _LOG.warning("%s: inconsistent correspondence: %s", net.source, item)
 
-    # Object-space primitives from the consistent correspondences (all, for a primitive that
-    # has none).
-    keep_p = use_p | ~np.isin(data.pair_plane, data.pair_plane[use_p])
-    keep_t = use_t | ~np.isin(data.t_index, data.t_index[use_t])
-    everyone = np.ones(n_s, dtype=bool)
-    obj = _object_prims(data, A, S, keep_p, keep_t, everyone, cfg)
+    # Object-space primitives from the consistent correspondences.
+    obj = _object_prims(data, A, S, use_p, use_t, np.ones(n_s, dtype=bool), cfg)
     targets = np.zeros((data.n_targets, 3))
     targets[obj.target] = obj.x
     planes = np.zeros((data.n_planes, 4))
-    planes[obj.plane, :3] = _orient(obj, data, A, S, keep_p)
+    planes[obj.plane, :3] = _orient(obj, data, A, S, use_p)
     planes[:, 3] = np.einsum("ki,ki->k", planes[:, :3], _centroids(obj, data.n_planes))
     targets, eops, planes = _to_frame(A, S, targets, planes, net.is_levelled)
     names = tuple((net.scans[j], None if p is None else net.scans[p]) for j, p in tree)
@@ -721,36 +718,93 @@ def _attach_to_placed(net, data, local, A, S, placed, cfg):
     return best_j, None
 
 
-def _reregister(net, data, local, A, S, use_p, use_t, j, cfg, update: bool):
-    """Register scan j against the object-space primitives of all other scans (their
-    consistent correspondences), from its current pose; record which of its correspondences
-    are consistent. With ``update`` its pose is replaced by the new registration."""
+def _reregister(data, local, A, S, use_p, use_t, j, cfg):
+    """Register scan j, from its current pose, against the object-space primitives of all the
+    other scans (their consistent correspondences), over all its correspondences at once."""
     others = np.ones(data.n_scans, dtype=bool)
     others[j] = False
     obj = _object_prims(data, A, S, use_p, use_t, others, cfg)
-    fit = _register(obj, local[j], cfg, current=(A[j], S[j]) if update else None)
-    if not update:
-        sh = _shared(obj, local[j])
-        fit = _evaluate(A[j], sh, cfg, t=S[j]) if sh.size else None
-        if fit is not None:
-            fit.shared = sh
-    if fit is None:
-        return
-    if not fit.determined:
-        if not update:
-            _raise_undetermined(net, j, fit)
-        return
-    if update:
+    fit = _register(obj, local[j], cfg, current=(A[j], S[j]))
+    if fit is not None and fit.determined:
         A[j], S[j] = fit.R, fit.t
-    sh = fit.shared
-    qp = np.flatnonzero(data.pair_scan == j)
-    inl = dict(zip(sh.plane.tolist(), fit.plane_in.tolist()))
-    for p in qp:
-        use_p[p] = inl.get(int(data.pair_plane[p]), True)
-    mt = np.flatnonzero(data.t_scan == j)
-    inl_t = dict(zip(sh.target.tolist(), fit.target_in.tolist()))
-    for r in mt:
-        use_t[r] = inl_t.get(int(data.t_index[r]), True)
+
+
+def _check_determined(net, data, local, A, S, use_p, use_t, j, cfg):
+    """Scan j's pose must be fixed by those of its correspondences that agree with the other
+    scans; a one-line ValueError otherwise."""
+    others = np.ones(data.n_scans, dtype=bool)
+    others[j] = False
+    mine = np.zeros(data.n_scans, dtype=bool)
+    mine[j] = True
+    obj = _object_prims(data, A, S, use_p, use_t, others, cfg)
+    own = _object_prims(
+        data,
+        np.tile(np.eye(3), (data.n_scans, 1, 1)),
+        np.zeros((data.n_scans, 3)),
+        use_p,
+        use_t,
+        mine,
+        cfg,
+    )
+    sh = _shared(obj, local[j])
+    if sh.size == 0:
+        if data.n_scans > 1:
+            _raise_undetermined(net, j, None)
+        return
+    fit = _evaluate(A[j], sh, cfg, t=S[j])
+    fit.shared = sh
+    # Only the correspondences the consensus kept count.
+    fit.plane_in &= np.isin(sh.plane, own.plane)
+    fit.target_in &= np.isin(sh.target, own.target)
+    fit.rotation_ok, fit.position_ok = _determined(A[j], sh, fit.plane_in, fit.target_in)
+    if not fit.determined:
+        _raise_undetermined(net, j, fit)
+
+
+def _consensus(data: _Data, A, S, cfg: ApproxConfig):
+    """Which (scan, primitive) correspondences agree with the others at poses (A, S): per
+    primitive, the largest group that agrees with one of its members (normals within the angle
+    tolerance, centroids on each other's planes, targets within the distance tolerance),
+    weighted by points. The rest are inconsistent (e.g. a wrong match)."""
+    use_p = np.ones(len(data.pair_scan), dtype=bool)
+    if len(data.pair_scan):
+        js = data.pair_scan
+        o1, o2 = _transform_moments(data.cnt, data.s1, data.s2, A[js], S[js])
+        n, has_n, sn, c, sc = _plane_fit(data.cnt, o1, o2, cfg)
+        for k in np.unique(data.pair_plane):
+            q = np.flatnonzero(data.pair_plane == k)
+            if len(q) > 1:
+                agree = _planes_agree(n[q], has_n[q], sn[q], c[q], sc[q], cfg)
+                use_p[q] = agree[np.argmax(agree @ data.cnt[q])]
+    use_t = np.ones(len(data.t_scan), dtype=bool)
+    if len(data.t_scan):
+        X = np.einsum("mij,mj->mi", A[data.t_scan], data.x_t) + S[data.t_scan]
+        tol = max(cfg.distance_tol, 4.0 * np.sqrt(2.0) * cfg.point_sigma_floor)
+        for t in np.unique(data.t_index):
+            q = np.flatnonzero(data.t_index == t)
+            if len(q) > 1:
+                agree = np.linalg.norm(X[q, None] - X[None, q], axis=-1) < tol
+                use_t[q] = agree[np.argmax(agree.sum(axis=1))]
+    return use_p, use_t
+
+
+def _planes_agree(n, has_n, sn, c, sc, cfg: ApproxConfig):
+    """(m, m) agreement of m object-space fits of one plane: normals within
+    ``max(angle_tol, 4 sigma)`` (either sign) and each centroid within ``max(distance_tol,
+    4 sigma)`` of the other's plane, sigma including the normal's error over the lever."""
+    both = has_n[:, None] & has_n[None, :]
+    sn2 = np.where(has_n, sn, 0.0) ** 2
+    s2 = sn2[:, None] + sn2[None, :]
+    cos = np.abs(n @ n.T)
+    ang_ok = ~both | (cos > np.cos(np.maximum(cfg.angle_tol, 4.0 * np.sqrt(s2))))
+    diff = c[None, :, :] - c[:, None, :]  # c_q - c_p
+    lever2 = np.sum(diff * diff, axis=-1)
+    tol = np.maximum(
+        cfg.distance_tol, 4.0 * np.sqrt(sc[:, None] ** 2 + sc[None, :] ** 2 + s2 * lever2)
+    )
+    off = np.abs(np.einsum("pi,pqi->pq", n, diff))  # |n_p . (c_q - c_p)|
+    dist_ok = (~has_n[:, None] | (off < tol)) & (~has_n[None, :] | (off.T < tol))
+    return ang_ok & dist_ok | np.eye(len(n), dtype=bool)
 
 
 def _raise_undetermined(net, j, fit):
