@@ -322,3 +322,24 @@ def test_parallel_planes_do_not_fix_a_rotation():
     )
     with pytest.raises(ValueError, match="scan S3: its rotation is not determined"):
         approximate(tj.make_plane_network(t))
+
+
+def test_a_mislabelled_target_is_reported():
+    """Two targets' labels swapped in one scan (a wrong identification): both are reported
+    for that scan, at their true separation, and the poses stay as good as without it."""
+    design = tj.NetworkDesign(room=ROOM, scans=SIX_SCANS, n_targets=30, common_targets=True)
+    sim = tj.simulate_design(design, seed=8)
+    net = sim.network
+    names = np.array(net.targets)[net.target_index]
+    in_s2 = np.array(net.scans)[net.scan_index] == "S2"
+    a_row = np.flatnonzero(in_s2 & (names == "T001"))[0]
+    b_row = np.flatnonzero(in_s2 & (names == "T030"))[0]
+    names[[a_row, b_row]] = names[[b_row, a_row]]
+    bad = tj.make_network(list(np.array(net.scans)[net.scan_index]), list(names), net.observations)
+    a = approximate(bad)
+    assert {(i.scan, i.name) for i in a.inconsistent} == {("S2", "T001"), ("S2", "T030")}
+    i1, i30 = net.targets.index("T001"), net.targets.index("T030")
+    gap = np.linalg.norm(sim.true_targets[i1] - sim.true_targets[i30])
+    assert all(abs(i.distance - gap) < 0.05 and i.kind == "target" for i in a.inconsistent)
+    dp, da = pose_errors(a.eops, sim.true_eops)
+    assert dp < 0.03 and da < 0.3 * DEG

@@ -24,12 +24,15 @@ see different subsets of the primitives, levelled or tilted scans, hybrid or pan
 3. A *maximum spanning tree* over the scans (edge weight: number of consistent shared
    primitives) chains the poses from the best-connected scan outwards; a scan without a usable
    edge is registered against the object-space primitives of all scans placed so far.
-4. *Re-registration*: each scan in turn against the object-space primitives of all the other
-   scans (planes fitted to the moments of all their points), every correspondence at once, two
-   rounds. Its outliers are the inconsistent (scan, primitive) pairs: a wrong match in real data
-   is reported (:attr:`Approximation.inconsistent`, and logged) and left out of the object-space
-   primitives, so it does not spoil the other scans. A scan whose consistent primitives do not fix
-   its pose raises a one-line ``ValueError`` naming the scan and its primitives.
+4. *Consensus and re-registration*: per primitive, the largest group of its (scan, primitive)
+   correspondences that agree in object space (normals, centroids on each other's planes,
+   target positions) is kept; the rest are inconsistent (a wrong match in real data), reported
+   (:attr:`Approximation.inconsistent`, and logged) and left out of the object-space primitives,
+   so they do not spoil the other scans. Then each scan in turn is registered against the
+   object-space primitives of all the other scans (planes fitted to the moments of all their
+   points), every correspondence at once; two rounds. A scan whose consistent correspondences
+   do not fix its rotation or position raises a one-line ``ValueError`` naming the scan and its
+   primitives.
 5. *Frame*: the first scan's station is the origin; the object frame is turned so that the
    levelled scans' vertical axes point up (their compensator readings start near zero), or, when
    no scan is levelled, kept as the first scan's frame unless a scan's Cardan angle phi would come
@@ -207,6 +210,13 @@ class _Data:
     x_t: np.ndarray
     t_scan: np.ndarray
     t_index: np.ndarray
+    t_weight: np.ndarray
+    t_noise: float = 0.0
+
+    def target_noise(self, rows):
+        """Noise sigma [m] of target observations ``rows``: the network's robust scale times
+        each observation's a priori point sigma relative to the median one."""
+        return self.t_noise * self.t_weight[rows]
 
 
 def _local_data(net: Network) -> _Data:
@@ -223,6 +233,14 @@ def _local_data(net: Network) -> _Data:
     x_t = (
         cartesian_from_spherical(net.observations, xp=np) if len(net.targets) else np.zeros((0, 3))
     )
+    # Relative a priori sigma of each target point (range and both angles over the range;
+    # incidence included): only ratios, so the approximate values never depend on the sigmas'
+    # scale.
+    sig = net.sigmas
+    rho = net.observations[:, 0]
+    point = np.sqrt(sig[:, 0] ** 2 + (rho * sig[:, 1] * np.cos(net.observations[:, 2])) ** 2)
+    point = np.sqrt(point**2 + (rho * sig[:, 2]) ** 2)
+    weight = point / np.median(point) if len(point) else point
     return _Data(
         len(net.scans),
         len(net.targets),
@@ -235,6 +253,7 @@ def _local_data(net: Network) -> _Data:
         x_t,
         np.asarray(net.scan_index, dtype=np.int64),
         np.asarray(net.target_index, dtype=np.int64),
+        weight,
     )
 
 
@@ -251,7 +270,7 @@ def _scan_prims(data: _Data, j: int, cfg: ApproxConfig) -> _Prims:
         sc,
         data.t_index[m],
         data.x_t[m],
-        np.full(int(m.sum()), cfg.point_sigma_floor),
+        _target_sigma(np.linalg.norm(data.x_t[m], axis=1), cfg, data.target_noise(m)),
     )
 
 
@@ -275,8 +294,12 @@ def _object_prims(data: _Data, A, S, use_p, use_t, scans, cfg: ApproxConfig) -> 
     X = np.einsum("mij,mj->mi", A[js], data.x_t[m]) + S[js]
     t_sum = np.zeros((data.n_targets, 3))
     t_cnt = np.zeros(data.n_targets)
+    t_rng = np.zeros(data.n_targets)
+    t_var = np.zeros(data.n_targets)
     np.add.at(t_sum, data.t_index[m], X)
     np.add.at(t_cnt, data.t_index[m], 1.0)
+    np.add.at(t_rng, data.t_index[m], np.linalg.norm(data.x_t[m], axis=1))
+    np.add.at(t_var, data.t_index[m], data.target_noise(m) ** 2)
     tv = np.flatnonzero(t_cnt > 0)
     return _Prims(
         seen,
@@ -287,8 +310,33 @@ def _object_prims(data: _Data, A, S, use_p, use_t, scans, cfg: ApproxConfig) -> 
         sc,
         tv,
         t_sum[tv] / t_cnt[tv, None],
-        np.full(len(tv), cfg.point_sigma_floor),
+        _target_sigma(t_rng[tv] / t_cnt[tv], cfg, np.sqrt(t_var[tv] / t_cnt[tv]))
+        / np.sqrt(t_cnt[tv]),
     )
+
+
+def _target_sigma(rho, cfg: ApproxConfig, noise: float = 0.0):
+    """Sigma [m] of a target point at range rho in approximate values: the point floor, the
+    angular model error (uncorrected APs) over the range and the network's noise."""
+    return np.sqrt(cfg.point_sigma_floor**2 + (cfg.normal_sigma_floor * rho) ** 2 + noise**2)
+
+
+def _target_noise(data: _Data, A, S) -> float:
+    """Robust per-axis sigma [m] of the target points about their targets at poses (A, S):
+    the median distance of a point from its target's median point, scaled for a Gaussian
+    (chi with 3 degrees of freedom: median 1.54 sigma) and for the median's own share
+    (sqrt(n / (n - 1)) for a target seen n times). Noisy data widen the tolerances with it
+    rather than flag good targets as inconsistent."""
+    if not len(data.t_scan):
+        return 0.0
+    X = np.einsum("mij,mj->mi", A[data.t_scan], data.x_t) + S[data.t_scan]
+    dist = []
+    for t in np.unique(data.t_index):
+        q = np.flatnonzero(data.t_index == t)
+        if len(q) > 1:
+            d = np.linalg.norm(X[q] - np.median(X[q], axis=0), axis=1) / data.t_weight[q]
+            dist.append(d * np.sqrt(len(q) / (len(q) - 1)))
+    return float(np.median(np.concatenate(dist)) / 1.54) if dist else 0.0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -600,6 +648,8 @@ def approximate(net: Network, config: ApproxConfig | None = None) -> Approximati
     n_s = data.n_scans
     local = [_scan_prims(data, j, cfg) for j in range(n_s)]
     A, S, tree = _spanning_tree(net, data, local, cfg)
+    data.t_noise = _target_noise(data, A, S)
+    local = [_scan_prims(data, j, cfg) for j in range(n_s)]
     order = [j for j, _ in tree]
     for _ in range(cfg.rounds):
         use_p, use_t = _consensus(data, A, S, cfg)
@@ -779,10 +829,12 @@ def _consensus(data: _Data, A, S, cfg: ApproxConfig):
     use_t = np.ones(len(data.t_scan), dtype=bool)
     if len(data.t_scan):
         X = np.einsum("mij,mj->mi", A[data.t_scan], data.x_t) + S[data.t_scan]
-        tol = max(cfg.distance_tol, 4.0 * np.sqrt(2.0) * cfg.point_sigma_floor)
+        rows = np.arange(len(data.t_scan))
+        sx2 = _target_sigma(np.linalg.norm(data.x_t, axis=1), cfg, data.target_noise(rows)) ** 2
         for t in np.unique(data.t_index):
             q = np.flatnonzero(data.t_index == t)
             if len(q) > 1:
+                tol = np.maximum(cfg.distance_tol, 4.0 * np.sqrt(sx2[q, None] + sx2[None, q]))
                 agree = np.linalg.norm(X[q, None] - X[None, q], axis=-1) < tol
                 use_t[q] = agree[np.argmax(agree.sum(axis=1))]
     return use_p, use_t

@@ -407,7 +407,16 @@ def simulate_design(
     obs_t, obs_p, sig_t, sig_p, lev = _observe(
         design, eops, rows_t, rows_p, scanner, coeffs, names, noise_seed
     )
-    s_names = [f"S{j + 1}" for j in range(len(eops))]
+    net = _make_network(design, len(eops), patches, rows_t, rows_p, obs_t, obs_p, lev)
+    return _with_truth(
+        net, scanner, design, values, eops, X_t, patches, rows_t, rows_p, sig_t, sig_p
+    )
+
+
+def _make_network(design, n_scans, patches, rows_t, rows_p, obs_t, obs_p, lev):
+    """The network of the observed rows, with the a priori sigmas ``sigma_scale`` x nominal
+    (range sigma x sec(incidence), applied by make_network)."""
+    s_names = [f"S{j + 1}" for j in range(n_scans)]
     table = None
     if rows_p:
         table = ObservationTable(
@@ -422,7 +431,7 @@ def simulate_design(
             rows=np.arange(2, len(rows_p) + 2),
         )
     scale = design.sigma_scale
-    net = make_network(
+    return make_network(
         [s_names[r[0]] for r in rows_t],
         [f"T{r[1] + 1:03d}" for r in rows_t],
         obs_t.reshape(-1, 3),
@@ -434,9 +443,6 @@ def simulate_design(
         drop_single_targets=True,
         planes=table,
         source="<simulated design>",
-    )
-    return _with_truth(
-        net, scanner, design, values, eops, X_t, patches, rows_t, rows_p, sig_t, sig_p
     )
 
 
