@@ -444,23 +444,25 @@ def _triad(u1, u2, v1, v2):
     return frame(v1, v2) @ frame(u1, u2).T
 
 
+def _all_targets(sh: _Shared):
+    """The rotation of the weighted Kabsch fit to all shared targets, as a list of at most one."""
+    if len(sh.target) < 3:
+        return []
+    R, q = _kabsch(sh.xb - sh.xb.mean(0), sh.xa - sh.xa.mean(0), 1.0 / sh.sx2)
+    return [R] if q > 1e-3 else []
+
+
 def _hypotheses(sh: _Shared, cfg: ApproxConfig):
-    """Rotation hypotheses from minimal sets: pairs of non-parallel shared planes with the sign
-    combinations their angle allows, and target triples (all targets, plus a few triples of
-    large area against a wrong target label)."""
+    """Rotation hypotheses of minimal sets: a few target triples (against a wrong target label)
+    and pairs of non-parallel shared planes with the sign combinations their angle allows."""
     out = []
-    if len(sh.target) >= 3:
-        w = 1.0 / sh.sx2
-        R, q = _kabsch(sh.xb - sh.xb.mean(0), sh.xa - sh.xa.mean(0), w)
-        if q > 1e-3:
-            out.append(R)
-        if len(sh.target) >= 5:
-            rng = np.random.default_rng(len(sh.target))
-            for tri in (rng.choice(len(sh.target), 3, replace=False) for _ in range(6)):
-                xb, xa = sh.xb[tri], sh.xa[tri]
-                R, q = _kabsch(xb - xb.mean(0), xa - xa.mean(0), np.ones(3))
-                if q > 1e-2:
-                    out.append(R)
+    if len(sh.target) >= 5:
+        rng = np.random.default_rng(len(sh.target))
+        for tri in (rng.choice(len(sh.target), 3, replace=False) for _ in range(6)):
+            xb, xa = sh.xb[tri], sh.xa[tri]
+            R, q = _kabsch(xb - xb.mean(0), xa - xa.mean(0), np.ones(3))
+            if q > 1e-2:
+                out.append(R)
     idx = np.flatnonzero(sh.both_n)
     idx = idx[np.argsort(sh.sn2[idx], kind="stable")][: cfg.minimal_planes]
     pairs = []
@@ -539,7 +541,9 @@ def _evaluate(R, sh: _Shared, cfg: ApproxConfig, t=None) -> _Fit:
         for _ in range(6):
             N = (rows * (wp / tol_d**2)[:, None]).T @ rows + np.eye(3) * np.sum(wt / tol_t**2)
             b = (rows * (wp / tol_d**2)[:, None]).T @ rhs + (tr * (wt / tol_t**2)[:, None]).sum(0)
-            t = np.linalg.lstsq(N, b, rcond=1e-12)[0]
+            t_old, t = t, np.linalg.lstsq(N, b, rcond=1e-12)[0]
+            if np.abs(t - t_old).max() < 1e-4:
+                break
             rp = (rows @ t - rhs) / tol_d
             rt = np.linalg.norm(tr - t, axis=1) / tol_t
             wp, wt = base_p / (1.0 + rp**2), 1.0 / (1.0 + rt**2)
@@ -616,9 +620,10 @@ def _register(a: _Prims, b: _Prims, cfg: ApproxConfig, current=None) -> _Fit | N
     if sh.size == 0:
         return None
     best = None
-    if current is not None:
-        best = _refine(_evaluate(current[0], sh, cfg), sh, cfg)
-        # A start that explains (nearly) everything needs no search.
+    for R in ([current[0]] if current is not None else []) + _all_targets(sh):
+        fit = _refine(_evaluate(R, sh, cfg), sh, cfg)
+        best = fit if best is None or fit.score > best.score else best
+        # The start, or the fit to all targets, explains (nearly) everything: no search.
         if best.determined and best.n_inliers >= 0.9 * sh.size:
             return _with_shared(best, sh)
     for R in _screen(_hypotheses(sh, cfg), sh, cfg):
