@@ -689,7 +689,6 @@ def _orient(obj: _Prims, data: _Data, A, S, keep_p):
     """One orientation per object-space normal: towards the side most of its points were
     observed from (weighted by points), which for a room's faces is into the room."""
     n = obj.n.copy()
-    # Planes whose points never spread in two directions still get the PCA normal.
     side = np.zeros(data.n_planes)
     q = np.flatnonzero(keep_p)
     pos = {k: i for i, k in enumerate(obj.plane)}
