@@ -139,8 +139,8 @@ def approximate_network(net: Network, config: ApproxConfig | None = None):
 
 @dataclasses.dataclass(eq=False)
 class _Prims:
-    """Primitives of one frame (a scan, or object space): planes by id with normal ``n`` (zero
-    where ``has_n`` is False), its sigma ``sn`` [rad], centroid ``c``, the sigma ``sc`` [m] of the
+    """Primitives of one frame (a scan, or object space): planes by id with normal ``n`` (not
+    to be used where ``has_n`` is False), its sigma ``sn`` [rad], centroid ``c``, the sigma ``sc`` [m] of the
     centroid across the plane; targets by id with points ``x`` and sigmas ``sx`` [m]."""
 
     plane: np.ndarray
@@ -190,7 +190,7 @@ def _plane_fit(cnt, s1, s2, cfg: ApproxConfig):
     resid = w[:, 0] * m / np.maximum(m - 3.0, 1.0)
     sn = np.sqrt(resid / (m * np.maximum(w[:, 1], 1e-300)) + cfg.normal_sigma_floor**2)
     sc = np.sqrt(resid / m + cfg.point_sigma_floor**2)
-    n = np.where(has_n[:, None], n, 0.0)
+    # Without has_n the normal is still the PCA axis (a unit vector), only not to be trusted.
     return n, has_n, np.where(has_n, sn, np.inf), c, sc
 
 
