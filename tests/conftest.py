@@ -1,5 +1,8 @@
+import os
+
 import jax
 import pytest
+from hypothesis import HealthCheck, Phase, settings
 from strict_json import check_tree
 
 # float64 everywhere (SPEC section 1); tlsjax sets it too, but tests may import jax first.
@@ -22,3 +25,21 @@ def _all_written_json_is_strict(tmp_path_factory):
     """The same for the module- and session-scoped folders (tmp_path_factory), at the end."""
     yield
     check_tree(tmp_path_factory.getbasetemp())
+
+
+# Property-based tests (tests/test_property_networks.py): derandomised, so that CI draws the same
+# designs every run, without a deadline (the first draw of each shape compiles the adjustment)
+# without the example database and without shrinking (every draw costs an adjustment, and a
+# failing design is printed in full). Each test sets its own max_examples (tests/networks.py:
+# examples(), five times as many under TLSJAX_HYPOTHESIS_PROFILE=thorough).
+_COMMON = dict(
+    derandomize=True,
+    deadline=None,
+    database=None,
+    print_blob=True,
+    phases=(Phase.explicit, Phase.generate),
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
+)
+settings.register_profile("ci", **_COMMON)
+settings.register_profile("thorough", **_COMMON)
+settings.load_profile(os.environ.get("TLSJAX_HYPOTHESIS_PROFILE", "ci"))

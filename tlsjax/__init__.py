@@ -69,6 +69,10 @@ from ._report._plots import plot_ap_correlations as plot_ap_correlations
 from ._report._plots import plot_monte_carlo as plot_monte_carlo
 from ._report._plots import plot_residuals as plot_residuals
 from ._report._text import ap_table as ap_table
+from ._simulation._design import DesignPlane as DesignPlane
+from ._simulation._design import DesignSimulation as DesignSimulation
+from ._simulation._design import NetworkDesign as NetworkDesign
+from ._simulation._design import simulate_design as simulate_design
 from ._simulation._montecarlo import MonteCarloOptions as MonteCarloOptions
 from ._simulation._montecarlo import MonteCarloResult as MonteCarloResult
 from ._simulation._montecarlo import monte_carlo as monte_carlo
