@@ -27,8 +27,17 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._model._datum import inner_constraint_cofactor
-from ._families import OBS_AXES, Params, Problem, Spec, levelling_jacobian, levelling_residual
-from ._linalg import cholesky_inverse
+from ._families import (
+    OBS_AXES,
+    Params,
+    Problem,
+    Spec,
+    cost,
+    count_observations,
+    levelling_jacobian,
+    levelling_residual,
+)
+from ._linalg import cholesky_inverse, forward_substitution
 from ._normal import linearise, null_space, reduce
 
 
@@ -197,3 +206,32 @@ def _full_cofactor(spec, red, Qzz, Hp, Hz):
         SQ = Q - H @ (M @ (G.T @ Q))
         Q = SQ - (SQ @ G) @ M.T @ H.T
     return Q
+
+
+class Summary(eqx.Module):
+    """The estimable part of the quality that a Monte Carlo realisation needs (SPEC section 9):
+    ``v^T P v``, the redundancy ``r = n - u + d``, the AP cofactor block (datum invariant) and
+    the parameters the rank test found dependent."""
+
+    vtpv: Float[Array, ""]
+    dof: Float[Array, ""]
+    Qaa: Float[Array, "a a"]
+    dependent: object
+
+
+def summary(spec: Spec, problem: Problem, params: Params, rank_tolerance) -> Summary:
+    """:func:`quality` reduced to what is estimable and small: no observation-space or
+    primitive blocks. ``Q_aa`` comes from one triangular solve with the AP unit columns,
+    ``W = L^-1 E_a``, ``Q_aa = W^T W`` (scaled back), instead of the whole ``L^-T L^-1``."""
+    blocks = linearise(spec, problem, params)
+    _, Hz = null_space(spec, problem.families, params)
+    red = reduce(spec, problem, blocks, Hz, jnp.asarray(0.0), rank_tolerance)
+    dep = red.dependent
+    a0 = 6 * spec.n_scans
+    W = forward_substitution(red.L, jnp.eye(spec.r, dtype=red.L.dtype)[:, a0:])
+    s = red.scale[a0:]
+    Qaa = (W.T @ W) * s[:, None] * s[None, :]
+    Qaa = jnp.where(dep[a0:, None] | dep[None, a0:], 0.0, Qaa)
+    n_unknowns = jnp.sum(~dep) + sum(P.size for P in params.prims)
+    dof = count_observations(problem, params) - n_unknowns + Hz.shape[1]
+    return Summary(cost(spec, problem, params), jnp.asarray(dof, dtype=jnp.float64), Qaa, dep)
