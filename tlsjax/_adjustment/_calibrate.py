@@ -21,10 +21,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._config import CalibrationModel, SolverOptions
-from ._families import Params
+from ._families import Params, grid_layout, on_grid
 from ._network import Network
 from ._plan import UNIT_NORMAL_STRENGTH, build_plan, initial_params
-from ._quality import quality, summary
+from ._quality import quality_from, summary_from
 from ._result import (
     MAX_ITERATIONS,
     NONFINITE,
@@ -34,23 +34,24 @@ from ._result import (
     CalibrationResult,
     assemble,
 )
-from ._solver import adjust
+from ._solver import adjust_linearised
 
 
 @functools.partial(jax.jit, static_argnums=(0, 4))
 def _run(spec, problem, params0, options, full_covariance):
     """The compiled adjustment and its quality; pure in (problem, params0, options)."""
-    state = adjust(spec, problem, params0, options)
-    q = quality(spec, problem, state.params, options.rank_tolerance, full_covariance)
-    return state, q
+    grid = on_grid(problem)
+    state, lin = adjust_linearised(spec, grid, params0, options)
+    return state, quality_from(spec, problem, grid, state.params, lin, full_covariance)
 
 
 def estimate(spec, problem, params0, options):
     """The adjustment of :func:`_run` with only its estimable summary (:func:`._quality.summary`)
     and its result code, computed in the graph: what a batch of realisations (Monte Carlo)
     needs of each. Pure, so it can be vmapped; the codes are those of :func:`calibrate`."""
-    state = adjust(spec, problem, params0, options)
-    s = summary(spec, problem, state.params, options.rank_tolerance)
+    grid = on_grid(problem)
+    state, lin = adjust_linearised(spec, grid, params0, options)
+    s = summary_from(spec, grid, state.params, lin)
     return state, s, result_code(spec, problem, state, s)
 
 
@@ -96,7 +97,11 @@ class Adjustment:
         self.network = network
         self.model = model or CalibrationModel()
         self.options = options or SolverOptions()
-        self.plan = build_plan(network, self.model)
+        plan = build_plan(network, self.model)
+        # The layout of each family's sums, chosen once from the static structure (grid or
+        # segment sums, :func:`._families.grid_layout`).
+        layouts = tuple(grid_layout(f, plan.spec.n_scans) for f in plan.problem.families)
+        self.plan = dataclasses.replace(plan, problem=_replace(plan.problem, layouts=layouts))
         self._params0 = None
 
     @property

@@ -68,56 +68,96 @@ def ap_jacobians(spec: Spec, problem: Problem, params: Params) -> tuple:
     return tuple(out)
 
 
-def _family_jacobians(spec, problem, params, fi, ap_jac):
-    """Residual rows e (m, rows) and Jacobian blocks w.r.t. the primitive, pose and APs."""
-    fam = problem.families[fi]
-    args = fam.observation_args(problem, params, fi)
-    f = lambda *a: fam.residual(spec, *a)
-    e = jax.vmap(f, in_axes=OBS_AXES)(*args)
-    if ap_jac is None or ap_jac[fi] is None:
-        Jp, Js, Ja = jax.vmap(jax.jacfwd(f, argnums=(0, 1, 2)), in_axes=OBS_AXES)(*args)
-    else:
-        Jp, Js = jax.vmap(jax.jacfwd(f, argnums=(0, 1)), in_axes=OBS_AXES)(*args)
-        Ja = ap_jac[fi]
-    return e, Jp, Js, Ja
+class Rows(eqx.Module):
+    """One family's linearisation per observation: whitened residual rows ``e`` (m, k),
+    Jacobian blocks ``Jp`` (m, k, p), ``Js`` (m, k, 6), ``Ja`` (m, k, a), and ``raw``, the
+    residual the quality pass reports (see :meth:`Family.linear_rows`)."""
+
+    e: Array
+    Jp: Array
+    Js: Array
+    Ja: Array
+    raw: Array
+
+
+def _sums_on_grid(shape, e, Jp, Js, Ja):
+    """Normal-equation sums of a family on its grid (n primitives, s scans, c slots): reshapes
+    and sums over axes. Returns (N_pp, b_p, N_ps pairs (n, s, p, 6), N_pa, N_ss, N_sa, N_aa,
+    b_s, b_a)."""
+    n, ns, c = shape
+    g = lambda J: J.reshape(n, ns, -1, J.shape[-1])  # slots and rows in one axis
+    e, Jp, Js, Ja = e.reshape(n, ns, -1), g(Jp), g(Js), g(Ja)
+    Pps = outer(Jp, Jp)  # (n, s, p, p)
+    return (
+        jnp.sum(Pps, axis=1),
+        -jnp.sum(matvec_t(Jp, e), axis=1),
+        outer(Jp, Js),
+        jnp.sum(outer(Jp, Ja), axis=1),
+        jnp.sum(outer(Js, Js), axis=0),
+        jnp.sum(outer(Js, Ja), axis=0),
+        jnp.sum(outer(Ja, Ja), axis=(0, 1)),
+        -jnp.sum(matvec_t(Js, e), axis=0),
+        -jnp.sum(matvec_t(Ja, e), axis=(0, 1)),
+    )
+
+
+def _sums_by_segment(fam, ns, e, Jp, Js, Ja):
+    """The same sums for any index plan: segment sums over primitives, pairs and scans."""
+    seg = jax.ops.segment_sum
+    n, nq = fam.n, fam.pair_prim.shape[0]
+    nps_pairs = seg(outer(Jp, Js), fam.pair, nq)  # (q, p, 6)
+    nps = jnp.zeros((n, ns, fam.p, 6)).at[fam.pair_prim, fam.pair_scan].set(nps_pairs)
+    return (
+        seg(outer(Jp, Jp), fam.prim, n),
+        -seg(matvec_t(Jp, e), fam.prim, n),
+        nps,
+        seg(outer(Jp, Ja), fam.prim, n),
+        seg(outer(Js, Js), fam.scan, ns),
+        seg(outer(Js, Ja), fam.scan, ns),
+        jnp.sum(outer(Ja, Ja), axis=0),
+        -seg(matvec_t(Js, e), fam.scan, ns),
+        -jnp.sum(matvec_t(Ja, e), axis=0),
+    )
 
 
 def linearise(spec: Spec, problem: Problem, params: Params, ap_jac: tuple | None = None) -> Blocks:
-    """Assemble the normal-equation blocks with segment sums (never a dense Jacobian).
+    """Assemble the normal-equation blocks (never a dense Jacobian); see :func:`linearise_rows`.
 
     ``ap_jac``: the AP Jacobians of :func:`ap_jacobians`, if already taken.
     """
+    return linearise_rows(spec, problem, params, ap_jac)[0]
+
+
+def linearise_rows(spec: Spec, problem: Problem, params: Params, ap_jac: tuple | None = None):
+    """The one linearisation of the engine: per family the residual rows and Jacobian blocks
+    (:class:`Rows`, from ``vmap(jacfwd)``) and the normal-equation :class:`Blocks` summed from
+    them, on the family's grid when it has one (:class:`._families.Layout`), by segment sums
+    otherwise. The solver and the quality pass share it. Returns (blocks, rows per family)."""
     ns, na = spec.n_scans, spec.n_aps
     Nss = jnp.zeros((ns, 6, 6))
     Nsa = jnp.zeros((ns, 6, na))
     Naa = jnp.zeros((na, na))
     bs = jnp.zeros((ns, 6))
     ba = jnp.zeros((na,))
-    Npp, Npz, bp, Dp = [], [], [], []
-    for fi, fam in enumerate(problem.families):
+    Npp, Npz, bp, Dp, rows = [], [], [], [], []
+    grids = problem.grids or (None,) * len(problem.families)
+    for fi, (fam, grid) in enumerate(zip(problem.families, grids)):
         P = params.prims[fi]
-        e, Jp, Js, Ja = _family_jacobians(spec, problem, params, fi, ap_jac)
-        n, nq = fam.n, fam.pair_prim.shape[0]
-        seg = jax.ops.segment_sum
-        npp = seg(outer(Jp, Jp), fam.prim, n)
-        bpp = -seg(matvec_t(Jp, e), fam.prim, n)
+        r = Rows(
+            *fam.linear_rows(spec, problem, params, fi, None if ap_jac is None else ap_jac[fi])
+        )
+        rows.append(r)
+        J = (r.e, r.Jp, r.Js, r.Ja)
+        sums = _sums_on_grid(grid, *J) if grid else _sums_by_segment(fam, ns, *J)
+        npp, bpp, nps, npa, nss, nsa, naa, bss, baa = sums
         # Priors on primitives (control points, scale-bar lengths, unit normals).
         pr, Jpr = fam.prior_residuals(P), fam.prior_jacobian(P)
         Dp.append(jnp.diagonal(npp, axis1=-2, axis2=-1))
-        npp = npp + outer(Jpr, Jpr)
-        bpp = bpp - matvec_t(Jpr, pr)
-        nps_pairs = seg(outer(Jp, Js), fam.pair, nq)  # (q, p, 6)
-        nps = jnp.zeros((n, ns, fam.p, 6)).at[fam.pair_prim, fam.pair_scan].set(nps_pairs)
-        nps = jnp.transpose(nps, (0, 2, 1, 3)).reshape(n, fam.p, 6 * ns)
-        npa = seg(outer(Jp, Ja), fam.prim, n)
-        Npp.append(npp)
+        Npp.append(npp + outer(Jpr, Jpr))
+        bp.append(bpp - matvec_t(Jpr, pr))
+        nps = jnp.transpose(nps, (0, 2, 1, 3)).reshape(fam.n, fam.p, 6 * ns)
         Npz.append(jnp.concatenate([nps, npa], axis=-1))
-        bp.append(bpp)
-        Nss = Nss + seg(outer(Js, Js), fam.scan, ns)
-        Nsa = Nsa + seg(outer(Js, Ja), fam.scan, ns)
-        Naa = Naa + jnp.sum(outer(Ja, Ja), axis=0)
-        bs = bs - seg(matvec_t(Js, e), fam.scan, ns)
-        ba = ba - jnp.sum(matvec_t(Ja, e), axis=0)
+        Nss, Nsa, Naa, bs, ba = Nss + nss, Nsa + nsa, Naa + naa, bs + bss, ba + baa
     # Levelling pseudo-observations (compensator readings) act on the scan's rotation.
     Jl = levelling_jacobian(problem, params.eops)
     lr = levelling_residual(problem, params.eops)
@@ -130,7 +170,16 @@ def linearise(spec: Spec, problem: Problem, params: Params, ap_jac: tuple | None
     Nsa_full = Nsa.reshape(6 * ns, na)
     Nzz = jnp.block([[Nss_full, Nsa_full], [Nsa_full.T, Naa]])
     bz = jnp.concatenate([bs.reshape(-1), ba])
-    return Blocks(tuple(Npp), tuple(Npz), tuple(bp), Nzz, bz, tuple(Dp))
+    return Blocks(tuple(Npp), tuple(Npz), tuple(bp), Nzz, bz, tuple(Dp)), tuple(rows)
+
+
+def linearised_cost(problem: Problem, params: Params, rows) -> Array:
+    """``v^T P v`` at the linearisation point from its rows (for a family with frozen weights,
+    the weights of that point: the reference cost of a step's acceptance)."""
+    total = jnp.sum(levelling_residual(problem, params.eops) ** 2)
+    for fam, P, r in zip(problem.families, params.prims, rows):
+        total = total + jnp.sum(r.e**2) + jnp.sum(fam.prior_residuals(P) ** 2)
+    return total
 
 
 def null_space(spec: Spec, families, params: Params):
