@@ -198,15 +198,30 @@ class PointFamily(Family):
         E = params.eops
         R = jax.vmap(lambda a: rotation_matrix(a[0], a[1], a[2]))(E[:, 3:])  # (s, 3, 3)
         dR = jax.vmap(jax.jacfwd(lambda a: rotation_matrix(a[0], a[1], a[2])))(E[:, 3:])
-        X = params.prims[fi].reshape(-1, self.k, 3)[self.prim, self.point]  # (m, 3)
-        d = X - E[self.scan, :3]
-        Rm = R[self.scan]
-        x = jnp.einsum("mij,mj->mi", Rm, d)
+        X = params.prims[fi].reshape(-1, self.k, 3)
+        X = X[:, 0] if self.k == 1 else X[self.prim, self.point]
         pano = np.array([sc.architecture == "panoramic" for sc in spec.scanners])
         face2 = jnp.asarray(pano)[args[6]] & is_face2(self.obs[:, 2])
-        Jx = jax.vmap(jax.jacfwd(spherical_from_cartesian))(x, face2)  # (m, 3, 3)
-        JX = jnp.einsum("mij,mjk->mik", Jx, Rm)
-        Jang = jnp.einsum("mij,mjk->mik", Jx, jnp.einsum("mjlk,ml->mjk", dR[self.scan], d))
+        grid = problem.grids[fi] if problem.grids else None
+        if grid:
+            # On the grid the scan is an axis: the per-scan matrices broadcast, no gathers.
+            n, ns, c = grid
+            Xg = X[:, None, None, :] if self.k == 1 else X.reshape(n, ns, c, 3)
+            d = Xg - E[None, :, None, :3]  # (n, s, c, 3)
+            x = jnp.einsum("sij,nscj->nsci", R, d).reshape(-1, 3)
+            Jx = jax.vmap(jax.jacfwd(spherical_from_cartesian))(x, face2)
+            Jx = Jx.reshape(n, ns, c, 3, 3)
+            JX = jnp.einsum("nscij,sjk->nscik", Jx, R).reshape(-1, 3, 3)
+            dRd = jnp.einsum("sjlk,nscl->nscjk", dR, d)
+            Jang = jnp.einsum("nscij,nscjk->nscik", Jx, dRd).reshape(-1, 3, 3)
+        else:
+            X = X[self.prim] if self.k == 1 else X
+            d = X - E[self.scan, :3]
+            Rm = R[self.scan]
+            x = jnp.einsum("mij,mj->mi", Rm, d)
+            Jx = jax.vmap(jax.jacfwd(spherical_from_cartesian))(x, face2)  # (m, 3, 3)
+            JX = jnp.einsum("mij,mjk->mik", Jx, Rm)
+            Jang = jnp.einsum("mij,mjk->mik", Jx, jnp.einsum("mjlk,ml->mjk", dR[self.scan], d))
         Js = jnp.concatenate([-JX, Jang], axis=-1)
         if self.k == 1:
             Jp = JX

@@ -286,7 +286,8 @@ _COMPILED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _compiled_chunk(simulation, model, ap_sigma, chunk: int):
-    key = (model, tuple(sorted(dict(ap_sigma or {}).items())), chunk, device_key())
+    # repr: a model with several instruments holds a dict of scanners (unhashable).
+    key = (repr(model), tuple(sorted(dict(ap_sigma or {}).items())), chunk, device_key())
     cache = _COMPILED.setdefault(simulation, {})
     if key in cache:
         design, b = cache[key]
