@@ -27,7 +27,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._model._datum import move_plane, move_points
-from .._model._geometry import is_face2, rotation_matrix, spherical_from_cartesian
+from .._model._geometry import is_face2, rotation_matrix, spherical_from_cartesian, wrap_angle
 from .._model._levelling import compensator_reading
 from .._model._planes import (
     condition_variance,
@@ -105,7 +105,12 @@ class Family(eqx.Module):
             inst,
         )
 
-    def residuals(self, spec, problem, params, fi, unit_weight: bool = False):
+    def ap_block(self, spec, problem, params, fi):
+        """``d e / d AP`` (m, rows, a) when it is constant in an adjustment
+        (``constant_ap_jacobian``), else None."""
+        return None
+
+    def residuals(self, spec, problem, params, fi, unit_weight: bool = False, ap_jac=None):
         """Whitened residual rows of every observation, (m, rows)."""
         args = list(self.observation_args(problem, params, fi))
         if unit_weight:
@@ -135,10 +140,10 @@ class Family(eqx.Module):
     def prior_jacobian(self, P):
         return jax.vmap(jax.jacfwd(self.prior))(P, *self.prior_args())
 
-    def cost_rows(self, spec, problem, params, fi, frozen):
+    def cost_rows(self, spec, problem, params, fi, frozen, ap_jac=None):
         """Rows whose squares a step's acceptance compares (the residuals unless the family
         holds weights at the linearisation point ``frozen``)."""
-        return self.residuals(spec, problem, params, fi)
+        return self.residuals(spec, problem, params, fi, ap_jac=ap_jac)
 
     def active_rows(self):
         """Which residual rows are observations in the adjustment (weight > 0), (m, rows)."""
@@ -177,50 +182,66 @@ class PointFamily(Family):
         f = point_misclosure(X, eop, aps, l, spec.scanners, spec.ap_names, spec.ap_slices, inst)
         return f * w
 
-    def linear_rows(self, spec, problem, params, fi, ap_jac=None):
-        """As :meth:`Family.linear_rows`, with the unweighted misclosure ``f`` whitened after
-        (``e = f w``, ``J = J_f w``): ``raw = f`` is the residual ``F + Delta - l`` even of a
-        removed (weight-0) observation.
-
-        ``F = sph(x)``, ``x = R(omega, phi, kappa) (X - S)``: the rotation and its derivative
-        are taken once per scan (``jacfwd`` of :func:`rotation_matrix`), ``d sph / d x`` per
-        observation (``jacfwd`` with 3 tangents), and the chain rule joins them: ``J_X = J_x R``,
-        ``J_S = -J_x R``, ``J_angles = J_x (dR/dangle) (X - S)``. Differentiating the whole
-        point model per observation instead carries 9 tangents through a rotation matrix per
-        observation (3x the arithmetic, and under ``vmap`` large transposes). ``Delta`` does
-        not depend on X or the pose (SPEC section 2); its block is ``ap_jac`` (constant) or
-        ``jacfwd`` of the model. Checked against ``jacfwd`` of the whole model in the tests.
-        """
+    def ap_block(self, spec, problem, params, fi):
+        """The AP bases at the observations, ``d f / d AP`` of the *unweighted* misclosure
+        (m, 3, a): Delta is linear in the AP coefficients with its bases evaluated at the
+        observations (SPEC section 2), so this is constant in an adjustment; taken once."""
         args = list(self.observation_args(problem, params, fi))
-        w = args[4]
-        args[4] = jnp.ones_like(w)
-        raw = jax.vmap(lambda *a: self.residual(spec, *a), in_axes=OBS_AXES)(*args)
+        args[4] = jnp.ones_like(self.weight)
+        jac = jax.jacfwd(lambda *a: self.residual(spec, *a), argnums=2)
+        return jax.vmap(jac, in_axes=OBS_AXES)(*args)
+
+    def residuals(self, spec, problem, params, fi, unit_weight: bool = False, ap_jac=None):
+        if ap_jac is None:
+            return Family.residuals(self, spec, problem, params, fi, unit_weight)
+        f = self._misclosure(spec, problem, params, fi, ap_jac, jacobian=False)[0]
+        return f if unit_weight else f * self.weight
+
+    def _misclosure(self, spec, problem, params, fi, ap_basis, jacobian: bool):
+        """The unweighted misclosure ``f = wrap(sph(x) + B_a a - l)``, ``x = R (X - S)``, and
+        (``jacobian``) its blocks ``d f / d X``, ``d f / d pose`` by the chain rule.
+
+        The point model ``F = sph(x)`` with the rotation taken once per scan (and on the grid,
+        with the scan as an axis: no gathers), ``d sph / d x`` per observation (``jacfwd`` with
+        3 tangents), ``J_X = J_x R``, ``J_S = -J_x R``, ``J_angles = J_x (dR/dangle) (X - S)``;
+        ``Delta = B_a a`` with the constant AP bases ``B_a`` (:meth:`ap_block`). The same
+        numbers as ``jacfwd`` of :func:`point_misclosure` (tested), with a third of its
+        arithmetic and no rotation matrix per observation.
+        """
         E = params.eops
-        R = jax.vmap(lambda a: rotation_matrix(a[0], a[1], a[2]))(E[:, 3:])  # (s, 3, 3)
-        dR = jax.vmap(jax.jacfwd(lambda a: rotation_matrix(a[0], a[1], a[2])))(E[:, 3:])
+        rot = lambda a: rotation_matrix(a[0], a[1], a[2])
+        R = jax.vmap(rot)(E[:, 3:])  # (s, 3, 3)
         X = params.prims[fi].reshape(-1, self.k, 3)
         X = X[:, 0] if self.k == 1 else X[self.prim, self.point]
         pano = np.array([sc.architecture == "panoramic" for sc in spec.scanners])
-        face2 = jnp.asarray(pano)[args[6]] & is_face2(self.obs[:, 2])
+        face2 = jnp.asarray(pano)[problem.scan_instrument[self.scan]] & is_face2(self.obs[:, 2])
         grid = problem.grids[fi] if problem.grids else None
         if grid:
-            # On the grid the scan is an axis: the per-scan matrices broadcast, no gathers.
             n, ns, c = grid
             Xg = X[:, None, None, :] if self.k == 1 else X.reshape(n, ns, c, 3)
             d = Xg - E[None, :, None, :3]  # (n, s, c, 3)
             x = jnp.einsum("sij,nscj->nsci", R, d).reshape(-1, 3)
-            Jx = jax.vmap(jax.jacfwd(spherical_from_cartesian))(x, face2)
-            Jx = Jx.reshape(n, ns, c, 3, 3)
-            JX = jnp.einsum("nscij,sjk->nscik", Jx, R).reshape(-1, 3, 3)
-            dRd = jnp.einsum("sjlk,nscl->nscjk", dR, d)
-            Jang = jnp.einsum("nscij,nscjk->nscik", Jx, dRd).reshape(-1, 3, 3)
         else:
             X = X[self.prim] if self.k == 1 else X
             d = X - E[self.scan, :3]
-            Rm = R[self.scan]
-            x = jnp.einsum("mij,mj->mi", Rm, d)
-            Jx = jax.vmap(jax.jacfwd(spherical_from_cartesian))(x, face2)  # (m, 3, 3)
-            JX = jnp.einsum("mij,mjk->mik", Jx, Rm)
+            x = jnp.einsum("mij,mj->mi", R[self.scan], d)
+        sph = lambda x_, f2: (lambda F: (F, F))(spherical_from_cartesian(x_, f2))
+        if jacobian:
+            Jx, F = jax.vmap(jax.jacfwd(sph, has_aux=True))(x, face2)  # (m, 3, 3)
+        else:
+            F = spherical_from_cartesian(x, face2)
+        f = F + jnp.einsum("mka,a->mk", ap_basis, params.aps) - self.obs
+        f = f.at[:, 1:].set(wrap_angle(f[:, 1:]))
+        if not jacobian:
+            return (f,)
+        dR = jax.vmap(jax.jacfwd(rot))(E[:, 3:])  # (s, 3, 3, 3): d R_ij / d angle_k
+        if grid:
+            Jx5 = Jx.reshape(n, ns, c, 3, 3)
+            JX = jnp.einsum("nscij,sjk->nscik", Jx5, R).reshape(-1, 3, 3)
+            dRd = jnp.einsum("sjlk,nscl->nscjk", dR, d)
+            Jang = jnp.einsum("nscij,nscjk->nscik", Jx5, dRd).reshape(-1, 3, 3)
+        else:
+            JX = jnp.einsum("mij,mjk->mik", Jx, R[self.scan])
             Jang = jnp.einsum("mij,mjk->mik", Jx, jnp.einsum("mjlk,ml->mjk", dR[self.scan], d))
         Js = jnp.concatenate([-JX, Jang], axis=-1)
         if self.k == 1:
@@ -228,16 +249,17 @@ class PointFamily(Family):
         else:  # the observed end of a scale bar
             one = jax.nn.one_hot(self.point, self.k, dtype=JX.dtype)
             Jp = (one[:, None, :, None] * JX[:, :, None, :]).reshape(JX.shape[0], 3, -1)
-        if ap_jac is None:
-            Ja = (
-                jax.vmap(
-                    jax.jacfwd(lambda *a: self.residual(spec, *a), argnums=2), in_axes=OBS_AXES
-                )(*args)
-                * w[:, :, None]
-            )
-        else:
-            Ja = ap_jac
-        return raw * w, Jp * w[:, :, None], Js * w[:, :, None], Ja, raw
+        return f, Jp, Js
+
+    def linear_rows(self, spec, problem, params, fi, ap_jac=None):
+        """As :meth:`Family.linear_rows`, with the unweighted misclosure ``f`` whitened after
+        (``e = f w``, ``J = J_f w``): ``raw = f`` is the residual ``F + Delta - l`` even of a
+        removed (weight-0) observation. See :meth:`_misclosure`; ``ap_jac`` is the AP block of
+        :meth:`ap_block` (taken here when not given)."""
+        B = self.ap_block(spec, problem, params, fi) if ap_jac is None else ap_jac
+        raw, Jp, Js = self._misclosure(spec, problem, params, fi, B, jacobian=True)
+        w = self.weight[:, :, None]
+        return raw * self.weight, Jp * w, Js * w, B * w, raw
 
     def prior_args(self):
         return (self.ctrl_xyz, self.ctrl_weight, self.bar_length, self.bar_weight)
@@ -322,7 +344,7 @@ class PlaneFamily(Family):
             lambda P_, E_, l_, s_, i_: condition_variance(P_, E_, aps, l_, s_, *sl, i_)
         )(P, E, l, self._sigma(), inst)
 
-    def cost_rows(self, spec, problem, params, fi, frozen):
+    def cost_rows(self, spec, problem, params, fi, frozen, ap_jac=None):
         new = self.observation_args(problem, params, fi)
         m, _ = self._variance(spec, self.observation_args(problem, frozen, fi), frozen.aps)
         sl = (spec.scanners, spec.ap_names, spec.ap_slices)
@@ -394,18 +416,20 @@ def levelling_jacobian(problem, eops):
     return jax.vmap(jax.jacfwd(compensator_reading))(eops) * problem.levelling_weight[:, :, None]
 
 
-def cost(spec, problem, params, frozen: Params | None = None):
+def cost(spec, problem, params, frozen: Params | None = None, ap_jac: tuple | None = None):
     """``v^T P v``: sum of squared whitened residuals, observations and pseudo-observations.
 
     ``frozen``: the linearisation point at which families with ``frozen_cost`` hold their
-    weights (a Gauss-Helmert step is accepted under its own M).
+    weights (a Gauss-Helmert step is accepted under its own M). ``ap_jac``: the constant AP
+    blocks (``Family.ap_block``), if taken.
     """
     total = jnp.sum(levelling_residual(problem, params.eops) ** 2)
     for fi, fam in enumerate(problem.families):
+        aj = None if ap_jac is None else ap_jac[fi]
         if frozen is not None and fam.frozen_cost:
-            e = fam.cost_rows(spec, problem, params, fi, frozen)
+            e = fam.cost_rows(spec, problem, params, fi, frozen, aj)
         else:
-            e = fam.residuals(spec, problem, params, fi)
+            e = fam.residuals(spec, problem, params, fi, ap_jac=aj)
         total = total + jnp.sum(e**2) + jnp.sum(fam.prior_residuals(params.prims[fi]) ** 2)
     return total
 

@@ -20,12 +20,16 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax import lax
 from jaxtyping import Array, Bool, Float
 
 from .._model._datum import move_eop, null_space_columns, s_transform_vector
-from ._families import OBS_AXES, Params, Problem, Spec, levelling_jacobian, levelling_residual
-from ._linalg import cholesky_solve, forward_substitution, rank_revealing_cholesky, spd_inverse
+from ._families import Params, Problem, Spec, levelling_jacobian, levelling_residual
+from ._linalg import (
+    cholesky_solve,
+    forward_substitution,
+    rank_revealing_cholesky_damped,
+    spd_inverse,
+)
 
 
 def outer(a, b):
@@ -53,20 +57,11 @@ class Blocks(eqx.Module):
 
 
 def ap_jacobians(spec: Spec, problem: Problem, params: Params) -> tuple:
-    """``d e / d AP`` per family, (m, rows, a), for the families where it is constant.
-
-    For points Delta is linear in the AP coefficients with its bases evaluated at the
-    observations, and F does not depend on the APs (SPEC section 2): taking it once leaves
-    3 + 6 tangents per observation for the iterations instead of 9 + a.
-    """
-    out = []
-    for fi, fam in enumerate(problem.families):
-        if not fam.constant_ap_jacobian:
-            out.append(None)
-            continue
-        jac = jax.jacfwd(lambda *a, fam=fam: fam.residual(spec, *a), argnums=2)
-        out.append(jax.vmap(jac, in_axes=OBS_AXES)(*fam.observation_args(problem, params, fi)))
-    return tuple(out)
+    """The constant AP blocks per family (:meth:`Family.ap_block`; None where the block changes
+    with the estimate). For points Delta is linear in the AP coefficients with its bases
+    evaluated at the observations, and F does not depend on the APs (SPEC section 2): taken
+    once, the iterations differentiate only the geometry."""
+    return tuple(fam.ap_block(spec, problem, params, fi) for fi, fam in enumerate(problem.families))
 
 
 class Rows(eqx.Module):
@@ -235,13 +230,10 @@ def reduce(spec, problem, blocks: Blocks, Hz, damping, rank_tolerance) -> Reduce
     Ks = jnp.where(ok[:, None] & ok[None, :], Ks, 0.0)
     # Rank is judged on the undamped system; the damped one is factorised with the same
     # dependent columns held fixed.
-    L, dep, piv = rank_revealing_cholesky(Ks, problem.fixed | ~ok, rank_tolerance)
-    # Undamped Gauss-Newton steps (the common case) skip the second factorisation.
-    L = lax.cond(
-        damping > 0,
-        lambda: rank_revealing_cholesky(Ks + damping * jnp.eye(Ks.shape[0]), dep, -1.0)[0],
-        lambda: L,
+    L, dep, piv, Ld = rank_revealing_cholesky_damped(
+        Ks, damping, problem.fixed | ~ok, rank_tolerance
     )
+    L = jnp.where(damping > 0, Ld, L)
     return Reduced(tuple(inv_list), tuple(Y_list), scale, L, dep, piv, Ks, K)
 
 

@@ -239,7 +239,7 @@ def summary(spec: Spec, problem: Problem, params: Params, rank_tolerance) -> Sum
     return summary_from(spec, grid, params, linearisation_at(spec, grid, params, rank_tolerance))
 
 
-def summary_from(spec: Spec, grid: Problem, params: Params, lin) -> Summary:
+def summary_from(spec: Spec, grid: Problem, params: Params, lin, vtpv=None) -> Summary:
     """No observation-space or primitive blocks: ``Q_aa`` comes from one triangular solve with
     the AP unit columns, ``W = L^-1 E_a``, ``Q_aa = W^T W`` (scaled back), instead of the whole
     ``L^-T L^-1``; ``v^T P v`` from the linearisation's rows."""
@@ -252,5 +252,6 @@ def summary_from(spec: Spec, grid: Problem, params: Params, lin) -> Summary:
     Qaa = jnp.where(dep[a0:, None] | dep[None, a0:], 0.0, Qaa)
     n_unknowns = jnp.sum(~dep) + sum(P.size for P in params.prims)
     dof = count_observations(grid, params) - n_unknowns + lin.Hz.shape[1]
-    vtpv = linearised_cost(grid, params, lin.rows)
+    if vtpv is None:  # the linearisation is at params
+        vtpv = linearised_cost(grid, params, lin.rows)
     return Summary(vtpv, jnp.asarray(dof, dtype=jnp.float64), Qaa, dep)

@@ -94,11 +94,20 @@ class _Loop(eqx.Module):
     done: Bool[Array, ""]
 
 
-def adjust_linearised(spec: Spec, problem: Problem, params0: Params, options: Options):
+def adjust_linearised(
+    spec: Spec, problem: Problem, params0: Params, options: Options, final_pass: bool = True
+):
     """:func:`adjust` on a problem already on its grid (:func:`._families.on_grid`); also
     returns the :class:`Linearisation` at the final estimate. One trace of the linearisation:
     the loop's last pass (after convergence, the iteration limit or too much damping) only
-    linearises and reduces, undamped, at the final estimate."""
+    linearises and reduces, undamped, at the final estimate.
+
+    ``final_pass=False`` (Monte Carlo, which needs only the estimable summary) skips that pass
+    and returns the linearisation of the last step instead: converged means that step was an
+    undamped Gauss-Newton step shorter than ``tolerance`` a posteriori sigmas, so its reduced
+    system differs from the one at the final estimate at second order (the AP cofactors by
+    about 1e-10 relatively, tested against calibrate), and ``state.cost`` is the cost of the
+    accepted step (at the final estimate)."""
     ap_jac = ap_jacobians(spec, problem, params0)
     frozen_cost = any(fam.frozen_cost for fam in problem.families)
     dof = jnp.maximum(
@@ -122,16 +131,30 @@ def adjust_linearised(spec: Spec, problem: Problem, params0: Params, options: Op
             | (state.iteration >= options.max_iterations)
             | (state.damping > options.damping_max)
         )
+        if not final_pass:
+            lin = linearisation(state.params, state.damping)
+            ref_cost = linearised_cost(problem, state.params, lin.rows)
+            new_state = _step(state, lin, ref_cost, state.damping)
+            return _Loop(new_state, lin, _stop(new_state))
         damping = jnp.where(last, 0.0, state.damping)
         lin = linearisation(state.params, damping)
         ref_cost = linearised_cost(problem, state.params, lin.rows)
         new_state = lax.cond(last, lambda: state, lambda: _step(state, lin, ref_cost, damping))
         return _Loop(new_state, lin, last)
 
+    def _stop(state):
+        return (
+            state.converged
+            | (state.iteration >= options.max_iterations)
+            | (state.damping > options.damping_max)
+        )
+
     def _step(state, lin, ref_cost, damping):
         red = lin.reduced
         new, dps, dz = solve_step(spec, problem, state.params, lin.blocks, red, lin.Hp, lin.Hz)
-        new_cost = cost(spec, problem, new, frozen=state.params if frozen_cost else None)
+        new_cost = cost(
+            spec, problem, new, frozen=state.params if frozen_cost else None, ap_jac=ap_jac
+        )
         finite = jnp.isfinite(new_cost)
         accept = finite & (new_cost <= ref_cost * (1.0 + 1e-12))
         s0 = jnp.sqrt(jnp.maximum(ref_cost, 0.0) / dof)
@@ -171,6 +194,8 @@ def adjust_linearised(spec: Spec, problem: Problem, params0: Params, options: Op
     zeros = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), lin0)
     out = lax.while_loop(lambda loop: ~loop.done, body, _Loop(init, zeros, jnp.asarray(False)))
     state = out.state
+    if not final_pass:
+        return state, out.lin
     # v^T P v at the final estimate (with its own weights), from the last linearisation.
     final_cost = linearised_cost(problem, state.params, out.lin.rows)
     finite = state.finite & jnp.isfinite(final_cost)
