@@ -273,13 +273,20 @@ def sigma_band(dof, p=1e-6):
 def check(case: Case, sim, res, tested=None):
     """The outcome a drawn network must have; raises AssertionError saying what is wrong."""
     msg = f"{case.kind} design (result {res.result}: {res.message})"
+    one_station = case.single_station and not sim.network.has_planes
+    if one_station and res.result == 1:
+        # A term the targets absorb only up to the noise of the scans' positions (collimation
+        # from one levelled station) leaves a nearly flat direction that Levenberg-Marquardt
+        # may not finish within the iteration limit; the failure must then name A0.
+        assert "A0 is not estimable" in res.message, f"one station, A0 not named: {msg}"
+        return
     assert res.result in (0, 2, 3), f"no usable result: {msg}"
     named = {n for n, _, _ in res.not_estimable}
     for name, partner, reason in res.not_estimable:
         assert partner and reason and name in res.message, f"{name} named without a reason: {msg}"
     if res.result == 3:
         assert res.rank_deficient, f"rank defect without the parameters: {msg}"
-    if case.single_station and not sim.network.has_planes:
+    if one_station:
         assert res.result == 2 and "A0" in named, f"one station must leave A0 undetermined: {msg}"
     else:
         assert res.result == 0, f"a well-posed design must converge: {msg}"

@@ -76,7 +76,9 @@ def test_failure_comes_with_a_diagnosis(room):
     net = sim.network
     obs = net.observations.copy()
     rows = np.flatnonzero(net.scan_index == 4)
-    obs[rows, 0] *= 1.05  # scan S5's ranges 5 % too long: no model fits them
+    # Scan S5's ranges 0.2 % too long: the approximate values still register it (a few cm of
+    # misfit), but no model fits it.
+    obs[rows, 0] *= 1.002
     res = tj.calibrate(net.with_observations(obs), model, tj.SolverOptions(max_iterations=2))
     assert res.result == tj.ResultCode.MAX_ITERATIONS
     s0 = res.diagnosis["sigma0_per_scan"]

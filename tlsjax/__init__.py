@@ -84,6 +84,7 @@ from ._simulation._point_clouds import simulate_point_clouds as simulate_point_c
 from ._simulation._room import Room as Room
 from ._simulation._room import Simulation as Simulation
 from ._simulation._room import simulate as simulate
+from ._simulation._truth import SimulationTruth as SimulationTruth
 
 try:
     from importlib.metadata import version as _version

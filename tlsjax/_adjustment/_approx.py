@@ -877,6 +877,14 @@ def _raise_undetermined(net, j, fit):
     bad = [f"plane {net.planes[k]}" for k in sh.plane[~fit.plane_in]]
     bad += [f"target {net.targets[t]}" for t in sh.target[~fit.target_in]]
     what = "rotation" if not fit.rotation_ok else "position"
+
+    def listed(names, most=8):
+        # A scan with a scale error contradicts every primitive: name a few and count them all.
+        if not names:
+            return "none"
+        more = f" and {len(names) - most} more" if len(names) > most else ""
+        return ", ".join(names[:most]) + more
+
     need = (
         "two non-parallel planes or three targets that agree"
         if what == "rotation"
@@ -884,8 +892,8 @@ def _raise_undetermined(net, j, fit):
     )
     raise ValueError(
         f"{net.source}: scan {net.scans[j]}: its {what} is not determined by the primitives it "
-        f"shares with the other scans (consistent: {', '.join(ok) or 'none'}; inconsistent: "
-        f"{', '.join(bad) or 'none'}); it needs {need}"
+        f"shares with the other scans (consistent: {listed(ok)}; inconsistent: "
+        f"{listed(bad)}); it needs {need}"
     )
 
 

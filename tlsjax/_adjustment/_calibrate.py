@@ -21,20 +21,51 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._config import CalibrationModel, SolverOptions
-from ._families import Params
+from ._families import Params, grid_layout, on_grid
 from ._network import Network, check_calibration_arguments
-from ._plan import build_plan, initial_params
-from ._quality import quality
-from ._result import CalibrationResult, assemble
-from ._solver import adjust
+from ._plan import UNIT_NORMAL_STRENGTH, build_plan, initial_params
+from ._quality import quality_from, summary_from
+from ._result import (
+    MAX_ITERATIONS,
+    NONFINITE,
+    NOT_ESTIMABLE,
+    RANK_DEFICIENT,
+    SUCCESS,
+    CalibrationResult,
+    assemble,
+)
+from ._solver import adjust_linearised
 
 
 @functools.partial(jax.jit, static_argnums=(0, 4))
 def _run(spec, problem, params0, options, full_covariance):
     """The compiled adjustment and its quality; pure in (problem, params0, options)."""
-    state = adjust(spec, problem, params0, options)
-    q = quality(spec, problem, state.params, options.rank_tolerance, full_covariance)
-    return state, q
+    grid = on_grid(problem)
+    state, lin = adjust_linearised(spec, grid, params0, options)
+    return state, quality_from(spec, problem, grid, state.params, lin, full_covariance)
+
+
+def estimate(spec, problem, params0, options):
+    """The adjustment of :func:`_run` with only its estimable summary (:func:`._quality.summary`)
+    and its result code, computed in the graph: what a batch of realisations (Monte Carlo)
+    needs of each. Pure, so it can be vmapped; the codes are those of :func:`calibrate`."""
+    grid = on_grid(problem)
+    state, lin = adjust_linearised(spec, grid, params0, options, final_pass=False)
+    s = summary_from(spec, grid, state.params, lin, state.cost)
+    return state, s, result_code(spec, problem, state, s)
+
+
+def result_code(spec, problem, state, s):
+    """:class:`ResultCode` of an adjustment as a traced integer, in the order of the host-side
+    assembly (:mod:`._result`): non-finite, rank defect of the poses, no convergence, APs not
+    estimable, success."""
+    n6 = 6 * spec.n_scans
+    free_dep = s.dependent & ~problem.fixed
+    code = jnp.where(jnp.any(free_dep[n6:]), NOT_ESTIMABLE, SUCCESS)
+    code = jnp.where(state.converged, code, MAX_ITERATIONS)
+    code = jnp.where(jnp.any(free_dep[:n6]), RANK_DEFICIENT, code)
+    code = jnp.where(state.finite & jnp.isfinite(s.vtpv), code, NONFINITE)
+    return code.astype(jnp.int32)
 
 
 def _replace(module, **changes):
@@ -62,7 +93,11 @@ class Adjustment:
         self.network = network
         self.model = model or CalibrationModel()
         self.options = options or SolverOptions()
-        self.plan = build_plan(network, self.model)
+        plan = build_plan(network, self.model)
+        # The layout of each family's sums, chosen once from the static structure (grid or
+        # segment sums, :func:`._families.grid_layout`).
+        layouts = tuple(grid_layout(f, plan.spec.n_scans) for f in plan.problem.families)
+        self.plan = dataclasses.replace(plan, problem=_replace(plan.problem, layouts=layouts))
         self._params0 = None
 
     @property
@@ -118,6 +153,46 @@ class Adjustment:
             fams[fi] = _replace(fams[fi], ctrl_xyz=jnp.asarray(cx), ctrl_weight=jnp.asarray(cw))
         return fams
 
+    def with_data(
+        self,
+        problem=None,
+        *,
+        observations=None,
+        plane_observations=None,
+        levelling=None,
+        control_xyz=None,
+        bar_length=None,
+    ):
+        """The problem with other observation values, in network order (pure and traceable:
+        Monte Carlo calls it inside the compiled batch): ``observations`` (n, 3) of the target
+        rows, ``plane_observations`` (m, 3), ``levelling`` (s, 2) readings, ``control_xyz``
+        (c, 3) in ``network.control_index`` order, ``bar_length`` (b,) of the scale bars."""
+        plan, net = self.plan, self.network
+        problem = plan.problem if problem is None else problem
+        fams = list(problem.families)
+        ctrl = None
+        if control_xyz is not None:
+            ctrl = jnp.zeros((len(net.targets), 3)).at[net.control_index].set(control_xyz)
+        for fi, rows in enumerate(plan.family_rows):
+            fam = fams[fi]
+            if fi == plan.plane_family:
+                if plane_observations is not None:
+                    obs = jnp.asarray(plane_observations)[rows]
+                    fam = _replace(fam, obs=obs, unit_weight=_unit_normal_weight(fam, obs))
+            else:
+                if observations is not None:
+                    fam = _replace(fam, obs=jnp.asarray(observations)[rows])
+                tg = plan.family_targets[fi]
+                if ctrl is not None and np.asarray(plan.problem.families[fi].ctrl_weight).any():
+                    fam = _replace(fam, ctrl_xyz=jnp.where(fam.ctrl_weight > 0, ctrl[tg], 0.0))
+                if bar_length is not None and tg.shape[1] == 2:
+                    fam = _replace(fam, bar_length=jnp.asarray(bar_length))
+            fams[fi] = fam
+        changes = {"families": tuple(fams)}
+        if levelling is not None:
+            changes["levelling"] = jnp.asarray(levelling)
+        return _replace(problem, **changes)
+
     def run(self, problem=None, params0=None):
         """The compiled call: (solver state, quality) as arrays."""
         return _run(
@@ -137,6 +212,13 @@ class Adjustment:
         state, q = self.run(problem, initial)
         plan = dataclasses.replace(self.plan, problem=problem)
         return assemble(self.network, self.model, plan, state, q)
+
+
+def _unit_normal_weight(fam, obs):
+    """The plane family's unit-normal weight for other observations (as :mod:`._plan` sets it
+    from the network's): ``UNIT_NORMAL_STRENGTH sqrt(sum_i (rho_i / sigma_rho,i)^2)`` per plane."""
+    info = (obs[:, 0] * fam.weight[:, 0]) ** 2
+    return UNIT_NORMAL_STRENGTH * jnp.sqrt(jax.ops.segment_sum(info, fam.prim, fam.n))
 
 
 def analyze(

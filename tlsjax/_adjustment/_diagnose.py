@@ -33,24 +33,24 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._linalg import spd_inverse
-from ._normal import linearise, null_space
+from ._families import on_grid
+from ._normal import linearise, null_space, reduce
 
 RIDGE = 1e-9
 
 
 @functools.partial(jax.jit, static_argnums=0)
 def _reduced_system(spec, problem, params):
-    """Raw reduced normal matrix K, target-datum constraint C (d, r) and the datum columns Hz."""
-    blocks = linearise(spec, problem, params)
-    Hp, Hz = null_space(spec, problem.families, params)
-    K = blocks.Nzz
-    C = jnp.zeros((Hz.shape[1], K.shape[0]))
-    for Npp, Npz, H in zip(blocks.Npp, blocks.Npz, Hp):
-        Y = jnp.sum(spd_inverse(Npp)[..., :, :, None] * Npz[..., None, :, :], axis=-2)
-        K = K - jnp.einsum("npr,npq->rq", Npz, Y)
+    """Raw reduced normal matrix K, target-datum constraint C (d, r) and the datum columns Hz,
+    from the engine's linearisation and Schur reduction (:func:`._normal.reduce`)."""
+    grid = on_grid(problem)
+    blocks = linearise(spec, grid, params)
+    Hp, Hz = null_space(spec, grid.families, params)
+    red = reduce(spec, grid, blocks, Hz, jnp.asarray(0.0), jnp.asarray(0.0))
+    C = jnp.zeros((Hz.shape[1], spec.r))
+    for H, Y in zip(Hp, red.Y):
         C = C + jnp.einsum("npd,npr->dr", H, Y)
-    return K, C, Hz
+    return red.K, C, Hz
 
 
 #: An AP whose column the primitives explain to within this share is absorbed by them.

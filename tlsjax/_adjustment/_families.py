@@ -27,10 +27,10 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .._model._datum import move_plane, move_points
+from .._model._geometry import is_face2, rotation_matrix, spherical_from_cartesian, wrap_angle
 from .._model._levelling import compensator_reading
 from .._model._planes import (
     condition_variance,
-    observation_residuals,
     plane_condition,
     unit_normal_constraint,
     whitened_condition,
@@ -105,12 +105,34 @@ class Family(eqx.Module):
             inst,
         )
 
-    def residuals(self, spec, problem, params, fi, unit_weight: bool = False):
+    def ap_block(self, spec, problem, params, fi):
+        """``d e / d AP`` (m, rows, a) when it is constant in an adjustment
+        (``constant_ap_jacobian``), else None."""
+        return None
+
+    def residuals(self, spec, problem, params, fi, unit_weight: bool = False, ap_jac=None):
         """Whitened residual rows of every observation, (m, rows)."""
         args = list(self.observation_args(problem, params, fi))
         if unit_weight:
             args[4] = jnp.ones_like(self.weight)
         return jax.vmap(lambda *a: self.residual(spec, *a), in_axes=OBS_AXES)(*args)
+
+    def linear_rows(self, spec, problem, params, fi, ap_jac=None):
+        """Whitened residual rows and their Jacobian blocks w.r.t. the primitive, the pose and
+        the APs (``ap_jac``: the constant AP block, if the family has one), plus what the
+        quality pass reports as the observation residual: (e, Jp, Js, Ja, raw)."""
+        args = self.observation_args(problem, params, fi)
+        f = lambda *a: (lambda r: (r, r))(self.residual(spec, *a))
+        if ap_jac is None:
+            (Jp, Js, Ja), e = jax.vmap(
+                jax.jacfwd(f, argnums=(0, 1, 2), has_aux=True), in_axes=OBS_AXES
+            )(*args)
+        else:
+            (Jp, Js), e = jax.vmap(jax.jacfwd(f, argnums=(0, 1), has_aux=True), in_axes=OBS_AXES)(
+                *args
+            )
+            Ja = ap_jac
+        return e, Jp, Js, Ja, e
 
     def prior_residuals(self, P):
         return jax.vmap(self.prior)(P, *self.prior_args())
@@ -118,10 +140,10 @@ class Family(eqx.Module):
     def prior_jacobian(self, P):
         return jax.vmap(jax.jacfwd(self.prior))(P, *self.prior_args())
 
-    def cost_rows(self, spec, problem, params, fi, frozen):
+    def cost_rows(self, spec, problem, params, fi, frozen, ap_jac=None):
         """Rows whose squares a step's acceptance compares (the residuals unless the family
         holds weights at the linearisation point ``frozen``)."""
-        return self.residuals(spec, problem, params, fi)
+        return self.residuals(spec, problem, params, fi, ap_jac=ap_jac)
 
     def active_rows(self):
         """Which residual rows are observations in the adjustment (weight > 0), (m, rows)."""
@@ -160,6 +182,85 @@ class PointFamily(Family):
         f = point_misclosure(X, eop, aps, l, spec.scanners, spec.ap_names, spec.ap_slices, inst)
         return f * w
 
+    def ap_block(self, spec, problem, params, fi):
+        """The AP bases at the observations, ``d f / d AP`` of the *unweighted* misclosure
+        (m, 3, a): Delta is linear in the AP coefficients with its bases evaluated at the
+        observations (SPEC section 2), so this is constant in an adjustment; taken once."""
+        args = list(self.observation_args(problem, params, fi))
+        args[4] = jnp.ones_like(self.weight)
+        jac = jax.jacfwd(lambda *a: self.residual(spec, *a), argnums=2)
+        return jax.vmap(jac, in_axes=OBS_AXES)(*args)
+
+    def residuals(self, spec, problem, params, fi, unit_weight: bool = False, ap_jac=None):
+        if ap_jac is None:
+            return Family.residuals(self, spec, problem, params, fi, unit_weight)
+        f = self._misclosure(spec, problem, params, fi, ap_jac, jacobian=False)[0]
+        return f if unit_weight else f * self.weight
+
+    def _misclosure(self, spec, problem, params, fi, ap_basis, jacobian: bool):
+        """The unweighted misclosure ``f = wrap(sph(x) + B_a a - l)``, ``x = R (X - S)``, and
+        (``jacobian``) its blocks ``d f / d X``, ``d f / d pose`` by the chain rule.
+
+        The point model ``F = sph(x)`` with the rotation taken once per scan (and on the grid,
+        with the scan as an axis: no gathers), ``d sph / d x`` per observation (``jacfwd`` with
+        3 tangents), ``J_X = J_x R``, ``J_S = -J_x R``, ``J_angles = J_x (dR/dangle) (X - S)``;
+        ``Delta = B_a a`` with the constant AP bases ``B_a`` (:meth:`ap_block`). The same
+        numbers as ``jacfwd`` of :func:`point_misclosure` (tested), with a third of its
+        arithmetic and no rotation matrix per observation.
+        """
+        E = params.eops
+        rot = lambda a: rotation_matrix(a[0], a[1], a[2])
+        R = jax.vmap(rot)(E[:, 3:])  # (s, 3, 3)
+        X = params.prims[fi].reshape(-1, self.k, 3)
+        X = X[:, 0] if self.k == 1 else X[self.prim, self.point]
+        pano = np.array([sc.architecture == "panoramic" for sc in spec.scanners])
+        face2 = jnp.asarray(pano)[problem.scan_instrument[self.scan]] & is_face2(self.obs[:, 2])
+        grid = problem.grids[fi] if problem.grids else None
+        if grid:
+            n, ns, c = grid
+            Xg = X[:, None, None, :] if self.k == 1 else X.reshape(n, ns, c, 3)
+            d = Xg - E[None, :, None, :3]  # (n, s, c, 3)
+            x = jnp.einsum("sij,nscj->nsci", R, d).reshape(-1, 3)
+        else:
+            X = X[self.prim] if self.k == 1 else X
+            d = X - E[self.scan, :3]
+            x = jnp.einsum("mij,mj->mi", R[self.scan], d)
+        sph = lambda x_, f2: (lambda F: (F, F))(spherical_from_cartesian(x_, f2))
+        if jacobian:
+            Jx, F = jax.vmap(jax.jacfwd(sph, has_aux=True))(x, face2)  # (m, 3, 3)
+        else:
+            F = spherical_from_cartesian(x, face2)
+        f = F + jnp.einsum("mka,a->mk", ap_basis, params.aps) - self.obs
+        f = f.at[:, 1:].set(wrap_angle(f[:, 1:]))
+        if not jacobian:
+            return (f,)
+        dR = jax.vmap(jax.jacfwd(rot))(E[:, 3:])  # (s, 3, 3, 3): d R_ij / d angle_k
+        if grid:
+            Jx5 = Jx.reshape(n, ns, c, 3, 3)
+            JX = jnp.einsum("nscij,sjk->nscik", Jx5, R).reshape(-1, 3, 3)
+            dRd = jnp.einsum("sjlk,nscl->nscjk", dR, d)
+            Jang = jnp.einsum("nscij,nscjk->nscik", Jx5, dRd).reshape(-1, 3, 3)
+        else:
+            JX = jnp.einsum("mij,mjk->mik", Jx, R[self.scan])
+            Jang = jnp.einsum("mij,mjk->mik", Jx, jnp.einsum("mjlk,ml->mjk", dR[self.scan], d))
+        Js = jnp.concatenate([-JX, Jang], axis=-1)
+        if self.k == 1:
+            Jp = JX
+        else:  # the observed end of a scale bar
+            one = jax.nn.one_hot(self.point, self.k, dtype=JX.dtype)
+            Jp = (one[:, None, :, None] * JX[:, :, None, :]).reshape(JX.shape[0], 3, -1)
+        return f, Jp, Js
+
+    def linear_rows(self, spec, problem, params, fi, ap_jac=None):
+        """As :meth:`Family.linear_rows`, with the unweighted misclosure ``f`` whitened after
+        (``e = f w``, ``J = J_f w``): ``raw = f`` is the residual ``F + Delta - l`` even of a
+        removed (weight-0) observation. See :meth:`_misclosure`; ``ap_jac`` is the AP block of
+        :meth:`ap_block` (taken here when not given)."""
+        B = self.ap_block(spec, problem, params, fi) if ap_jac is None else ap_jac
+        raw, Jp, Js = self._misclosure(spec, problem, params, fi, B, jacobian=True)
+        w = self.weight[:, :, None]
+        return raw * self.weight, Jp * w, Js * w, B * w, raw
+
     def prior_args(self):
         return (self.ctrl_xyz, self.ctrl_weight, self.bar_length, self.bar_weight)
 
@@ -174,11 +275,12 @@ class PointFamily(Family):
     def motion(self, P, motion):
         return move_points(P, motion)
 
-    def observation_quality(self, spec, problem, params, fi, JQJ):
+    def observation_quality(self, spec, problem, params, fi, JQJ, rows):
         """Residuals ``v = F + Delta - l`` [m, rad, rad] (a removed observation keeps its
         misclosure, so that a rejected blunder can be reported), redundancy numbers
-        ``1 - (J Q J^T)_ii``, the number of active observations and their ``v^T P v``."""
-        raw = self.residuals(spec, problem, params, fi, unit_weight=True)
+        ``1 - (J Q J^T)_ii``, the number of active observations and their ``v^T P v``.
+        ``rows``: the linearisation of :meth:`linear_rows` at ``params``."""
+        raw = rows.raw
         active = self.active_rows()
         redundancy = jnp.where(active, 1.0 - JQJ, 0.0)
         return raw, redundancy, jnp.sum(active), jnp.sum((raw * self.weight) ** 2)
@@ -242,7 +344,7 @@ class PlaneFamily(Family):
             lambda P_, E_, l_, s_, i_: condition_variance(P_, E_, aps, l_, s_, *sl, i_)
         )(P, E, l, self._sigma(), inst)
 
-    def cost_rows(self, spec, problem, params, fi, frozen):
+    def cost_rows(self, spec, problem, params, fi, frozen, ap_jac=None):
         new = self.observation_args(problem, params, fi)
         m, _ = self._variance(spec, self.observation_args(problem, frozen, fi), frozen.aps)
         sl = (spec.scanners, spec.ap_names, spec.ap_slices)
@@ -252,31 +354,37 @@ class PlaneFamily(Family):
         rows = self.active_rows()[:, 0]
         return jnp.where(rows, g / jnp.sqrt(jnp.where(m > 0, m, 1.0)), 0.0)[:, None]
 
-    def observation_quality(self, spec, problem, params, fi, JQJ):
+    def observation_quality(self, spec, problem, params, fi, JQJ, rows):
         """Gauss-Helmert residuals ``v = -Sigma_l B^T g / m`` of the three observations; the
         condition's redundancy ``1 - a Q a^T`` split over them in the ratio
         ``sigma_l^2 b_l^2 / m`` (so the three sum to at most 1, SPEC section 4)."""
         args = self.observation_args(problem, params, fi)
-        rows = self.active_rows()[:, 0]
+        active = self.active_rows()[:, 0]
         m, B = self._variance(spec, args, params.aps)
         share = (self._sigma() * B) ** 2 / jnp.where(m > 0, m, 1.0)[:, None]
-        redundancy = jnp.where(rows, 1.0 - JQJ[:, 0], 0.0)[:, None] * share
-        sl = (spec.scanners, spec.ap_names, spec.ap_slices)
-        v = jax.vmap(
-            lambda P_, E_, l_, w_, i_: observation_residuals(P_, E_, params.aps, l_, w_, *sl, i_)
-        )(args[0], args[1], self.obs, self.weight, args[6])
-        e = self.residuals(spec, problem, params, fi)
-        return v, redundancy, jnp.sum(rows), jnp.sum(e**2)
+        redundancy = jnp.where(active, 1.0 - JQJ[:, 0], 0.0)[:, None] * share
+        # The condition itself from the linearisation's whitened row, e = g / sqrt(m).
+        m_ = jnp.where(m > 0, m, 1.0)
+        g = rows.e[:, 0] * jnp.sqrt(m_)
+        v = -(self._sigma() ** 2) * B * (g / m_)[:, None]
+        return v, redundancy, jnp.sum(active), jnp.sum(rows.e**2)
 
 
 class Problem(eqx.Module):
-    """Everything the compiled adjustment needs: families, scans, levelling, fixed parameters."""
+    """Everything the compiled adjustment needs: families, scans, levelling, fixed parameters.
+
+    ``layouts``: per family a :class:`Layout` or None, chosen on the host from the static
+    structure of the network (:func:`grid_layout`); the engine moves such a family onto its
+    grid (:func:`on_grid`) and records the grid shape in ``grids``.
+    """
 
     families: tuple
     scan_instrument: Int[Array, " s"]
     levelling: Float[Array, "s 2"]
     levelling_weight: Float[Array, "s 2"]
     fixed: Bool[Array, " r"]
+    layouts: tuple = ()
+    grids: tuple = eqx.field(static=True, default=())
 
 
 class Params(eqx.Module):
@@ -308,18 +416,20 @@ def levelling_jacobian(problem, eops):
     return jax.vmap(jax.jacfwd(compensator_reading))(eops) * problem.levelling_weight[:, :, None]
 
 
-def cost(spec, problem, params, frozen: Params | None = None):
+def cost(spec, problem, params, frozen: Params | None = None, ap_jac: tuple | None = None):
     """``v^T P v``: sum of squared whitened residuals, observations and pseudo-observations.
 
     ``frozen``: the linearisation point at which families with ``frozen_cost`` hold their
-    weights (a Gauss-Helmert step is accepted under its own M).
+    weights (a Gauss-Helmert step is accepted under its own M). ``ap_jac``: the constant AP
+    blocks (``Family.ap_block``), if taken.
     """
     total = jnp.sum(levelling_residual(problem, params.eops) ** 2)
     for fi, fam in enumerate(problem.families):
+        aj = None if ap_jac is None else ap_jac[fi]
         if frozen is not None and fam.frozen_cost:
-            e = fam.cost_rows(spec, problem, params, fi, frozen)
+            e = fam.cost_rows(spec, problem, params, fi, frozen, aj)
         else:
-            e = fam.residuals(spec, problem, params, fi)
+            e = fam.residuals(spec, problem, params, fi, ap_jac=aj)
         total = total + jnp.sum(e**2) + jnp.sum(fam.prior_residuals(params.prims[fi]) ** 2)
     return total
 
@@ -331,3 +441,101 @@ def count_observations(problem, params):
         active_prior = jnp.any(fam.prior_jacobian(params.prims[fi]) != 0, axis=-1)
         n = n + jnp.sum(fam.active_rows()) + jnp.sum(active_prior)
     return n
+
+
+class Layout(eqx.Module):
+    """A family's observations on a regular grid of (primitive, scan, slot), ``shape`` = (n, s,
+    c) with c the most observations of one primitive in one scan. Slot g holds family row
+    ``rows[g]`` (``valid``) or is padding (weight 0, a real row of the same primitive so that
+    its geometry stays finite); ``pos[i]`` is the slot of family row i.
+
+    On the grid, every sum of the normal equations (per primitive, per scan, per pair) is a
+    reshape and a sum over an axis: no segment sums or scatters, which XLA runs as serial loops
+    on the CPU. It pays when most slots are real (every target seen in every scan; planes with
+    similar numbers of points per scan).
+    """
+
+    rows: Int[Array, " g"]
+    valid: Bool[Array, " g"]
+    pos: Int[Array, " m"]
+    shape: tuple = eqx.field(static=True)
+
+
+#: A grid layout is used when at least this share of its slots holds real observations.
+GRID_MIN_FILL = 0.5
+
+
+def grid_layout(fam: Family, n_scans: int) -> Layout | None:
+    """The grid :class:`Layout` of a family (host side, from its index plan), or None when
+    fewer than ``GRID_MIN_FILL`` of the slots would be real."""
+    prim, scan = np.asarray(fam.prim), np.asarray(fam.scan)
+    n, m = fam.n, prim.shape[0]
+    if m == 0:
+        return None
+    pair = prim * n_scans + scan
+    counts = np.bincount(pair, minlength=n * n_scans)
+    c = int(counts.max())
+    if m < GRID_MIN_FILL * n * n_scans * c:
+        return None
+    order = np.argsort(pair, kind="stable")
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    slot = pair[order] * c + (np.arange(m) - start[pair[order]])
+    rows = np.full(n * n_scans * c, -1, dtype=np.int64)
+    rows[slot] = order
+    first = np.zeros(n, dtype=np.int64)
+    first[prim[::-1]] = np.arange(m)[::-1]  # first row of each primitive
+    valid = rows >= 0
+    rows = np.where(valid, rows, first[np.arange(rows.size) // (n_scans * c)])
+    pos = np.empty(m, dtype=np.int64)
+    pos[order] = slot
+    return Layout(jnp.asarray(rows), jnp.asarray(valid), jnp.asarray(pos), (n, n_scans, c))
+
+
+def on_grid(problem: Problem) -> Problem:
+    """The problem with every family that has a layout moved onto its grid (traced gathers;
+    pure), and the grid shapes recorded in ``grids``."""
+    if not problem.layouts:
+        return problem
+    fams, grids = [], []
+    for fam, lay in zip(problem.families, problem.layouts):
+        if lay is None:
+            fams.append(fam)
+            grids.append(None)
+            continue
+        n, ns, c = lay.shape
+        slot = np.arange(n * ns * c)
+        prim, scan = slot // (ns * c), (slot // c) % ns
+        changes = dict(
+            obs=fam.obs[lay.rows],
+            weight=jnp.where(lay.valid[:, None], fam.weight[lay.rows], 0.0),
+            prim=jnp.asarray(prim),
+            point=fam.point[lay.rows],
+            scan=jnp.asarray(scan),
+            pair=jnp.asarray(prim * ns + scan),
+            pair_prim=jnp.asarray(np.repeat(np.arange(n), ns)),
+            pair_scan=jnp.asarray(np.tile(np.arange(ns), n)),
+        )
+        fams.append(
+            eqx.tree_at(
+                lambda f, c=changes: [getattr(f, k) for k in c], fam, list(changes.values())
+            )
+        )
+        grids.append(lay.shape)
+    return Problem(
+        tuple(fams),
+        problem.scan_instrument,
+        problem.levelling,
+        problem.levelling_weight,
+        problem.fixed,
+        (),
+        tuple(grids),
+    )
+
+
+def from_grid(problem: Problem, per_family: tuple) -> tuple:
+    """Per-observation arrays of a gridded problem back in each family's row order."""
+    if not problem.layouts:
+        return per_family
+    return tuple(
+        a if lay is None or a is None else a[lay.pos] for a, lay in zip(per_family, problem.layouts)
+    )

@@ -19,12 +19,17 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jax import lax
+import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from .._model._datum import move_eop, null_space_columns, s_transform_vector
-from ._families import OBS_AXES, Params, Problem, Spec, levelling_jacobian, levelling_residual
-from ._linalg import cholesky_solve, forward_substitution, rank_revealing_cholesky, spd_inverse
+from ._families import Params, Problem, Spec, levelling_jacobian, levelling_residual
+from ._linalg import (
+    cholesky_solve,
+    forward_substitution,
+    rank_revealing_cholesky_damped,
+    spd_inverse,
+)
 
 
 def outer(a, b):
@@ -52,85 +57,125 @@ class Blocks(eqx.Module):
 
 
 def ap_jacobians(spec: Spec, problem: Problem, params: Params) -> tuple:
-    """``d e / d AP`` per family, (m, rows, a), for the families where it is constant.
-
-    For points Delta is linear in the AP coefficients with its bases evaluated at the
-    observations, and F does not depend on the APs (SPEC section 2): taking it once leaves
-    3 + 6 tangents per observation for the iterations instead of 9 + a.
-    """
-    out = []
-    for fi, fam in enumerate(problem.families):
-        if not fam.constant_ap_jacobian:
-            out.append(None)
-            continue
-        jac = jax.jacfwd(lambda *a, fam=fam: fam.residual(spec, *a), argnums=2)
-        out.append(jax.vmap(jac, in_axes=OBS_AXES)(*fam.observation_args(problem, params, fi)))
-    return tuple(out)
+    """The constant AP blocks per family (:meth:`Family.ap_block`; None where the block changes
+    with the estimate). For points Delta is linear in the AP coefficients with its bases
+    evaluated at the observations, and F does not depend on the APs (SPEC section 2): taken
+    once, the iterations differentiate only the geometry."""
+    return tuple(fam.ap_block(spec, problem, params, fi) for fi, fam in enumerate(problem.families))
 
 
-def _family_jacobians(spec, problem, params, fi, ap_jac):
-    """Residual rows e (m, rows) and Jacobian blocks w.r.t. the primitive, pose and APs."""
-    fam = problem.families[fi]
-    args = fam.observation_args(problem, params, fi)
-    f = lambda *a: fam.residual(spec, *a)
-    e = jax.vmap(f, in_axes=OBS_AXES)(*args)
-    if ap_jac is None or ap_jac[fi] is None:
-        Jp, Js, Ja = jax.vmap(jax.jacfwd(f, argnums=(0, 1, 2)), in_axes=OBS_AXES)(*args)
-    else:
-        Jp, Js = jax.vmap(jax.jacfwd(f, argnums=(0, 1)), in_axes=OBS_AXES)(*args)
-        Ja = ap_jac[fi]
-    return e, Jp, Js, Ja
+class Rows(eqx.Module):
+    """One family's linearisation per observation: whitened residual rows ``e`` (m, k),
+    Jacobian blocks ``Jp`` (m, k, p), ``Js`` (m, k, 6), ``Ja`` (m, k, a), and ``raw``, the
+    residual the quality pass reports (see :meth:`Family.linear_rows`)."""
+
+    e: Array
+    Jp: Array
+    Js: Array
+    Ja: Array
+    raw: Array
+
+
+def _sums_on_grid(shape, e, Jp, Js, Ja):
+    """Normal-equation sums of a family on its grid (n primitives, s scans, c slots): reshapes
+    and sums over axes. Returns (N_pp, b_p, N_ps pairs (n, s, p, 6), N_pa, N_ss, N_sa, N_aa,
+    b_s, b_a)."""
+    n, ns, c = shape
+    g = lambda J: J.reshape(n, ns, -1, J.shape[-1])  # slots and rows in one axis
+    e, Jp, Js, Ja = e.reshape(n, ns, -1), g(Jp), g(Js), g(Ja)
+    # Contractions as einsums (dot_general): measured 2x faster than broadcast-multiply-sum
+    # for these shapes on the CPU.
+    es = jnp.einsum
+    return (
+        es("nskp,nskq->npq", Jp, Jp),
+        -es("nskp,nsk->np", Jp, e),
+        es("nskp,nskq->nspq", Jp, Js),
+        es("nskp,nska->npa", Jp, Ja),
+        es("nskp,nskq->spq", Js, Js),
+        es("nskp,nska->spa", Js, Ja),
+        es("nskp,nskq->pq", Ja, Ja),
+        -es("nskp,nsk->sp", Js, e),
+        -es("nskp,nsk->p", Ja, e),
+    )
+
+
+def _sums_by_segment(fam, ns, e, Jp, Js, Ja):
+    """The same sums for any index plan: segment sums over primitives, pairs and scans."""
+    seg = jax.ops.segment_sum
+    n, nq = fam.n, fam.pair_prim.shape[0]
+    nps_pairs = seg(outer(Jp, Js), fam.pair, nq)  # (q, p, 6)
+    nps = jnp.zeros((n, ns, fam.p, 6)).at[fam.pair_prim, fam.pair_scan].set(nps_pairs)
+    return (
+        seg(outer(Jp, Jp), fam.prim, n),
+        -seg(matvec_t(Jp, e), fam.prim, n),
+        nps,
+        seg(outer(Jp, Ja), fam.prim, n),
+        seg(outer(Js, Js), fam.scan, ns),
+        seg(outer(Js, Ja), fam.scan, ns),
+        jnp.sum(outer(Ja, Ja), axis=0),
+        -seg(matvec_t(Js, e), fam.scan, ns),
+        -jnp.sum(matvec_t(Ja, e), axis=0),
+    )
 
 
 def linearise(spec: Spec, problem: Problem, params: Params, ap_jac: tuple | None = None) -> Blocks:
-    """Assemble the normal-equation blocks with segment sums (never a dense Jacobian).
+    """Assemble the normal-equation blocks (never a dense Jacobian); see :func:`linearise_rows`.
 
     ``ap_jac``: the AP Jacobians of :func:`ap_jacobians`, if already taken.
     """
+    return linearise_rows(spec, problem, params, ap_jac)[0]
+
+
+def linearise_rows(spec: Spec, problem: Problem, params: Params, ap_jac: tuple | None = None):
+    """The one linearisation of the engine: per family the residual rows and Jacobian blocks
+    (:class:`Rows`, from ``vmap(jacfwd)``) and the normal-equation :class:`Blocks` summed from
+    them, on the family's grid when it has one (:class:`._families.Layout`), by segment sums
+    otherwise. The solver and the quality pass share it. Returns (blocks, rows per family)."""
     ns, na = spec.n_scans, spec.n_aps
     Nss = jnp.zeros((ns, 6, 6))
     Nsa = jnp.zeros((ns, 6, na))
     Naa = jnp.zeros((na, na))
     bs = jnp.zeros((ns, 6))
     ba = jnp.zeros((na,))
-    Npp, Npz, bp, Dp = [], [], [], []
-    for fi, fam in enumerate(problem.families):
+    Npp, Npz, bp, Dp, rows = [], [], [], [], []
+    grids = problem.grids or (None,) * len(problem.families)
+    for fi, (fam, grid) in enumerate(zip(problem.families, grids)):
         P = params.prims[fi]
-        e, Jp, Js, Ja = _family_jacobians(spec, problem, params, fi, ap_jac)
-        n, nq = fam.n, fam.pair_prim.shape[0]
-        seg = jax.ops.segment_sum
-        npp = seg(outer(Jp, Jp), fam.prim, n)
-        bpp = -seg(matvec_t(Jp, e), fam.prim, n)
+        r = Rows(
+            *fam.linear_rows(spec, problem, params, fi, None if ap_jac is None else ap_jac[fi])
+        )
+        rows.append(r)
+        J = (r.e, r.Jp, r.Js, r.Ja)
+        sums = _sums_on_grid(grid, *J) if grid else _sums_by_segment(fam, ns, *J)
+        npp, bpp, nps, npa, nss, nsa, naa, bss, baa = sums
         # Priors on primitives (control points, scale-bar lengths, unit normals).
         pr, Jpr = fam.prior_residuals(P), fam.prior_jacobian(P)
         Dp.append(jnp.diagonal(npp, axis1=-2, axis2=-1))
-        npp = npp + outer(Jpr, Jpr)
-        bpp = bpp - matvec_t(Jpr, pr)
-        nps_pairs = seg(outer(Jp, Js), fam.pair, nq)  # (q, p, 6)
-        nps = jnp.zeros((n, ns, fam.p, 6)).at[fam.pair_prim, fam.pair_scan].set(nps_pairs)
-        nps = jnp.transpose(nps, (0, 2, 1, 3)).reshape(n, fam.p, 6 * ns)
-        npa = seg(outer(Jp, Ja), fam.prim, n)
-        Npp.append(npp)
+        Npp.append(npp + outer(Jpr, Jpr))
+        bp.append(bpp - matvec_t(Jpr, pr))
+        nps = jnp.transpose(nps, (0, 2, 1, 3)).reshape(fam.n, fam.p, 6 * ns)
         Npz.append(jnp.concatenate([nps, npa], axis=-1))
-        bp.append(bpp)
-        Nss = Nss + seg(outer(Js, Js), fam.scan, ns)
-        Nsa = Nsa + seg(outer(Js, Ja), fam.scan, ns)
-        Naa = Naa + jnp.sum(outer(Ja, Ja), axis=0)
-        bs = bs - seg(matvec_t(Js, e), fam.scan, ns)
-        ba = ba - jnp.sum(matvec_t(Ja, e), axis=0)
+        Nss, Nsa, Naa, bs, ba = Nss + nss, Nsa + nsa, Naa + naa, bs + bss, ba + baa
     # Levelling pseudo-observations (compensator readings) act on the scan's rotation.
     Jl = levelling_jacobian(problem, params.eops)
     lr = levelling_residual(problem, params.eops)
     Nss = Nss + outer(Jl, Jl)
     bs = bs - matvec_t(Jl, lr)
-    eye = jnp.eye(ns)
-    Nss_full = (
-        (Nss[:, None, :, :] * eye[:, :, None, None]).transpose(0, 2, 1, 3).reshape(6 * ns, 6 * ns)
-    )
+    diag = np.eye(ns, dtype=bool)[:, None, :, None]
+    Nss_full = jnp.where(diag, Nss[:, :, None, :], 0.0).reshape(6 * ns, 6 * ns)
     Nsa_full = Nsa.reshape(6 * ns, na)
     Nzz = jnp.block([[Nss_full, Nsa_full], [Nsa_full.T, Naa]])
     bz = jnp.concatenate([bs.reshape(-1), ba])
-    return Blocks(tuple(Npp), tuple(Npz), tuple(bp), Nzz, bz, tuple(Dp))
+    return Blocks(tuple(Npp), tuple(Npz), tuple(bp), Nzz, bz, tuple(Dp)), tuple(rows)
+
+
+def linearised_cost(problem: Problem, params: Params, rows) -> Array:
+    """``v^T P v`` at the linearisation point from its rows (for a family with frozen weights,
+    the weights of that point: the reference cost of a step's acceptance)."""
+    total = jnp.sum(levelling_residual(problem, params.eops) ** 2)
+    for fam, P, r in zip(problem.families, params.prims, rows):
+        total = total + jnp.sum(r.e**2) + jnp.sum(fam.prior_residuals(P) ** 2)
+    return total
 
 
 def null_space(spec: Spec, families, params: Params):
@@ -152,9 +197,10 @@ class Reduced(eqx.Module):
     dependent: Bool[Array, " r"]
     pivots: Float[Array, " r"]
     Ks: Float[Array, "r r"]  # scaled reduced matrix with the datum closed (for diagnostics)
+    K: Float[Array, "r r"]  # the reduced matrix itself, N_zz - sum N_zp N_pp^-1 N_pz
 
 
-def reduce(spec, problem, blocks: Blocks, Hz, damping, rank_tolerance) -> Reduced:
+def reduce(spec, problem, blocks: Blocks, Hz, damping, rank_tolerance, dependent=None) -> Reduced:
     """Eliminate the primitives and factorise the reduced system (SPEC section 7).
 
     The reduced matrix K is scaled by the diagonal of the *unreduced* normal matrix,
@@ -165,6 +211,10 @@ def reduce(spec, problem, blocks: Blocks, Hz, damping, rank_tolerance) -> Reduce
     its pivot would be rounding noise of any size. The test is a ratio, so it does not depend
     on the scale of the sigmas. The datum defect is closed by ``+ Q Q^T`` (Q an orthonormal
     basis of the rigid-motion null space in the scaled coordinates).
+
+    ``dependent``: the columns found dependent at the last undamped linearisation, held as
+    well when ``damping > 0``: with damped primitive blocks the Schur complement no longer
+    shows that the primitives absorb a parameter entirely.
     """
     K = blocks.Nzz
     inv_list, Y_list = [], []
@@ -184,14 +234,12 @@ def reduce(spec, problem, blocks: Blocks, Hz, damping, rank_tolerance) -> Reduce
     Ks = jnp.where(ok[:, None] & ok[None, :], Ks, 0.0)
     # Rank is judged on the undamped system; the damped one is factorised with the same
     # dependent columns held fixed.
-    L, dep, piv = rank_revealing_cholesky(Ks, problem.fixed | ~ok, rank_tolerance)
-    # Undamped Gauss-Newton steps (the common case) skip the second factorisation.
-    L = lax.cond(
-        damping > 0,
-        lambda: rank_revealing_cholesky(Ks + damping * jnp.eye(Ks.shape[0]), dep, -1.0)[0],
-        lambda: L,
-    )
-    return Reduced(tuple(inv_list), tuple(Y_list), scale, L, dep, piv, Ks)
+    held = problem.fixed | ~ok
+    if dependent is not None:
+        held = held | ((damping > 0) & dependent)
+    L, dep, piv, Ld = rank_revealing_cholesky_damped(Ks, damping, held, rank_tolerance)
+    L = jnp.where(damping > 0, Ld, L)
+    return Reduced(tuple(inv_list), tuple(Y_list), scale, L, dep, piv, Ks, K)
 
 
 def reduced_rhs(blocks: Blocks, red: Reduced):

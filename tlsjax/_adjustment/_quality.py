@@ -22,14 +22,23 @@
 from __future__ import annotations
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._model._datum import inner_constraint_cofactor
-from ._families import OBS_AXES, Params, Problem, Spec, levelling_jacobian, levelling_residual
-from ._linalg import cholesky_inverse
-from ._normal import linearise, null_space, reduce
+from ._families import (
+    Params,
+    Problem,
+    Spec,
+    count_observations,
+    from_grid,
+    levelling_jacobian,
+    levelling_residual,
+    on_grid,
+)
+from ._linalg import cholesky_inverse, forward_substitution
+from ._normal import linearise_rows, linearised_cost, null_space, reduce
+from ._solver import Linearisation
 
 
 class Quality(eqx.Module):
@@ -62,20 +71,19 @@ def _scan_blocks(Qzz, ns):
     return Tss, Qs[:, :, 6 * ns :], Qzz[6 * ns :, 6 * ns :]
 
 
-def _family_quality(spec, problem, params, fi, red, Qzz):
-    """Residuals, redundancy numbers, AP influence and prior redundancy of one family; the
-    diagonal of ``J Q J^T`` gathers only the blocks each observation touches."""
+def _family_quality(spec, problem, params, fi, red, Qzz, r):
+    """Residuals, redundancy numbers, AP influence and prior redundancy of one family from its
+    linearised rows ``r`` (:class:`._normal.Rows`); the diagonal of ``J Q J^T`` gathers only the
+    blocks each observation touches."""
     fam = problem.families[fi]
     ns = spec.n_scans
-    args = fam.observation_args(problem, params, fi)
-    f = lambda *a: fam.residual(spec, *a)
-    Jp, Js, Ja = jax.vmap(jax.jacfwd(f, argnums=(0, 1, 2)), in_axes=OBS_AXES)(*args)
+    Jp, Js, Ja = r.Jp, r.Js, r.Ja
     Y = red.Y[fi]
     Qpz = -jnp.einsum("npr,rq->npq", Y, Qzz)  # (n, p, r)
     Qpp = red.Npp_inv[fi] - jnp.einsum("npr,nqr->npq", Qpz, Y)  # Ninv + Y Qzz Y^T
     Tss, Tsa, Taa = _scan_blocks(Qzz, ns)
     Qps_obs = Qpz[:, :, : 6 * ns].reshape(fam.n, fam.p, ns, 6)[fam.prim, :, fam.scan, :]
-    Qpa_obs = Qpz[fam.prim][:, :, 6 * ns :]  # (m, p, a)
+    Qpa_obs = Qpz[:, :, 6 * ns :][fam.prim]  # (m, p, a)
     JQJ = (
         _quad(Jp, Qpp[fam.prim], Jp)
         + 2 * _quad(Jp, Qps_obs, Js)
@@ -84,7 +92,7 @@ def _family_quality(spec, problem, params, fi, red, Qzz):
         + 2 * _quad(Js, Tsa[fam.scan], Ja)
         + _quad(Ja, jnp.broadcast_to(Taa, (Ja.shape[0],) + Taa.shape), Ja)
     )
-    v, redundancy, n_active, vtpv = fam.observation_quality(spec, problem, params, fi, JQJ)
+    v, redundancy, n_active, vtpv = fam.observation_quality(spec, problem, params, fi, JQJ, r)
     # External reliability: Q_(a, touched) J^T for every observation row, in AP sigmas.
     # Written as small matmuls: broadcast-multiply-sum over (m, 3, a, a) was 10x slower.
     infl = (
@@ -98,25 +106,38 @@ def _family_quality(spec, problem, params, fi, red, Qzz):
     pr, Jpr = fam.prior_residuals(P), fam.prior_jacobian(P)
     active = jnp.any(Jpr != 0, axis=-1)
     redundancy_prior = jnp.where(active, 1.0 - _quad(Jpr, Qpp, Jpr), 0.0)
-    e = fam.residuals(spec, problem, params, fi)
     return dict(
         v=v,
         redundancy=redundancy,
         influence=influence,
         redundancy_prior=redundancy_prior,
-        misclosure=e,
+        misclosure=r.e,
         n=n_active + jnp.sum(active),
         vtpv=vtpv + jnp.sum(pr**2),
     )
+
+
+def linearisation_at(spec: Spec, problem: Problem, params: Params, rank_tolerance):
+    """The undamped :class:`._solver.Linearisation` at ``params`` (of a problem on its grid)."""
+    blocks, rows = linearise_rows(spec, problem, params)
+    Hp, Hz = null_space(spec, problem.families, params)
+    red = reduce(spec, problem, blocks, Hz, jnp.asarray(0.0), rank_tolerance)
+    return Linearisation(blocks, rows, Hp, Hz, red)
 
 
 def quality(
     spec: Spec, problem: Problem, params: Params, rank_tolerance, full_covariance: bool = False
 ) -> Quality:
     """Quality of the adjustment at ``params`` (SPEC section 7); see the module docstring."""
-    blocks = linearise(spec, problem, params)
-    Hp, Hz = null_space(spec, problem.families, params)
-    red = reduce(spec, problem, blocks, Hz, jnp.asarray(0.0), rank_tolerance)
+    grid = on_grid(problem)
+    lin = linearisation_at(spec, grid, params, rank_tolerance)
+    return quality_from(spec, problem, grid, params, lin, full_covariance)
+
+
+def quality_from(spec, problem, grid, params, lin, full_covariance: bool = False) -> Quality:
+    """:func:`quality` from the linearisation the solver's loop ends with; ``grid`` is
+    ``problem`` on its grid (the per-observation results come back in ``problem``'s order)."""
+    red, Hp, Hz = lin.reduced, lin.Hp, lin.Hz
     dep = red.dependent
     Qs = cholesky_inverse(red.L)
     Qs = jnp.where(dep[:, None] | dep[None, :], 0.0, Qs)
@@ -124,16 +145,17 @@ def quality(
     ns = spec.n_scans
 
     fams = [
-        _family_quality(spec, problem, params, fi, red, Qzz) for fi in range(len(problem.families))
+        _family_quality(spec, grid, params, fi, red, Qzz, lin.rows[fi])
+        for fi in range(len(grid.families))
     ]
-    n_obs = jnp.sum(problem.levelling_weight > 0) + sum(f["n"] for f in fams)
-    vtpv = jnp.sum(levelling_residual(problem, params.eops) ** 2) + sum(f["vtpv"] for f in fams)
+    n_obs = jnp.sum(grid.levelling_weight > 0) + sum(f["n"] for f in fams)
+    vtpv = jnp.sum(levelling_residual(grid, params.eops) ** 2) + sum(f["vtpv"] for f in fams)
     n_unknowns = jnp.sum(~dep) + sum(P.size for P in params.prims)
     dof = n_obs - n_unknowns + Hz.shape[1]
 
-    Jl = levelling_jacobian(problem, params.eops)  # (s, 2, 6)
+    Jl = levelling_jacobian(grid, params.eops)  # (s, 2, 6)
     Tss = _scan_blocks(Qzz, ns)[0]
-    lw = problem.levelling_weight
+    lw = grid.levelling_weight
     redundancy_levelling = jnp.where(lw > 0, 1.0 - _quad(Jl, Tss, Jl), 0.0)
 
     Ninv = red.Npp_inv
@@ -146,6 +168,7 @@ def quality(
     zero = dep[:, None] | dep[None, :]
     Qfull = _full_cofactor(spec, red, Qzz, Hp, Hz) if full_covariance else None
     K_over_N = jnp.diagonal(red.Ks) - (jnp.diagonal(_closure(red, Hz)) if Hz.shape[1] else 0.0)
+    back = lambda key: from_grid(problem, tuple(f[key] for f in fams))
     return Quality(
         vtpv=vtpv,
         dof=jnp.asarray(dof, dtype=jnp.float64),
@@ -154,15 +177,15 @@ def quality(
         prim_cofactor=diag,
         prim_cross=tuple(jnp.where(dep[None, None, :], 0.0, c) for c in cross),
         Qfull=Qfull,
-        residuals=tuple(f["v"] for f in fams),
-        redundancy=tuple(f["redundancy"] for f in fams),
+        residuals=back("v"),
+        redundancy=back("redundancy"),
         redundancy_prior=tuple(f["redundancy_prior"] for f in fams),
         redundancy_levelling=redundancy_levelling,
-        misclosure=tuple(f["misclosure"] for f in fams),
+        misclosure=back("misclosure"),
         dependent=dep,
         pivots=red.pivots,
         K_over_N=K_over_N,
-        ap_influence=tuple(f["influence"] for f in fams),
+        ap_influence=back("influence"),
     )
 
 
@@ -197,3 +220,38 @@ def _full_cofactor(spec, red, Qzz, Hp, Hz):
         SQ = Q - H @ (M @ (G.T @ Q))
         Q = SQ - (SQ @ G) @ M.T @ H.T
     return Q
+
+
+class Summary(eqx.Module):
+    """The estimable part of the quality that a Monte Carlo realisation needs (SPEC section 9):
+    ``v^T P v``, the redundancy ``r = n - u + d``, the AP cofactor block (datum invariant) and
+    the parameters the rank test found dependent."""
+
+    vtpv: Float[Array, ""]
+    dof: Float[Array, ""]
+    Qaa: Float[Array, "a a"]
+    dependent: object
+
+
+def summary(spec: Spec, problem: Problem, params: Params, rank_tolerance) -> Summary:
+    """:func:`quality` reduced to what is estimable and small (see :func:`summary_from`)."""
+    grid = on_grid(problem)
+    return summary_from(spec, grid, params, linearisation_at(spec, grid, params, rank_tolerance))
+
+
+def summary_from(spec: Spec, grid: Problem, params: Params, lin, vtpv=None) -> Summary:
+    """No observation-space or primitive blocks: ``Q_aa`` comes from one triangular solve with
+    the AP unit columns, ``W = L^-1 E_a``, ``Q_aa = W^T W`` (scaled back), instead of the whole
+    ``L^-T L^-1``; ``v^T P v`` from the linearisation's rows."""
+    red = lin.reduced
+    dep = red.dependent
+    a0 = 6 * spec.n_scans
+    W = forward_substitution(red.L, jnp.eye(spec.r, dtype=red.L.dtype)[:, a0:])
+    s = red.scale[a0:]
+    Qaa = (W.T @ W) * s[:, None] * s[None, :]
+    Qaa = jnp.where(dep[a0:, None] | dep[None, a0:], 0.0, Qaa)
+    n_unknowns = jnp.sum(~dep) + sum(P.size for P in params.prims)
+    dof = count_observations(grid, params) - n_unknowns + lin.Hz.shape[1]
+    if vtpv is None:  # the linearisation is at params
+        vtpv = linearised_cost(grid, params, lin.rows)
+    return Summary(vtpv, jnp.asarray(dof, dtype=jnp.float64), Qaa, dep)

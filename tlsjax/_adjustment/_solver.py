@@ -1,7 +1,10 @@
 """Gauss-Newton with Levenberg-Marquardt damping on the block normal equations (SPEC section 7).
 
 Iterations run in one ``lax.while_loop``; each step assembles and reduces the normal equations
-(:mod:`._normal`), solves, and accepts the step when it does not increase ``v^T P v``. A
+(:mod:`._normal`), solves, and accepts the step when it does not increase ``v^T P v``. After
+the last step one more pass linearises and reduces (undamped) at the final estimate and stops:
+the quality pass takes that linearisation from the loop, so the linearisation is traced and
+compiled once for both (and a batch of Monte Carlo realisations runs the same code). A
 rejected step raises the damping (``damping_increase``), an accepted one lowers it
 (``damping_decrease``) down to pure Gauss-Newton below ``damping_min``: a descent method on
 ``v^T P v`` from any start, Gauss-Newton near the solution.
@@ -23,8 +26,18 @@ import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
-from ._families import Options, Params, Problem, Spec, cost, count_observations
-from ._normal import ap_jacobians, linearise, null_space, reduce, solve_step, update_size
+from ._families import Options, Params, Problem, Spec, cost, count_observations, on_grid
+from ._normal import (
+    Blocks,
+    Reduced,
+    ap_jacobians,
+    linearise_rows,
+    linearised_cost,
+    null_space,
+    reduce,
+    solve_step,
+    update_size,
+)
 
 #: An update below this many RMS rounding errors of the whitened residuals cannot be resolved.
 ROUNDING_FACTOR = 1e4
@@ -38,6 +51,22 @@ class SolveState(eqx.Module):
     converged: Bool[Array, ""]
     finite: Bool[Array, ""]
     size: Float[Array, ""]  # last Gauss-Newton update over the convergence threshold
+    # Columns of the reduced system found dependent at the last undamped linearisation: a
+    # damped step holds them too (damping the primitives' blocks would hide the dependency of
+    # an AP whose effect they absorb, and the step would wander along it).
+    dependent: Bool[Array, " r"]
+
+
+class Linearisation(eqx.Module):
+    """The linearisation at the final estimate that the loop hands to the quality pass:
+    normal-equation blocks, per-family rows (:class:`._normal.Rows`), the datum's null-space
+    columns and the undamped reduced system."""
+
+    blocks: Blocks
+    rows: tuple
+    Hp: tuple
+    Hz: Array
+    reduced: Reduced
 
 
 def rounding_sigma(problem: Problem):
@@ -60,6 +89,29 @@ def adjust(spec: Spec, problem: Problem, params0: Params, options: Options) -> S
     Returns the final state (pure, jittable, vmappable). ``state.size`` is the last
     Gauss-Newton update over its convergence threshold (below 1 when converged).
     """
+    return adjust_linearised(spec, on_grid(problem), params0, options)[0]
+
+
+class _Loop(eqx.Module):
+    state: SolveState
+    lin: Linearisation
+    done: Bool[Array, ""]
+
+
+def adjust_linearised(
+    spec: Spec, problem: Problem, params0: Params, options: Options, final_pass: bool = True
+):
+    """:func:`adjust` on a problem already on its grid (:func:`._families.on_grid`); also
+    returns the :class:`Linearisation` at the final estimate. One trace of the linearisation:
+    the loop's last pass (after convergence, the iteration limit or too much damping) only
+    linearises and reduces, undamped, at the final estimate.
+
+    ``final_pass=False`` (Monte Carlo, which needs only the estimable summary) skips that pass
+    and returns the linearisation of the last step instead: converged means that step was an
+    undamped Gauss-Newton step shorter than ``tolerance`` a posteriori sigmas, so its reduced
+    system differs from the one at the final estimate at second order (the AP cofactors by
+    about 1e-10 relatively, tested against calibrate), and ``state.cost`` is the cost of the
+    accepted step (at the final estimate)."""
     ap_jac = ap_jacobians(spec, problem, params0)
     frozen_cost = any(fam.frozen_cost for fam in problem.families)
     dof = jnp.maximum(
@@ -70,61 +122,91 @@ def adjust(spec: Spec, problem: Problem, params0: Params, options: Options) -> S
     )
     floor = ROUNDING_FACTOR * rounding_sigma(problem)
 
-    def step(state: SolveState):
-        blocks = linearise(spec, problem, state.params, ap_jac)
-        Hp, Hz = null_space(spec, problem.families, state.params)
-        red = reduce(spec, problem, blocks, Hz, state.damping, options.rank_tolerance)
-        new, dps, dz = solve_step(spec, problem, state.params, blocks, red, Hp, Hz)
-        if frozen_cost:
-            ref_cost = cost(spec, problem, state.params, frozen=state.params)
-            new_cost = cost(spec, problem, new, frozen=state.params)
-        else:
-            ref_cost, new_cost = state.cost, cost(spec, problem, new)
+    def linearisation(params, damping, dependent):
+        blocks, rows = linearise_rows(spec, problem, params, ap_jac)
+        Hp, Hz = null_space(spec, problem.families, params)
+        red = reduce(spec, problem, blocks, Hz, damping, options.rank_tolerance, dependent)
+        return Linearisation(blocks, rows, Hp, Hz, red)
+
+    def body(loop: _Loop):
+        state = loop.state
+        last = (
+            state.converged
+            | (state.iteration >= options.max_iterations)
+            | (state.damping > options.damping_max)
+        )
+        if not final_pass:
+            lin = linearisation(state.params, state.damping, state.dependent)
+            ref_cost = linearised_cost(problem, state.params, lin.rows)
+            new_state = _step(state, lin, ref_cost, state.damping)
+            return _Loop(new_state, lin, _stop(new_state))
+        damping = jnp.where(last, 0.0, state.damping)
+        lin = linearisation(state.params, damping, state.dependent)
+        ref_cost = linearised_cost(problem, state.params, lin.rows)
+        new_state = lax.cond(last, lambda: state, lambda: _step(state, lin, ref_cost, damping))
+        return _Loop(new_state, lin, last)
+
+    def _stop(state):
+        return (
+            state.converged
+            | (state.iteration >= options.max_iterations)
+            | (state.damping > options.damping_max)
+        )
+
+    def _step(state, lin, ref_cost, damping):
+        red = lin.reduced
+        new, dps, dz = solve_step(spec, problem, state.params, lin.blocks, red, lin.Hp, lin.Hz)
+        new_cost = cost(
+            spec, problem, new, frozen=state.params if frozen_cost else None, ap_jac=ap_jac
+        )
         finite = jnp.isfinite(new_cost)
         accept = finite & (new_cost <= ref_cost * (1.0 + 1e-12))
         s0 = jnp.sqrt(jnp.maximum(ref_cost, 0.0) / dof)
         threshold = jnp.maximum(options.tolerance * s0, floor)
-        size = update_size(blocks, red, dz, dps) / threshold
+        size = update_size(lin.blocks, red, dz, dps) / threshold
         # Only an undamped step measures the distance to the solution: a damped one is short
         # by construction. At the solution an undamped step is rounding noise and may be
         # rejected by rounding alone; it is converged either way.
-        converged = (state.damping == 0) & jnp.isfinite(size) & (size < 1.0)
+        converged = (damping == 0) & jnp.isfinite(size) & (size < 1.0)
         params = _where(accept, new, state.params)
-        damping = jnp.where(
+        damping_next = jnp.where(
             accept,
-            jnp.where(
-                state.damping < options.damping_min, 0.0, state.damping * options.damping_decrease
-            ),
-            jnp.maximum(state.damping * options.damping_increase, options.damping_initial),
+            jnp.where(damping < options.damping_min, 0.0, damping * options.damping_decrease),
+            jnp.maximum(damping * options.damping_increase, options.damping_initial),
         )
         return SolveState(
             params,
-            jnp.where(accept, new_cost, state.cost),
-            damping,
+            jnp.where(accept, new_cost, ref_cost),
+            damping_next,
             state.iteration + 1,
             converged,
             finite | accept,
-            jnp.where(state.damping == 0, size, state.size),
+            jnp.where(damping == 0, size, state.size),
+            jnp.where(damping == 0, red.dependent, state.dependent),
         )
 
-    def cond(state: SolveState):
-        return (
-            (~state.converged)
-            & (state.iteration < options.max_iterations)
-            & (state.damping <= options.damping_max)
-        )
-
-    c0 = cost(spec, problem, params0)
     init = SolveState(
         params0,
-        c0,
+        jnp.asarray(jnp.inf),
         jnp.asarray(0.0),
         jnp.asarray(0),
         jnp.asarray(False),
-        jnp.isfinite(c0),
+        jnp.asarray(True),
         jnp.asarray(jnp.inf),
+        jnp.zeros(spec.r, dtype=bool),
     )
-    return lax.while_loop(cond, step, init)
+    # The loop carries the last linearisation; its first pass fills it.
+    lin0 = jax.eval_shape(linearisation, params0, jnp.asarray(0.0), init.dependent)
+    zeros = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), lin0)
+    out = lax.while_loop(lambda loop: ~loop.done, body, _Loop(init, zeros, jnp.asarray(False)))
+    state = out.state
+    if not final_pass:
+        return state, out.lin
+    # v^T P v at the final estimate (with its own weights), from the last linearisation.
+    final_cost = linearised_cost(problem, state.params, out.lin.rows)
+    finite = state.finite & jnp.isfinite(final_cost)
+    state = eqx.tree_at(lambda s: (s.cost, s.finite), state, (final_cost, finite))
+    return state, out.lin
 
 
 def _where(flag, a, b):

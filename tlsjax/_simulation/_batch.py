@@ -49,7 +49,8 @@ class Batched:
 def compile_batched(one, constants, chunk: int) -> Batched:
     """Compile ``vmap(one)`` over a chunk of int64 indices, ahead of time.
 
-    ``constants``: example values (or ``jax.ShapeDtypeStruct``) of the replicated arguments.
+    ``constants``: example values (arrays or pytrees of arrays, e.g. the solver options) of the
+    replicated arguments.
     """
     mesh = device_mesh()
     batched = NamedSharding(mesh, PartitionSpec("batch"))
@@ -60,10 +61,10 @@ def compile_batched(one, constants, chunk: int) -> Batched:
         in_shardings=(batched,) + (replicated,) * n_const,
         out_shardings=batched,
     )
-    specs = [
-        jax.ShapeDtypeStruct(jnp.shape(c), jnp.result_type(c), sharding=replicated)
-        for c in constants
-    ]
+    specs = jax.tree.map(
+        lambda c: jax.ShapeDtypeStruct(jnp.shape(c), jnp.result_type(c), sharding=replicated),
+        tuple(constants),
+    )
     t0 = time.perf_counter()
     compiled = fn.lower(
         jax.ShapeDtypeStruct((chunk,), jnp.int64, sharding=batched), *specs

@@ -1,28 +1,29 @@
 """Batched Monte Carlo self-calibration of one network design (SPEC section 9).
 
-N realisations of a simulated design (noise on every observation and on the levelling, and
-optionally true APs drawn around their values) are simulated and fully self-calibrated as one
-compiled computation: ``vmap`` over realisations, processed in chunks of a fixed size (one
-compile per design, never one per chunk), sharded over every JAX device along the batch axis
-with :class:`jax.sharding.NamedSharding` (a no-op on one CPU device).
+N realisations of a simulated design are drawn and each is adjusted by the engine of
+:func:`tlsjax.calibrate` (:func:`tlsjax._adjustment._calibrate.estimate`: the same
+Gauss-Newton/Levenberg-Marquardt loop, normal equations, Schur reduction, rank test, datum,
+convergence test and result codes), as one compiled computation: ``vmap`` over realisations,
+in chunks of a fixed size (one compile per design, never one per chunk), sharded over every JAX
+device along the batch axis by :mod:`._batch`. So Monte Carlo works for every design that
+``calibrate`` accepts: partial visibility, several instruments, control points and scale bars,
+planes, targets and planes combined (:class:`tlsjax.SimulationTruth`).
 
-Seeds: realisation k draws its noise from ``fold_in(PRNGKey(seed), k)``, so its result does not
-depend on the chunk size or on the number of devices.
+Realisation k draws from ``fold_in(PRNGKey(seed), k)`` (so its result does not depend on the
+chunk size or on the number of devices):
 
-The adjustment of one realisation is the Gauss-Markov model of Chow et al. (2013, eqs. 1-6),
-solved by Gauss-Newton on the block normal equations with the targets eliminated by Schur
-complement (as :mod:`._solver`), but lean, for the Monte Carlo case:
+* observations ``l = F + e + Delta(l; AP_true)`` (the fixed point of
+  :func:`tlsjax._model._points.distorted_observations`), ``F`` the error-free observation of
+  the truth (for a plane row, of the true point on the plane), ``e ~ N(0, Sigma_l)`` with the
+  network's sigmas;
+* levelling readings, control-point coordinates and scale-bar lengths: truth plus noise of
+  their sigmas (they are observations too);
+* optionally the true APs, drawn ``N(true, sigma^2)`` (``MonteCarloOptions.ap_sigma``).
 
-* it starts from the simulated truth (the standard Monte Carlo choice: the estimator's
-  sampling distribution does not depend on the start, and 2-3 iterations suffice);
-* every target is observed in every scan (the design of :func:`tlsjax.simulate`), so the
-  normal blocks are reshapes and sums, not segment sums or scatters;
-* the datum is a minimal one (X, Y, Z and kappa of the first levelled scan held, or the six
-  parameters of the first scan without levelling). APs, their cofactor block and ``v^T P v``
-  are estimable quantities and do not depend on the datum, so they equal the inner-constraint
-  results of :func:`tlsjax.calibrate`;
-* quality is only what Monte Carlo needs: ``s0^2 = v^T P v / r`` with ``r = n - u + d`` and the
-  AP block of the cofactor matrix, ``Q_aa = (K^-1)_aa`` of the reduced normal matrix ``K``.
+Each realisation starts from the truth (the standard Monte Carlo choice: the estimator's
+sampling distribution does not depend on the start, and 2-3 iterations suffice) and returns
+what is estimable and small: the APs, their covariance ``s0^2 Q_aa``, ``s0^2`` and the result
+code. A failed realisation returns its code and NaN estimates; it never stops the batch.
 
 Empirical precision (Lichti 2008): from the N estimates, the scatter of each AP, its bias
 against the truth, the ratio of empirical to formal sigma, and the power (share of
@@ -35,22 +36,21 @@ import dataclasses
 import weakref
 from collections.abc import Mapping
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax import lax
 
-from .._adjustment._config import CalibrationModel
-from .._adjustment._linalg import forward_substitution, spd_inverse
-from .._adjustment._normal import matvec_t, outer
-from .._adjustment._result import MAX_ITERATIONS, NONFINITE, RESULT_MESSAGES, SUCCESS
-from .._model._aps import ap_corrections, get_ap, on_reregistration
-from .._model._geometry import is_face2, spherical_from_cartesian, wrap_angle
+from .._adjustment._calibrate import Adjustment, estimate
+from .._adjustment._config import CalibrationModel, SolverOptions
+from .._adjustment._families import Params
+from .._adjustment._result import NOT_ESTIMABLE, RESULT_MESSAGES, SUCCESS
+from .._model._aps import ap_corrections, on_reregistration
 from .._model._levelling import compensator_reading
-from .._model._points import distorted_observations, point_geometry, predict_point
-from .._model._scanner import Scanner
+from .._model._points import FIXED_POINT_ITERATIONS, distorted_observations
 from .._units import display_unit
 from ._batch import compile_batched, device_key, round_chunk, run_batched
+from ._truth import SimulationTruth
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,12 +58,13 @@ class MonteCarloOptions:
     """Settings of :func:`monte_carlo`.
 
     ``runs``: number of realisations N. ``chunk_size``: realisations per compiled call (a
-    measured choice: intermediates of a chunk should stay in cache; rounded up to a multiple of
-    the device count). ``seed``: realisation k uses ``fold_in(PRNGKey(seed), k)``.
-    ``ap_sigma``: optional {AP name: sigma [SI]}; each realisation's true AP is then drawn
-    ``N(true, sigma^2)``. ``max_iterations``, ``tolerance``: Gauss-Newton stops when the largest
-    update in units of the parameter's stand-alone sigma ``1/sqrt(N_ii)`` is below tolerance.
-    ``alpha``: two-sided significance level of the AP t test (power). ``progress``: tqdm bar.
+    measured choice, see ``benchmarks/README.md``; rounded up to a multiple of the device
+    count). ``seed``: realisation k uses ``fold_in(PRNGKey(seed), k)``. ``ap_sigma``: optional
+    {AP name: sigma [SI]}; each realisation's true AP is then drawn ``N(true, sigma^2)`` (for
+    every instrument that has the term). ``max_iterations``, ``tolerance``: those of
+    :class:`tlsjax.SolverOptions` (the same convergence test as :func:`tlsjax.calibrate`: the
+    largest Gauss-Newton update below ``tolerance`` a posteriori sigmas). ``alpha``: two-sided
+    significance level of the AP t test (power). ``progress``: tqdm bar.
     """
 
     runs: int = 1000
@@ -71,7 +72,7 @@ class MonteCarloOptions:
     seed: int = 0
     ap_sigma: Mapping[str, float] | None = None
     max_iterations: int = 10
-    tolerance: float = 1e-5
+    tolerance: float = 1e-6
     alpha: float = 0.05
     progress: bool = True
 
@@ -89,321 +90,245 @@ class MonteCarloOptions:
         if not (0 < self.alpha < 1):
             raise ValueError(f"MonteCarloOptions.alpha must be in (0, 1), got {self.alpha}")
 
+    def solver(self) -> SolverOptions:
+        return SolverOptions(
+            max_iterations=int(self.max_iterations),
+            tolerance=float(self.tolerance),
+            full_covariance=False,
+        )
+
 
 # ----------------------------------------------------------------------------------------
-# The design: host-side plan of one simulated network
+# The simulator: host-side constants of one truth, and the draw of one realisation
 
 
-@dataclasses.dataclass(frozen=True, eq=False)
-class _Design:
-    scanner: Scanner  # estimated model
-    true_scanner: Scanner  # model that generates the data
-    true_aps: np.ndarray  # (a_true,)
-    ap_draw_sigma: np.ndarray  # (a_true,)
-    truth_in_model: np.ndarray  # (a,) true value of each estimated AP (0 when absent)
-    truth_map: np.ndarray  # (a,) index into the true APs, -1 when absent
-    targets: np.ndarray  # (t, 3)
-    eops: np.ndarray  # (s, 6)
-    sigmas: np.ndarray  # (s, t, 3)
-    face2: np.ndarray  # (s, t)
-    geometry: np.ndarray  # (s, t, 3) error-free F(X, EOP) of the true design
-    lev_sigma: np.ndarray  # (s, 2), inf = not levelled
-    fixed: np.ndarray  # (r,) minimal datum
-    n_obs: int
-    n_unknowns: int
-    datum_defect: int
-
-    @property
-    def dof(self) -> int:
-        return self.n_obs - self.n_unknowns + self.datum_defect
+def _truth_of(simulation) -> SimulationTruth:
+    if isinstance(simulation, SimulationTruth):
+        return simulation
+    if hasattr(simulation, "truth"):
+        return simulation.truth()
+    raise ValueError(
+        "monte_carlo: give a tlsjax.Simulation, a tlsjax.PointClouds or a SimulationTruth "
+        f"(e.g. clouds.truth(max_points=...)), got {type(simulation).__name__}"
+    )
 
 
-def _design(simulation, model: CalibrationModel | None, ap_sigma) -> _Design:
-    net = simulation.network
-    model = model or CalibrationModel(simulation.scanner)
-    if not isinstance(model.scanner, Scanner):
-        raise ValueError(
-            "monte_carlo: one instrument only; give CalibrationModel(scanner=Scanner(...))"
+class _Simulator(eqx.Module):
+    """Everything a realisation is drawn from, as arrays (network row order), and the static
+    AP blocks of the instruments that generate the data."""
+
+    F_t: jax.Array  # (n, 3) error-free observations of the target rows
+    F_p: jax.Array  # (m, 3) of the plane rows (true points)
+    sig_t: jax.Array
+    sig_p: jax.Array
+    inst_t: jax.Array  # (n,) instrument of each row
+    inst_p: jax.Array
+    lev_true: jax.Array  # (s, 2) compensator readings of the true poses
+    lev_sigma: jax.Array  # (s, 2), 0 where not levelled
+    lev_given: jax.Array  # (s, 2) the network's values (kept where not levelled)
+    ctrl_true: jax.Array
+    ctrl_sigma: jax.Array
+    bar_true: jax.Array
+    bar_sigma: jax.Array
+    true_aps: jax.Array  # all instruments' true APs, concatenated
+    draw_sigma: jax.Array
+    scanners: tuple = eqx.field(static=True)
+    slices: tuple = eqx.field(static=True)  # per instrument (start, stop) in true_aps
+    iterations: int = eqx.field(static=True, default=FIXED_POINT_ITERATIONS)
+
+    def draw(self, key):
+        """Observations, levelling, control coordinates, bar lengths and true APs of one
+        realisation (see the module docstring)."""
+        k_t, k_p, k_l, k_c, k_b, k_a = jax.random.split(key, 6)
+        true_aps = self.true_aps + jax.random.normal(k_a, self.true_aps.shape) * self.draw_sigma
+        l_t = self._observe(self.F_t, self.sig_t, self.inst_t, true_aps, k_t)
+        l_p = self._observe(self.F_p, self.sig_p, self.inst_p, true_aps, k_p)
+        noise = lambda k, s: jax.random.normal(k, s.shape) * s
+        lev = jnp.where(
+            self.lev_sigma > 0, self.lev_true + noise(k_l, self.lev_sigma), self.lev_given
         )
-    scanner = model.scanner
-    if len(net.instruments) != 1:
-        raise ValueError("monte_carlo: the simulated network must have one instrument")
-    if len(net.scale_bar_targets) or len(net.control_index):
-        raise ValueError(
-            "monte_carlo: networks with scale bars or control points are not supported yet"
-        )
-    if scanner.architecture != simulation.scanner.architecture:
-        raise ValueError(
-            f"monte_carlo: model scanner is {scanner.architecture!r} but the data are {simulation.scanner.architecture!r}"
-        )
-    n_t, n_s = len(net.targets), len(net.scans)
-    if net.observations.shape[0] != n_t * n_s:
-        raise ValueError(
-            "monte_carlo: every target must be observed in every scan (the design of tlsjax.simulate)"
-        )
-    # Rows in scan-major order: row = s * n_t + t.
-    order = np.lexsort((net.target_index, net.scan_index))
-    if not (
-        np.array_equal(net.scan_index[order], np.repeat(np.arange(n_s), n_t))
-        and np.array_equal(net.target_index[order], np.tile(np.arange(n_t), n_s))
-    ):
-        raise ValueError(
-            "monte_carlo: every target must be observed in every scan (the design of tlsjax.simulate)"
-        )
-    true_names = simulation.scanner.aps
-    true_vals = np.array([simulation.true_aps[n] for n in true_names], dtype=np.float64)
-    draw = np.zeros(len(true_names))
+        ctrl = self.ctrl_true + noise(k_c, self.ctrl_sigma)
+        bar = self.bar_true + noise(k_b, self.bar_sigma)
+        return l_t, l_p, lev, ctrl, bar, true_aps
+
+    def _observe(self, F, sigma, inst, true_aps, key):
+        if F.shape[0] == 0:
+            return F
+
+        def correction(l):
+            out = jnp.zeros_like(l)
+            for i, (sc, (a, b)) in enumerate(zip(self.scanners, self.slices)):
+                d = ap_corrections(true_aps[a:b], sc.aps, l, sc) if sc.aps else 0.0
+                out = jnp.where((inst == i)[:, None], d, out)
+            return out
+
+        base = F + jax.random.normal(key, F.shape) * sigma
+        return distorted_observations(base, correction, self.iterations)
+
+
+def _simulator(truth: SimulationTruth, ap_sigma) -> _Simulator:
+    net = truth.network
+    F_t, F_p = truth.error_free()
+    slices, off = [], 0
+    for sc in truth.scanners:
+        slices.append((off, off + len(sc.aps)))
+        off += len(sc.aps)
+    true_vals = np.concatenate([truth.ap_vector(i) for i in range(len(truth.scanners))] + [[]])
+    draw = np.zeros(off)
+    names = [a for sc in truth.scanners for a in sc.aps]
     for name, s in dict(ap_sigma or {}).items():
-        if name not in true_names:
+        if name not in names:
             raise ValueError(
-                f"MonteCarloOptions.ap_sigma: AP {name!r} is not in the simulated data ({' '.join(true_names)})"
+                f"MonteCarloOptions.ap_sigma: AP {name!r} is not in the simulated data ({' '.join(dict.fromkeys(names))})"
             )
         if not (np.isfinite(s) and s >= 0):
             raise ValueError(
                 f"MonteCarloOptions.ap_sigma[{name!r}] must be a non-negative number, got {s}"
             )
-        draw[true_names.index(name)] = s
-    tmap = np.array(
-        [true_names.index(n) if n in true_names else -1 for n in scanner.aps], dtype=np.int64
+        draw[[k for k, n in enumerate(names) if n == name]] = s
+    iterations = _fixed_point_iterations(truth, F_t, F_p, true_vals + 6 * draw, slices)
+    levelled = np.isfinite(net.levelling_sigma)
+    lev_true = np.asarray(jax.vmap(compensator_reading)(jnp.asarray(truth.eops)))
+    X = truth.targets
+    bars = net.scale_bar_targets
+    return _Simulator(
+        F_t=jnp.asarray(F_t),
+        F_p=jnp.asarray(F_p),
+        sig_t=jnp.asarray(net.sigmas),
+        sig_p=jnp.asarray(net.plane_sigmas),
+        inst_t=jnp.asarray(net.instrument_of_scan[net.scan_index]),
+        inst_p=jnp.asarray(net.instrument_of_scan[net.plane_scan_index]),
+        lev_true=jnp.asarray(lev_true),
+        lev_sigma=jnp.asarray(np.where(levelled, net.levelling_sigma, 0.0)),
+        lev_given=jnp.asarray(net.levelling),
+        ctrl_true=jnp.asarray(X[net.control_index].reshape(-1, 3)),
+        ctrl_sigma=jnp.asarray(net.control_sigma.reshape(-1, 3)),
+        bar_true=jnp.asarray(np.linalg.norm(X[bars[:, 0]] - X[bars[:, 1]], axis=1)),
+        bar_sigma=jnp.asarray(net.scale_bar_sigma.reshape(-1)),
+        true_aps=jnp.asarray(true_vals),
+        draw_sigma=jnp.asarray(draw),
+        scanners=tuple(truth.scanners),
+        slices=tuple(slices),
+        iterations=iterations,
     )
-    truth = np.where(tmap >= 0, true_vals[np.maximum(tmap, 0)], 0.0)
 
-    obs = net.observations[order]
-    face2 = (
-        np.asarray(is_face2(obs[:, 2], xp=np))
-        if scanner.architecture == "panoramic"
-        else np.zeros(len(obs), bool)
-    )
-    X = np.asarray(simulation.true_targets, dtype=np.float64)
-    E = np.asarray(simulation.true_eops, dtype=np.float64)
-    x = jax.vmap(jax.vmap(point_geometry, in_axes=(0, None)), in_axes=(None, 0))(
-        jnp.asarray(X), jnp.asarray(E)
-    )
-    geo = np.asarray(
-        spherical_from_cartesian(
-            x, jnp.asarray(face2.reshape(n_s, n_t)) if scanner.architecture == "panoramic" else None
-        )
-    )
-    lev_sigma = np.asarray(net.levelling_sigma, dtype=np.float64)
-    levelled = np.isfinite(lev_sigma).all(axis=1)
-    n_a = len(scanner.aps)
-    fixed = np.zeros(6 * n_s + n_a, dtype=bool)
-    if levelled.any():
-        j = int(np.flatnonzero(levelled)[0])
-        fixed[[6 * j + c for c in (0, 1, 2, 5)]] = True
-    else:
-        fixed[:6] = True
-    d = int(fixed.sum())
-    n_obs = 3 * len(obs) + int(np.isfinite(lev_sigma).sum())
-    n_unknowns = 3 * n_t + 6 * n_s + n_a
-    return _Design(
-        scanner,
-        simulation.scanner,
-        true_vals,
-        draw,
-        truth,
-        tmap,
-        np.asarray(simulation.true_targets, dtype=np.float64),
-        np.asarray(simulation.true_eops, dtype=np.float64),
-        net.sigmas[order].reshape(n_s, n_t, 3),
-        face2.reshape(n_s, n_t),
-        geo,
-        lev_sigma,
-        fixed,
-        n_obs,
-        n_unknowns,
-        d,
-    )
+
+def _fixed_point_iterations(truth, F_t, F_p, aps, slices) -> int:
+    """Iterations of the fixed point ``l = base + Delta(l)`` that reach float64 rounding for
+    this design: it contracts by ``q = max |d Delta / d l|`` (row sums, at the error-free
+    observations, with the APs at their truth plus six draw sigmas), so ``log(eps) / log(q)``
+    iterations and two more for the noise. The default 30 covers q up to 0.2 (cyclic range
+    terms); the physical terms have q ~ 1e-3 and need 7. Fewer iterations are the same
+    observations to rounding, at a quarter of the cost of the simulation."""
+    net = truth.network
+    q = 0.0
+    for F, scan in ((F_t, net.scan_index), (F_p, net.plane_scan_index)):
+        inst = net.instrument_of_scan[scan]
+        for i, (sc, (a, b)) in enumerate(zip(truth.scanners, slices)):
+            rows = F[inst == i]
+            if not len(rows) or not sc.aps:
+                continue
+
+            # Per term: sum_k |a_k| |d basis_k / d l| bounds |d Delta / d l| (no cancellation).
+            def jac(c, L, s=sc):
+                return jax.vmap(jax.jacfwd(lambda l: ap_corrections(c, s.aps, l, s)))(L)
+
+            J = jax.vmap(jac, in_axes=(0, None))(jnp.eye(b - a), jnp.asarray(rows))
+            bound = jnp.einsum("k,kmij->mi", jnp.abs(jnp.asarray(aps[a:b])), jnp.abs(J))
+            q = max(q, float(jnp.max(bound)))
+    if not 0.0 < q < 0.5:
+        return FIXED_POINT_ITERATIONS
+    need = int(np.ceil(np.log(np.finfo(np.float64).eps) / np.log(q))) + 2
+    return int(min(max(need, 3), FIXED_POINT_ITERATIONS))
 
 
 # ----------------------------------------------------------------------------------------
-# One realisation: simulation and lean Gauss-Newton (pure; vmapped over realisations)
+# The design: the simulator and the engine's analysed adjustment of the network
 
 
-def _simulate_one(design: _Design, key):
-    """Observations (s, t, 3), levelling readings (s, 2) and true APs of one realisation.
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Design:
+    truth: SimulationTruth
+    simulator: _Simulator
+    adjustment: Adjustment
+    start: Params  # the truth, arranged as the engine's parameters (APs set per realisation)
+    truth_map: np.ndarray  # (a,) index of each estimated AP into the true APs, -1 when absent
 
-    ``l = F(X, EOP) + Delta(l; AP) + e`` with Delta evaluated at the observations (SPEC
-    section 2). The design's true geometry ``F`` is the same in every realisation, so it is
-    computed once on the host; only the fixed point in the AP corrections is iterated (the
-    corrections are small, each iteration gains about three digits).
-    """
-    n_s, n_t = design.sigmas.shape[:2]
-    k_obs, k_lev, k_ap = jax.random.split(key, 3)
-    noise = jax.random.normal(k_obs, (n_s, n_t, 3)) * design.sigmas
-    lev_w = np.isfinite(design.lev_sigma)
-    lev = jnp.where(
-        lev_w, jax.random.normal(k_lev, (n_s, 2)) * np.where(lev_w, design.lev_sigma, 0.0), 0.0
+
+def _default_model(truth: SimulationTruth) -> CalibrationModel:
+    net = truth.network
+    if len(net.instruments) == 1:
+        return CalibrationModel(truth.scanners[0])
+    return CalibrationModel(dict(zip(net.instruments, truth.scanners)))
+
+
+def _design(simulation, model: CalibrationModel | None, ap_sigma) -> _Design:
+    truth = _truth_of(simulation)
+    net = truth.network
+    model = model or _default_model(truth)
+    adj = Adjustment(net, model, SolverOptions(full_covariance=False))
+    plan = adj.plan
+    sim = _simulator(truth, ap_sigma)
+    tmap = []
+    for i, (ins, names) in enumerate(zip(net.instruments, plan.spec.ap_names)):
+        data = truth.scanners[i]
+        if plan.spec.scanners[i].architecture != data.architecture:
+            raise ValueError(
+                f"monte_carlo: the model's scanner of instrument {ins} is "
+                f"{plan.spec.scanners[i].architecture!r} but the data are {data.architecture!r}"
+            )
+        a0 = sim.slices[i][0]
+        tmap += [a0 + data.aps.index(a) if a in data.aps else -1 for a in names]
+    prims = [jnp.asarray(truth.targets[tg].reshape(len(tg), -1)) for tg in plan.family_targets]
+    if net.has_planes:
+        prims.append(jnp.asarray(truth.planes))
+    start = Params(tuple(prims), jnp.asarray(truth.eops), jnp.zeros(plan.spec.n_aps))
+    return _Design(truth, sim, adj, start, np.asarray(tmap, dtype=np.int64))
+
+
+def _realisation(design: _Design, index, seed_key, options):
+    """Draw realisation ``index`` and adjust it from the truth with the engine."""
+    l_t, l_p, lev, ctrl, bar, true_aps = design.simulator.draw(jax.random.fold_in(seed_key, index))
+    adj = design.adjustment
+    problem = adj.with_data(
+        observations=l_t, plane_observations=l_p, levelling=lev, control_xyz=ctrl, bar_length=bar
     )
-    true_aps = (
-        design.true_aps + jax.random.normal(k_ap, design.true_aps.shape) * design.ap_draw_sigma
-    )
-    sc = design.true_scanner
-    base = design.geometry + noise
-
-    obs = distorted_observations(base, lambda l: ap_corrections(true_aps, sc.aps, l, sc))
-    return obs, lev, true_aps
-
-
-def _gauss_newton(design: _Design, obs, lev, targets0, eops0, aps0, tolerance, max_iterations):
-    """Lean Gauss-Newton of one realisation (see the module docstring); returns a dict."""
-    sc = design.scanner
-    n_s, n_t = obs.shape[:2]
-    n_a = len(sc.aps)
-    r = 6 * n_s + n_a
-    weight = 1.0 / design.sigmas
-    lev_w = np.where(np.isfinite(design.lev_sigma), 1.0 / design.lev_sigma, 0.0)
-    fixed = jnp.asarray(design.fixed)
-    ap_rows = np.arange(6 * n_s, r)
-
-    # Misclosure = F(X, EOP) + Delta(l; AP) - l. Delta is linear in the APs with bases at the
-    # observations, so its Jacobian block is the same in every iteration: taken once, and the
-    # geometry is differentiated with 9 tangents instead of 9 + n_a.
-    def geometry(X, eop, l, w):
-        F = predict_point(X, eop, l, sc.architecture)
-        return F * w, F * w
-
-    def correction(aps, l, w):
-        return ap_corrections(aps, sc.aps, l, sc) * w
-
-    jac_geo = jax.vmap(
-        jax.vmap(jax.jacfwd(geometry, argnums=(0, 1), has_aux=True), in_axes=(0, None, 0, 0)),
-        in_axes=(None, 0, 0, 0),
-    )
-    Ja = jax.vmap(jax.vmap(jax.jacfwd(correction), in_axes=(None, 0, 0)), in_axes=(None, 0, 0))(
-        jnp.zeros(n_a), obs, weight
-    )  # (s, t, 3, a)
-    Naa = jnp.sum(outer(Ja, Ja), axis=(0, 1))
-    lw = obs * weight
-
-    def linearise(T, E, A):
-        (Jp, Js), Fw = jac_geo(T, E, obs, weight)  # (s, t, 3, k)
-        e = Fw + jnp.sum(Ja * A, axis=-1) - lw
-        # Angles wrapped to (-pi, pi] (in whitened units: wrap before whitening).
-        ang = e[..., 1:] / weight[..., 1:]
-        e = e.at[..., 1:].set(wrap_angle(ang) * weight[..., 1:])
-        Npp = jnp.sum(outer(Jp, Jp), axis=0)  # (t, 3, 3)
-        bp = -jnp.sum(matvec_t(Jp, e), axis=0)  # (t, 3)
-        Nps = jnp.transpose(outer(Jp, Js), (1, 2, 0, 3)).reshape(n_t, 3, 6 * n_s)
-        Npa = jnp.sum(outer(Jp, Ja), axis=0)  # (t, 3, a)
-        Nss = jnp.sum(outer(Js, Js), axis=1)  # (s, 6, 6)
-        Nsa = jnp.sum(outer(Js, Ja), axis=1)  # (s, 6, a)
-        bs = -jnp.sum(matvec_t(Js, e), axis=1)
-        ba = -jnp.sum(matvec_t(Ja, e), axis=(0, 1))
-        # Levelling (compensator) pseudo-observations act on the scan rotations.
-        lr = (jax.vmap(compensator_reading)(E) - lev) * lev_w
-        Jl = jax.vmap(jax.jacfwd(compensator_reading))(E) * lev_w[:, :, None]
-        Nss = Nss + outer(Jl, Jl)
-        bs = bs - matvec_t(Jl, lr)
-        eye = jnp.eye(n_s)
-        Nss_full = (
-            (Nss[:, None] * eye[:, :, None, None]).transpose(0, 2, 1, 3).reshape(6 * n_s, 6 * n_s)
-        )
-        Nsa_full = Nsa.reshape(6 * n_s, n_a)
-        Nzz = jnp.block([[Nss_full, Nsa_full], [Nsa_full.T, Naa]])
-        bz = jnp.concatenate([bs.reshape(-1), ba])
-        vtpv = jnp.sum(e * e) + jnp.sum(lr * lr)
-        return Npp, bp, jnp.concatenate([Nps, Npa], axis=-1), Nzz, bz, vtpv
-
-    def body(st):
-        T, E, A = st["T"], st["E"], st["A"]
-        Npp, bp, Npz, Nzz, bz, vtpv = linearise(T, E, A)
-        Ninv = spd_inverse(Npp)
-        Y = jnp.sum(Ninv[..., :, :, None] * Npz[..., None, :, :], axis=-2)  # (t, 3, r)
-        K = Nzz - jnp.einsum("npr,npq->rq", Npz, Y)
-        c = bz - jnp.einsum("npr,np->r", Y, bp)
-        # Minimal datum: the held parameters get unit rows and a zero right-hand side.
-        K = jnp.where(fixed[:, None] | fixed[None, :], jnp.eye(r), K)
-        c = jnp.where(fixed, 0.0, c)
-        s = 1.0 / jnp.sqrt(jnp.diagonal(K))
-        L = jnp.linalg.cholesky(K * s[:, None] * s[None, :])
-        y = jax.scipy.linalg.solve_triangular(L, c * s, lower=True)
-        dz = jax.scipy.linalg.solve_triangular(L.T, y, lower=False) * s
-        dp = jnp.einsum("npq,nq->np", Ninv, bp) - jnp.einsum("npr,r->np", Y, dz)
-        # AP block of K^-1 from one triangular solve with the AP unit columns: W = L^-1 E_a.
-        W = forward_substitution(L, jnp.eye(r)[:, ap_rows])
-        Qaa = (W.T @ W) * s[ap_rows, None] * s[None, ap_rows]
-        size = jnp.maximum(
-            jnp.max(jnp.abs(dz) * jnp.sqrt(jnp.abs(jnp.diagonal(Nzz))), initial=0.0),
-            jnp.max(
-                jnp.abs(dp) * jnp.sqrt(jnp.abs(jnp.diagonal(Npp, axis1=-2, axis2=-1))), initial=0.0
-            ),
-        )
-        finite = jnp.isfinite(size) & jnp.isfinite(vtpv) & jnp.all(jnp.isfinite(Qaa))
-        return dict(
-            T=T + dp,
-            E=E + dz[: 6 * n_s].reshape(n_s, 6),
-            A=A + dz[6 * n_s :],
-            vtpv=vtpv,
-            Qaa=Qaa,
-            it=st["it"] + 1,
-            converged=finite & (size < tolerance),
-            finite=finite,
-            size=size,
-        )
-
-    def cond(st):
-        return (~st["converged"]) & st["finite"] & (st["it"] < max_iterations)
-
-    init = dict(
-        T=jnp.asarray(targets0),
-        E=jnp.asarray(eops0),
-        A=aps0,
-        vtpv=jnp.asarray(0.0),
-        Qaa=jnp.zeros((n_a, n_a)),
-        it=jnp.asarray(0),
-        converged=jnp.asarray(False),
-        finite=jnp.asarray(True),
-        size=jnp.asarray(jnp.inf),
-    )
-    return lax.while_loop(cond, body, init)
-
-
-def _realisation(design: _Design, seed_key, tolerance, max_iterations, index):
-    key = jax.random.fold_in(seed_key, index)
-    obs, lev, true_aps = _simulate_one(design, key)
     tmap = design.truth_map
-    truth = jnp.where(tmap >= 0, true_aps[np.maximum(tmap, 0)], 0.0)
-    st = _gauss_newton(
-        design, obs, lev, design.targets, design.eops, truth, tolerance, max_iterations
-    )
-    dof = float(design.dof)
-    s0sq = st["vtpv"] / dof
-    code = jnp.where(~st["finite"], NONFINITE, jnp.where(st["converged"], SUCCESS, MAX_ITERATIONS))
-    ok = code == SUCCESS
-    cov = st["Qaa"] * s0sq
+    truth = jnp.where(tmap >= 0, true_aps[np.maximum(tmap, 0)], 0.0) if len(tmap) else true_aps[:0]
+    params0 = Params(design.start.prims, design.start.eops, truth)
+    state, s, code = estimate(adj.plan.spec, problem, params0, options)
+    s0sq = s.vtpv / s.dof
+    good = (code == SUCCESS) | (code == NOT_ESTIMABLE)
+    ap_dep = s.dependent[6 * adj.plan.spec.n_scans :] & ~problem.fixed[6 * adj.plan.spec.n_scans :]
+    keep = good & ~ap_dep
     return {
         "true_aps": truth,
-        "ap_values": jnp.where(ok, st["A"], jnp.nan),
-        "ap_covariance": jnp.where(ok, cov, jnp.nan),
-        "sigma0_sq": jnp.where(ok, s0sq, jnp.nan),
-        "iterations": st["it"],
-        "result": code.astype(jnp.int32),
+        "ap_values": jnp.where(keep, state.params.aps, jnp.nan),
+        "ap_covariance": jnp.where(keep[:, None] & keep[None, :], s.Qaa * s0sq, jnp.nan),
+        "sigma0_sq": jnp.where(good, s0sq, jnp.nan),
+        "dof": s.dof,
+        "iterations": state.iteration,
+        "result": code,
     }
 
 
-# Compiled chunk functions per (simulation, model, AP draw sigmas, chunk, devices): the seed,
-# tolerance and iteration limit are traced arguments, so changing them never recompiles.
+# Compiled chunk functions per (simulation, model, AP draw sigmas, chunk, devices): the seed and
+# the solver settings are traced arguments, so changing them never recompiles.
 _COMPILED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 # A simulation's own scanner may predate a re-registered AP: empty the cache then.
 on_reregistration(_COMPILED.clear)
 
 
 def _compiled_chunk(simulation, model, ap_sigma, chunk: int):
-    if model is not None and not isinstance(model.scanner, Scanner):
-        raise ValueError(
-            "monte_carlo: one instrument only; give CalibrationModel(scanner=Scanner(...))"
-        )
-    key = (model, tuple(sorted(dict(ap_sigma or {}).items())), chunk, device_key())
+    # repr: a model with several instruments holds a dict of scanners (unhashable).
+    key = (repr(model), tuple(sorted(dict(ap_sigma or {}).items())), chunk, device_key())
     cache = _COMPILED.setdefault(simulation, {})
     if key in cache:
         design, b = cache[key]
         return design, dataclasses.replace(b, compile_s=0.0)
     design = _design(simulation, model, ap_sigma)
-    constants = (jax.random.PRNGKey(0), jnp.asarray(0.0), jnp.asarray(0, dtype=jnp.int64))
-    b = compile_batched(
-        lambda i, seed_key, tol, mit: _realisation(design, seed_key, tol, mit, i), constants, chunk
-    )
+    constants = (jax.random.PRNGKey(0), SolverOptions().arrays())
+    b = compile_batched(lambda i, k, o: _realisation(design, i, k, o), constants, chunk)
     cache[key] = (design, b)
     return design, b
 
@@ -513,30 +438,31 @@ def monte_carlo(
 ) -> MonteCarloResult:
     """Simulate and self-calibrate N realisations of one network design as one compiled batch.
 
-    ``simulation`` is a :class:`tlsjax.Simulation` (the design: targets, scan poses, sigmas,
-    levelling, the true APs and the scanner that generates the data); ``model`` the calibration
-    model whose APs are estimated (default: the simulation's scanner). Realisation k:
+    ``simulation``: a :class:`tlsjax.Simulation` (targets), a :class:`tlsjax.PointClouds`
+    (planes; all its points), or a :class:`tlsjax.SimulationTruth` (any design, e.g.
+    ``clouds.truth(max_points=50)`` or a target and a plane truth combined). ``model``: the
+    calibration model whose APs are estimated (default: the data's scanners). Realisation k:
     ``l = F(X, EOP) + Delta(l; AP_true) + e``, ``e ~ N(0, Sigma_l)`` drawn from
-    ``fold_in(PRNGKey(seed), k)``, then the Gauss-Markov self-calibration of Chow et al. (2013,
-    eqs. 1-6) started from the truth. A failed realisation returns its result code and NaN
-    estimates; it never stops the batch. Lichti (2008) for the empirical-precision analysis.
+    ``fold_in(PRNGKey(seed), k)``, then the adjustment of :func:`tlsjax.calibrate` (Chow et al.
+    2013, eqs. 1-6; Gauss-Helmert planes) started from the truth, vmapped over realisations. A
+    failed realisation returns its result code and NaN estimates; it never stops the batch.
+    Lichti (2008) for the empirical-precision analysis.
     """
     options = options or MonteCarloOptions()
     chunk = round_chunk(options.chunk_size)
     design, b = _compiled_chunk(simulation, model, options.ap_sigma, chunk)
-    constants = (
-        jax.random.PRNGKey(int(options.seed)),
-        jnp.asarray(float(options.tolerance)),
-        jnp.asarray(int(options.max_iterations), dtype=jnp.int64),
-    )
+    constants = (jax.random.PRNGKey(int(options.seed)), options.solver().arrays())
     res, run_s = run_batched(
         b, int(options.runs), constants, desc="Monte Carlo chunks", progress=options.progress
     )
     cov = res["ap_covariance"]
     sig = np.sqrt(np.clip(np.diagonal(cov, axis1=1, axis2=2), 0, None))
+    plan = design.adjustment.plan
+    ok = res["result"] == SUCCESS
+    dof = res["dof"][ok] if ok.any() else res["dof"]
     return MonteCarloResult(
-        ap_names=design.scanner.aps,
-        ap_units=tuple(get_ap(n).unit for n in design.scanner.aps),
+        ap_names=plan.ap_labels,
+        ap_units=plan.ap_units,
         true_aps=res["true_aps"],
         ap_values=res["ap_values"],
         ap_sigmas=sig,
@@ -544,7 +470,7 @@ def monte_carlo(
         sigma0_sq=res["sigma0_sq"],
         iterations=res["iterations"],
         result=res["result"],
-        dof=design.dof,
+        dof=int(round(float(np.median(dof)))),
         alpha=float(options.alpha),
         seed=int(options.seed),
         chunk_size=chunk,
@@ -554,30 +480,41 @@ def monte_carlo(
     )
 
 
+@jax.jit
+def _draw_many(simulator, seed_key, indices):
+    return jax.vmap(lambda i: simulator.draw(jax.random.fold_in(seed_key, i)))(indices)
+
+
 def monte_carlo_network(
     simulation, index, *, seed: int = 0, ap_sigma: Mapping[str, float] | None = None
 ):
     """The :class:`tlsjax.Network` of realisation ``index`` of :func:`monte_carlo` (same seed):
-    the observations and levelling readings it adjusts, for checks with :func:`tlsjax.calibrate`.
-    Returns (network, true APs {name: value}); for a sequence of indices, a list of them."""
-    design = _design(simulation, None, ap_sigma)
+    the observations, levelling readings, control coordinates and scale-bar lengths it adjusts,
+    for checks with :func:`tlsjax.calibrate`. Returns (network, true APs {label: value}, labels
+    as the data's AP names, ``name[instrument]`` with several instruments); for a sequence of
+    indices, a list of them."""
+    truth = _truth_of(simulation)
+    sim = _simulator(truth, ap_sigma)
     many = not np.isscalar(index)
     idx = np.atleast_1d(np.asarray(index, dtype=np.int64))
-    seed_key = jax.random.PRNGKey(int(seed))
-    obs, lev, true_aps = jax.jit(
-        jax.vmap(lambda i: _simulate_one(design, jax.random.fold_in(seed_key, i)))
-    )(jnp.asarray(idx))
-    net = simulation.network
-    order = np.lexsort((net.target_index, net.scan_index))
+    draws = jax.tree.map(
+        np.asarray, _draw_many(sim, jax.random.PRNGKey(int(seed)), jnp.asarray(idx))
+    )
+    net = truth.network
+    multi = len(net.instruments) > 1
+    labels = [
+        f"{a}[{ins}]" if multi else a
+        for ins, sc in zip(net.instruments, truth.scanners)
+        for a in sc.aps
+    ]
     out = []
     for k in range(len(idx)):
-        new_obs = np.empty_like(net.observations)
-        new_obs[order] = np.asarray(obs[k]).reshape(-1, 3)
-        levelling = np.where(np.isfinite(net.levelling_sigma), np.asarray(lev[k]), net.levelling)
-        out.append(
-            (
-                dataclasses.replace(net, observations=new_obs, levelling=levelling),
-                dict(zip(design.true_scanner.aps, np.asarray(true_aps[k]).tolist())),
-            )
+        l_t, l_p, lev, ctrl, bar, true_aps = (a[k] for a in draws)
+        new = dataclasses.replace(
+            net.with_observations(l_t, l_p if net.has_planes else None),
+            levelling=lev,
+            control_xyz=ctrl.reshape(-1, 3),
+            scale_bar_length=bar.reshape(-1),
         )
+        out.append((new, dict(zip(labels, true_aps.tolist()))))
     return out if many else out[0]

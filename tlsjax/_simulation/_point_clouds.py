@@ -171,15 +171,14 @@ class PointClouds:
         ``max_points``: keep at most this many points of each plane in each scan, drawn at
         random (``seed``) without replacement; None keeps all.
         """
-        rng = np.random.default_rng(seed)
         scans, prims, obs, inc = [], [], [], []
-        for name, ids, o, b in zip(self.scans, self.plane_ids, self.observations, self.incidence):
-            keep = np.arange(len(ids))
-            if max_points is not None:
-                parts = [
-                    rng.permutation(np.flatnonzero(ids == k))[:max_points] for k in np.unique(ids)
-                ]
-                keep = np.sort(np.concatenate(parts)) if parts else keep[:0]
+        for name, ids, o, b, keep in zip(
+            self.scans,
+            self.plane_ids,
+            self.observations,
+            self.incidence,
+            self._kept(max_points, seed),
+        ):
             scans += [name] * len(keep)
             prims += [self.plane_names[i] for i in ids[keep]]
             obs.append(o[keep])
@@ -206,6 +205,41 @@ class PointClouds:
             incidence=inc,
             instruments=None,
             rows=np.arange(2, len(obs) + 2, dtype=np.int64),
+        )
+
+    def _kept(self, max_points, seed):
+        """Per scan, the indices of the points :meth:`to_table` keeps."""
+        rng = np.random.default_rng(seed)
+        out = []
+        for ids in self.plane_ids:
+            keep = np.arange(len(ids))
+            if max_points is not None:
+                parts = [
+                    rng.permutation(np.flatnonzero(ids == k))[:max_points] for k in np.unique(ids)
+                ]
+                keep = np.sort(np.concatenate(parts)) if parts else keep[:0]
+            out.append(keep)
+        return out
+
+    def truth(self, max_points: int | None = None, *, seed: int = 0, levelling: bool = True):
+        """The plane network of :meth:`to_network` with its truth (true planes, poses and the
+        true point of every row), for Monte Carlo (:class:`tlsjax.SimulationTruth`)."""
+        from ._truth import SimulationTruth
+
+        net = self.to_network(max_points, seed=seed, levelling=levelling)
+        points = np.concatenate(
+            [X[k] for X, k in zip(self.true_points, self._kept(max_points, seed))]
+        )
+        planes = self.planes[[self.plane_names.index(k) for k in net.planes]]
+        eops = self.eops[[self.scans.index(s) for s in net.scans]]
+        n = len(net.instruments)
+        return SimulationTruth(
+            net,
+            (self.scanner,) * n,
+            (dict(self.true_aps),) * n,
+            eops,
+            planes=planes,
+            plane_points=points,
         )
 
     def to_network(self, max_points: int | None = None, *, seed: int = 0, levelling: bool = True):

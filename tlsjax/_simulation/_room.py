@@ -93,6 +93,21 @@ class Simulation:
     true_eops: np.ndarray
     target_normals: np.ndarray
 
+    def truth(self):
+        """The network with its truth, for Monte Carlo (:class:`tlsjax.SimulationTruth`)."""
+        from ._truth import SimulationTruth
+
+        net = self.network
+        # Targets are named T001, T002, ... after their index in ``true_targets``.
+        order = [int(name[1:]) - 1 for name in net.targets]
+        return SimulationTruth(
+            net,
+            (self.scanner,) * len(net.instruments),
+            (dict(self.true_aps),) * len(net.instruments),
+            self.true_eops[[int(s[1:]) - 1 for s in net.scans]],
+            self.true_targets[order],
+        )
+
 
 def simulated_levelling(eops, rng: np.random.Generator, sigma: float, noise: bool) -> dict:
     """Dual-axis compensator observations (the ``levelling`` mapping of :func:`make_network`)

@@ -1,0 +1,104 @@
+"""The engine's specialisations equal its general path, and there is one engine.
+
+* The point family's Jacobians by the chain rule through a per-scan rotation (and on the grid,
+  with the scan as an axis) equal ``jacfwd`` of the whole point model.
+* The grid layout of a family's sums (reshapes) gives the same adjustment as segment sums.
+* No second copy of the normal equations, the Schur reduction or the datum in the package.
+"""
+
+import pathlib
+import re
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import tlsjax as tj
+from tlsjax._adjustment import _families as F
+from tlsjax._adjustment._calibrate import Adjustment, _replace
+
+
+@pytest.mark.parametrize("architecture", ["hybrid", "panoramic"])
+def test_structured_point_jacobian_equals_autodiff_of_the_model(architecture):
+    sim = tj.simulate(tj.Room(n_targets=24), seed=0, architecture=architecture, scale_bars=2)
+    adj = Adjustment(sim.network, tj.CalibrationModel(tj.Scanner(architecture=architecture)))
+    spec, params = adj.plan.spec, adj.initial
+    for problem in (adj.plan.problem, F.on_grid(adj.plan.problem)):
+        for fi, fam in enumerate(problem.families):
+            e, Jp, Js, Ja, raw = fam.linear_rows(spec, problem, params, fi)
+            # The generic family method: vmap(jacfwd) of the whole residual.
+            e2, Jp2, Js2, Ja2, _ = F.Family.linear_rows(fam, spec, problem, params, fi)
+            np.testing.assert_allclose(e, e2, rtol=0, atol=1e-12)
+            for a, b in ((Jp, Jp2), (Js, Js2), (Ja, Ja2)):
+                np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * float(jnp.abs(b).max()))
+
+
+def _without_layouts(adj):
+    problem = adj.plan.problem
+    return _replace(problem, layouts=(None,) * len(problem.families))
+
+
+def test_grid_layout_equals_segment_sums():
+    sim = tj.simulate(tj.Room(n_targets=24), seed=5, scale_bars=1)
+    model = tj.CalibrationModel(tj.Scanner(aps="A0 B6 B7 C0"))
+    adj = Adjustment(sim.network, model)
+    assert all(lay is not None for lay in adj.plan.problem.layouts)
+    s1, q1 = adj.run()
+    s2, q2 = adj.run(_without_layouts(adj))
+    assert int(s1.iteration) == int(s2.iteration)
+    np.testing.assert_allclose(s1.params.aps, s2.params.aps, rtol=1e-10)
+    np.testing.assert_allclose(q1.Qzz, q2.Qzz, rtol=1e-8, atol=1e-14)
+    for a, b in zip(q1.residuals + q1.redundancy, q2.residuals + q2.redundancy):
+        np.testing.assert_allclose(a, b, rtol=1e-8, atol=1e-12)
+
+
+def test_grid_layout_is_chosen_from_the_structure():
+    # Planes with few points per (plane, scan): a mostly full grid. Targets: every target in
+    # every scan is a full grid; each seen in 2 of 6 scans fills a third of it (segment sums).
+    clouds = tj.simulate_point_clouds(tj.CloudDesign(angular_step=4 * np.pi / 180), seed=1)
+    adj = Adjustment(clouds.to_network(max_points=10), tj.CalibrationModel())
+    assert adj.plan.problem.layouts[0] is not None
+    sim = tj.simulate(tj.Room(n_targets=24), seed=5)
+    fam = Adjustment(sim.network, tj.CalibrationModel()).plan.problem.families[0]
+    lay = F.grid_layout(fam, 6)
+    assert lay.shape == (24, 6, 1) and bool(jnp.all(lay.valid))
+    # Slot (target i, scan s) holds the row of target i in scan s.
+    np.testing.assert_array_equal(
+        np.asarray(fam.prim)[np.asarray(lay.rows)], np.repeat(np.arange(24), 6)
+    )
+    np.testing.assert_array_equal(
+        np.asarray(fam.scan)[np.asarray(lay.rows)], np.tile(np.arange(6), 24)
+    )
+    np.testing.assert_array_equal(np.asarray(lay.rows)[np.asarray(lay.pos)], np.arange(144))
+    prim, scan = np.asarray(fam.prim), np.asarray(fam.scan)
+    for keep, grid in (((prim + scan) % 3 != 0, True), ((prim + scan) % 3 == 0, False)):
+        sub = _replace(fam, prim=jnp.asarray(prim[keep]), scan=jnp.asarray(scan[keep]))
+        assert (F.grid_layout(sub, 6) is not None) == grid
+
+
+SRC = pathlib.Path(tj.__file__).parent
+
+
+def _files_matching(pattern):
+    rx = re.compile(pattern)
+    return sorted(str(p.relative_to(SRC)) for p in SRC.rglob("*.py") if rx.search(p.read_text()))
+
+
+def test_one_copy_of_normal_equations_reduction_and_datum():
+    # The Schur complement of the primitives, the normal-equation sums, the factorisation of
+    # the reduced system and the datum's null space each live in one module.
+    assert _files_matching(r'"npr,npq->rq"') == ["_adjustment/_normal.py"]
+    assert _files_matching(r"outer\(J\w*, J\w*\)") == ["_adjustment/_normal.py"]
+    assert _files_matching(r"rank_revealing_cholesky\w*\(|linalg\.cholesky\(") == [
+        "_adjustment/_linalg.py",
+        "_adjustment/_normal.py",
+    ]
+    assert _files_matching(r"null_space_columns\(") == [
+        "_adjustment/_normal.py",
+        "_model/_datum.py",
+    ]
+    # Monte Carlo and the failure diagnosis call the engine; they do not re-implement it.
+    mc = (SRC / "_simulation/_montecarlo.py").read_text()
+    assert "estimate(" in mc and "spd_inverse" not in mc and "while_loop" not in mc
+    diag = (SRC / "_adjustment/_diagnose.py").read_text()
+    assert "reduce(" in diag and "spd_inverse" not in diag
