@@ -11,6 +11,10 @@ from ._adjustment._calibrate import analyze as analyze
 from ._adjustment._calibrate import calibrate as calibrate
 from ._adjustment._config import CalibrationModel as CalibrationModel
 from ._adjustment._config import SolverOptions as SolverOptions
+from ._adjustment._implicit import Estimates as Estimates
+from ._adjustment._implicit import NetworkInputs as NetworkInputs
+from ._adjustment._implicit import differentiable_adjustment as differentiable_adjustment
+from ._adjustment._implicit import network_inputs as network_inputs
 from ._adjustment._network import Network as Network
 from ._adjustment._network import make_network as make_network
 from ._adjustment._network import make_plane_network as make_plane_network
@@ -22,6 +26,15 @@ from ._clouds._extract import ExtractionConfig as ExtractionConfig
 from ._clouds._extract import extract_planes as extract_planes
 from ._clouds._match import MatchingConfig as MatchingConfig
 from ._clouds._match import match_planes as match_planes
+from ._design._criteria import DesignCriterion as DesignCriterion
+from ._design._criteria import design_criterion as design_criterion
+from ._design._criteria import predicted_cofactor as predicted_cofactor
+from ._design._design import DesignNetwork as DesignNetwork
+from ._design._design import PlaneDesign as PlaneDesign
+from ._design._design import TargetDesign as TargetDesign
+from ._design._optimize import DesignOptimisation as DesignOptimisation
+from ._design._optimize import DesignSpace as DesignSpace
+from ._design._optimize import optimize_design as optimize_design
 from ._inference._checkpoints import CheckpointReport as CheckpointReport
 from ._inference._checkpoints import assess_checkpoints as assess_checkpoints
 from ._inference._compat import APSet as APSet
