@@ -47,6 +47,8 @@ from ._inference._robust import screen_planes as screen_planes
 from ._inference._selection import SelectionOptions as SelectionOptions
 from ._inference._selection import SelectionResult as SelectionResult
 from ._inference._selection import select_aps as select_aps
+from ._inference._sensitivity import Sensitivity as Sensitivity
+from ._inference._sensitivity import ap_sensitivity as ap_sensitivity
 from ._inference._statistics import ap_t_tests as ap_t_tests
 from ._inference._statistics import global_test as global_test
 from ._inference._testing import TestedCalibration as TestedCalibration
@@ -71,6 +73,7 @@ from ._report._json import write_json as write_json
 from ._report._plots import plot_ap_correlations as plot_ap_correlations
 from ._report._plots import plot_monte_carlo as plot_monte_carlo
 from ._report._plots import plot_residuals as plot_residuals
+from ._report._plots import plot_sensitivity as plot_sensitivity
 from ._report._text import ap_table as ap_table
 from ._simulation._montecarlo import MonteCarloOptions as MonteCarloOptions
 from ._simulation._montecarlo import MonteCarloResult as MonteCarloResult

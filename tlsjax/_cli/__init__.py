@@ -1,4 +1,5 @@
-"""Command line: ``tlsjax demo | simulate | calibrate | extract-planes | montecarlo | compare``.
+"""Command line: ``tlsjax demo | simulate | calibrate | extract-planes | montecarlo | compare |
+design``.
 
 Every subcommand is a thin layer over the public API. Bad input is reported as one line
 naming the file, line, scan, target or parameter (exit code 2); a calibration that fails
@@ -14,6 +15,7 @@ import sys
 from ._calibrate import add_calibrate_parser
 from ._common import EXIT_BAD_INPUT
 from ._compare import add_compare_parser
+from ._design import add_design_parser
 from ._extract import add_extract_parser
 from ._montecarlo import add_montecarlo_parser
 from ._simulate import add_demo_parser, add_simulate_parser
@@ -48,6 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
         add_extract_parser,
         add_montecarlo_parser,
         add_compare_parser,
+        add_design_parser,
     ):
         add(sub)
     return ap

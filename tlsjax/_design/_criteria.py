@@ -153,3 +153,16 @@ def design_criterion(dn, design, criterion: DesignCriterion, *, smooth: bool = T
     if smooth:
         return criterion.smooth(Q, spec.n_scans, names)
     return criterion.exact(Q, spec.n_scans, names)
+
+
+def criterion_of_result(criterion: DesignCriterion, result) -> float:
+    """The exact criterion of an independent :func:`tlsjax.calibrate` (run with
+    ``SolverOptions(full_covariance=True)``): its covariance of the scan poses and APs divided
+    by sigma0^2 (a priori, as the prediction), in the adjustment's datum."""
+    if result.covariance is None:
+        raise ValueError(
+            "criterion_of_result needs calibrate(..., SolverOptions(full_covariance=True))"
+        )
+    r = 6 * len(result.scans) + len(result.ap_names)
+    Q = np.asarray(result.covariance)[-r:, -r:] / result.sigma0**2
+    return criterion.exact(jnp.asarray(Q), len(result.scans), result.ap_names)
