@@ -369,9 +369,12 @@ def differentiable_adjustment(adjustment, *, refinement_steps: int = REFINEMENT_
     net = adjustment.network
     sizes = (net.observations.shape[0], net.plane_observations.shape[0])
     options = adjustment.options.arrays()
+    # Approximate values now, on the host: computed lazily inside a trace they would be cached
+    # as tracers.
+    initial = adjustment.initial
 
     def f(inputs: NetworkInputs, params0: Params | None = None) -> Estimates:
-        p0 = adjustment.initial if params0 is None else params0
+        p0 = initial if params0 is None else params0
         return _estimates(
             plan.spec,
             plan.plane_family,

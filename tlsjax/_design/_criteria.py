@@ -44,14 +44,26 @@ def default_tolerance(name: str) -> float:
     return 1e-4 if unit == "m" else ARCSEC if unit == "rad" else 1e-5
 
 
-def predicted_cofactor(dn, design):
+def predicted_cofactor(dn, design, information=None):
     """A priori covariance (sigma0 = 1) of the scan poses and APs, (6s + a, 6s + a), of
     ``design`` on the :class:`~tlsjax._design._design.DesignNetwork` ``dn``, in the
-    inner-constraint datum on the primitives (free network) or the template's datum."""
+    inner-constraint datum on the primitives (free network) or the template's datum.
+
+    ``information`` (n,): optional factor on the information of every row (sigma divided by
+    its square root), e.g. ~0 for the rows of a board left out: one compiled function then
+    compares subsets of primitives."""
     adj = dn.template
     plan, spec = adj.plan, adj.plan.spec
     rows = tuple(jnp.asarray(r, dtype=jnp.int32) for r in plan.family_rows)
-    problem = problem_from_inputs(plan.problem, rows, plan.plane_family, dn.inputs(design))
+    inputs = dn.inputs(design)
+    if information is not None:
+        scale = 1.0 / jnp.sqrt(jnp.asarray(information))[:, None]
+        inputs = dataclasses.replace(
+            inputs,
+            sigmas=inputs.sigmas * scale if not dn.is_plane else inputs.sigmas,
+            plane_sigmas=inputs.plane_sigmas * scale if dn.is_plane else inputs.plane_sigmas,
+        )
+    problem = problem_from_inputs(plan.problem, rows, plan.plane_family, inputs)
     x = dn.truth(design)
     fp = frozen_problem(spec, problem, x)
     blocks = linearise(spec, fp, x)
@@ -145,9 +157,12 @@ class DesignCriterion:
         return f"{what} of {', '.join(names)}"
 
 
-def design_criterion(dn, design, criterion: DesignCriterion, *, smooth: bool = True):
-    """``criterion`` of ``design`` (a pure function of the design arrays when ``smooth``)."""
-    Q = predicted_cofactor(dn, design)
+def design_criterion(
+    dn, design, criterion: DesignCriterion, *, smooth: bool = True, information=None
+):
+    """``criterion`` of ``design`` (a pure function of the design arrays when ``smooth``);
+    ``information`` as in :func:`predicted_cofactor`."""
+    Q = predicted_cofactor(dn, design, information)
     spec = dn.template.plan.spec
     names = dn.template.plan.ap_labels
     if smooth:

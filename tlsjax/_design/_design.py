@@ -189,6 +189,42 @@ class DesignNetwork:
         )
 
     @classmethod
+    def from_point_clouds(
+        cls, clouds, *, max_points: int = 20, seed: int = 0, model=None
+    ) -> DesignNetwork:
+        """The plane design of simulated point clouds (:func:`tlsjax.simulate_point_clouds`):
+        at most ``max_points`` random points of each plane in each scan (``seed``), each a fixed
+        scanner-space direction of its true point; planes, poses, APs and sigmas of the clouds."""
+        rng = np.random.default_rng(seed)
+        si, pi, dirs = [], [], []
+        for j, (ids, X) in enumerate(zip(clouds.plane_ids, clouds.true_points)):
+            e = clouds.eops[j]
+            x = (rotation_matrix(*e[3:], xp=np) @ (X - e[:3]).T).T
+            sph = spherical_from_cartesian(x, xp=np)
+            for k in np.unique(ids):
+                rows = np.sort(rng.permutation(np.flatnonzero(ids == k))[:max_points])
+                si += [j] * len(rows)
+                pi += [int(k)] * len(rows)
+                dirs.append(sph[rows, 1:])
+        from .._adjustment._network import DEFAULT_SIGMA_LEVELLING
+
+        design = PlaneDesign(
+            jnp.asarray(clouds.eops),
+            jnp.asarray(clouds.planes),
+            jnp.asarray([clouds.true_aps[n] for n in clouds.scanner.aps], dtype=jnp.float64),
+            jnp.asarray(clouds.sigma_range),
+            jnp.asarray(clouds.sigma_angle),
+            jnp.asarray(DEFAULT_SIGMA_LEVELLING),
+        )
+        levelled = np.array([f"S{j + 1}" in clouds.levelling for j in range(len(clouds.eops))])
+        names = [f"S{j + 1}" for j in range(len(clouds.eops))]
+        if tuple(names) != tuple(clouds.scans):
+            levelled = np.array([s in clouds.levelling for s in clouds.scans])
+        return cls.planes(
+            design, clouds.scanner, si, pi, np.concatenate(dirs), model, levelled=levelled
+        )
+
+    @classmethod
     def _build(cls, design, scanner, model, levelled, si, pi, dirs, fov, max_inc, smooth):
         eops = np.asarray(design.eops)
         if levelled is None:
@@ -301,10 +337,11 @@ class DesignNetwork:
             keep &= np.arccos(np.clip(cosb, 0.0, 1.0)) <= self.max_incidence
         return keep
 
-    def network(self, design, *, seed: int | None = None, cut: bool = True):
+    def network(self, design, *, seed: int | None = None, cut: bool = True, rows=None):
         """A :class:`~tlsjax.Network` of ``design`` for an independent :func:`tlsjax.calibrate`:
         rows outside the visibility limits dropped; with ``seed`` the observations and the
-        compensator readings carry noise drawn from the design's sigmas."""
+        compensator readings carry noise drawn from the design's sigmas; ``rows`` (n,) bool:
+        keep only these rows (e.g. leave a board out)."""
         n, s = len(self.scan_index), self.levelled.shape[0]
         noise = lev_noise = None
         if seed is not None:
@@ -314,6 +351,8 @@ class DesignNetwork:
         smooth = dataclasses.replace(self, smooth_visibility=False)
         th = smooth.inputs(design, noise, lev_noise)
         keep = self.hard_visibility(design) if cut else np.ones(n, dtype=bool)
+        if rows is not None:
+            keep = keep & np.asarray(rows, dtype=bool)
         scans = [f"S{j + 1}" for j in range(s)]
         lev = {
             scans[j]: {
