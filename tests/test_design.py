@@ -90,29 +90,10 @@ def test_plane_design_derivative_matches_calibrate():
     """d estimate / d plane parameter and d / d station of a plane network (Gauss-Helmert,
     variances as functions of the solution), against calibrate of re-simulated networks."""
     pc = tj.simulate_point_clouds(tj.CloudDesign(angular_step=4 * np.pi / 180, noise=False), seed=0)
-    rng = np.random.default_rng(0)
-    si, pi, dirs = [], [], []
-    for j, (ids, X) in enumerate(zip(pc.plane_ids, pc.true_points)):
-        from tlsjax._model._geometry import rotation_matrix, spherical_from_cartesian
-
-        e = pc.eops[j]
-        x = (rotation_matrix(*e[3:], xp=np) @ (X - e[:3]).T).T
-        sph = spherical_from_cartesian(x, xp=np)
-        for k in np.unique(ids):
-            rows = rng.permutation(np.flatnonzero(ids == k))[:12]
-            si += [j] * len(rows)
-            pi += [k] * len(rows)
-            dirs.append(sph[rows, 1:])
-    design = tj.PlaneDesign(
-        jnp.asarray(pc.eops),
-        jnp.asarray(pc.planes),
-        jnp.asarray([pc.true_aps[n] for n in pc.scanner.aps]),
-        jnp.asarray(pc.sigma_range),
-        jnp.asarray(pc.sigma_angle),
-        jnp.asarray(5e-5),
-    )
-    dn = tj.DesignNetwork.planes(design, pc.scanner, si, pi, np.concatenate(dirs))
-    z = jnp.asarray(np.random.default_rng(1).standard_normal((len(si), 3)))
+    dn = tj.DesignNetwork.from_point_clouds(pc, max_points=12, seed=0)
+    design = dn.design
+    n = dn.scan_index.shape[0]
+    z = jnp.asarray(np.random.default_rng(1).standard_normal((n, 3)))
     f = tj.differentiable_adjustment(dn.template)
 
     def estimate(d):
