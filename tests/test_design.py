@@ -162,3 +162,26 @@ def test_criterion_errors():
         tj.DesignCriterion(tolerances={"B6": 0.0})
     with pytest.raises(ValueError, match="tilts"):
         tj.DesignSpace(tilts="some")
+
+
+def test_visibility_smooth_and_hard(room):
+    """Field of view and incidence limit: a smooth weight in (0, 1] for the optimiser that
+    agrees with the hard cut of network() away from the edges."""
+    sim, design, _ = room
+    fov, inc = (-40 * np.pi / 180, 60 * np.pi / 180), 70 * np.pi / 180
+    dn = tj.DesignNetwork.targets(
+        design, sim.scanner, fov=fov, max_incidence=inc, smooth_visibility=True
+    )
+    v = np.asarray(dn.visibility(design))
+    hard = dn.hard_visibility(design)
+    assert 0 < hard.sum() < hard.size
+    assert np.all((v > 0) & (v <= 1))
+    # Each limit is a sigmoid 1 deg wide: above 1/2 inside it, below 1/2 outside.
+    assert np.all(v[hard] > 0.5**3) and np.median(v[hard]) > 0.99
+    assert np.all(v[~hard] < 0.5)
+    net = dn.network(design)
+    assert net.observations.shape[0] <= hard.sum()
+    # Hidden rows carry (almost) no information in the smooth inputs.
+    th = dn.inputs(design)
+    ratio = np.asarray(th.sigmas[:, 1]) / float(design.sigma_angle)
+    assert np.all(ratio[~hard & (v < 1e-4)] > 100)

@@ -103,3 +103,17 @@ def test_sensitivity_matches_calibrate_and_external_reliability(setup):
     fd = (out[0] - out[1]) / (2 * h) / sa
     np.testing.assert_allclose(s.values[i, g], fd, rtol=0, atol=1e-4 * np.abs(fd).max())
     assert "d AP / d l" in s.table(5) and set(s.largest()) == set(s.ap_names)
+
+
+def test_no_recompilation_for_new_values(setup):
+    """Other observation values, sigmas or a new wrapper of the same adjustment reuse the
+    compiled function (the spec and shapes are the only static parts)."""
+    from tlsjax._adjustment._implicit import _estimates
+
+    sim, model, adj, f, theta, grad = setup
+    f(theta)
+    n = _estimates._cache_size()
+    other = dataclasses.replace(theta, sigmas=theta.sigmas * 1.5)
+    tj.differentiable_adjustment(adj)(other)
+    f(dataclasses.replace(theta, observations=theta.observations + 1e-4))
+    assert _estimates._cache_size() == n
