@@ -89,7 +89,7 @@ def main(argv=None):
     results = {
         "machine": {
             "platform": platform.platform(),
-            "cpus": jax.device_count(),
+            "jax_devices": jax.device_count(),
             "loadavg": loadavg(),
         },
         "network": "Chow room, 120 targets, 6 scans (2 tilted), hybrid, A0 B6 B7 C0",
