@@ -11,6 +11,10 @@ from ._adjustment._calibrate import analyze as analyze
 from ._adjustment._calibrate import calibrate as calibrate
 from ._adjustment._config import CalibrationModel as CalibrationModel
 from ._adjustment._config import SolverOptions as SolverOptions
+from ._adjustment._implicit import Estimates as Estimates
+from ._adjustment._implicit import NetworkInputs as NetworkInputs
+from ._adjustment._implicit import differentiable_adjustment as differentiable_adjustment
+from ._adjustment._implicit import network_inputs as network_inputs
 from ._adjustment._network import Network as Network
 from ._adjustment._network import make_network as make_network
 from ._adjustment._network import make_plane_network as make_plane_network
@@ -22,6 +26,15 @@ from ._clouds._extract import ExtractionConfig as ExtractionConfig
 from ._clouds._extract import extract_planes as extract_planes
 from ._clouds._match import MatchingConfig as MatchingConfig
 from ._clouds._match import match_planes as match_planes
+from ._design._criteria import DesignCriterion as DesignCriterion
+from ._design._criteria import design_criterion as design_criterion
+from ._design._criteria import predicted_cofactor as predicted_cofactor
+from ._design._design import DesignNetwork as DesignNetwork
+from ._design._design import PlaneDesign as PlaneDesign
+from ._design._design import TargetDesign as TargetDesign
+from ._design._optimize import DesignOptimisation as DesignOptimisation
+from ._design._optimize import DesignSpace as DesignSpace
+from ._design._optimize import optimize_design as optimize_design
 from ._inference._checkpoints import CheckpointReport as CheckpointReport
 from ._inference._checkpoints import assess_checkpoints as assess_checkpoints
 from ._inference._compat import APSet as APSet
@@ -34,6 +47,8 @@ from ._inference._robust import screen_planes as screen_planes
 from ._inference._selection import SelectionOptions as SelectionOptions
 from ._inference._selection import SelectionResult as SelectionResult
 from ._inference._selection import select_aps as select_aps
+from ._inference._sensitivity import Sensitivity as Sensitivity
+from ._inference._sensitivity import ap_sensitivity as ap_sensitivity
 from ._inference._statistics import ap_t_tests as ap_t_tests
 from ._inference._statistics import global_test as global_test
 from ._inference._testing import TestedCalibration as TestedCalibration
@@ -68,6 +83,7 @@ from ._report._json import write_json as write_json
 from ._report._plots import plot_ap_correlations as plot_ap_correlations
 from ._report._plots import plot_monte_carlo as plot_monte_carlo
 from ._report._plots import plot_residuals as plot_residuals
+from ._report._plots import plot_sensitivity as plot_sensitivity
 from ._report._text import ap_table as ap_table
 from ._simulation._design import DesignPlane as DesignPlane
 from ._simulation._design import DesignSimulation as DesignSimulation

@@ -1,5 +1,5 @@
 """Command line: ``tlsjax demo | simulate | calibrate | extract-planes | correct | report |
-montecarlo | compare``.
+montecarlo | compare | design``.
 
 Every subcommand is a thin layer over the public API. Bad input is reported as one line
 naming the file, line, scan, target or parameter (exit code 2), and so is every file-system
@@ -18,6 +18,7 @@ from ._calibrate import add_calibrate_parser
 from ._common import EXIT_BAD_INPUT, EXIT_INTERNAL
 from ._compare import add_compare_parser
 from ._correct import add_correct_parser
+from ._design import add_design_parser
 from ._extract import add_extract_parser
 from ._montecarlo import add_montecarlo_parser
 from ._report import add_report_parser
@@ -55,6 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
         add_report_parser,
         add_montecarlo_parser,
         add_compare_parser,
+        add_design_parser,
     ):
         add(sub)
     return ap

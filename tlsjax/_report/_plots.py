@@ -281,3 +281,30 @@ def plot_monte_carlo(result, path=None):
     if path is not None:
         fig.savefig(path, dpi=110)
     return fig
+
+
+def plot_sensitivity(sensitivity, path=None):
+    """``d AP / d l`` of every observation (:func:`tlsjax.ap_sensitivity`), one panel per AP:
+    AP sigmas per observation sigma against the observation's row, by observation group."""
+    plt = _pyplot()
+    s = sensitivity
+    na = len(s.ap_names)
+    cols = min(na, 2)
+    rows = math.ceil(na / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(6 * cols, 2.8 * rows), squeeze=False)
+    idx = np.arange(s.values.shape[0])
+    for k, name in enumerate(s.ap_names):
+        ax = axes.flat[k]
+        for g, label in enumerate(("range", "hz", "el")):
+            ax.scatter(idx, s.values[:, g, k], s=6, label=label)
+        ax.set_title(f"d {name} / d l")
+        ax.set_xlabel("observation (network row)")
+        ax.set_ylabel("AP sigmas per obs. sigma [-]")
+        ax.axhline(0.0, color="0.6", lw=0.5)
+    for ax in list(axes.flat)[na:]:
+        ax.set_visible(False)
+    axes.flat[0].legend(fontsize=7)
+    fig.tight_layout()
+    if path:
+        _save(fig, path)
+    return fig

@@ -1,0 +1,1 @@
+"""Network design: differentiable designs, design criteria, design optimisation."""
