@@ -5,6 +5,11 @@ import pytest
 from hypothesis import HealthCheck, Phase, settings
 from strict_json import check_tree
 
+# The CLI turns on JAX's persistent compilation cache for its process; tests call the CLI in
+# process, and one long run crashed (SIGSEGV) inside JAX's cache write after that. Tests compile
+# without it (test_notebooks.py gives its kernels their own cache folder).
+os.environ.setdefault("TLSJAX_CACHE_DIR", "off")
+
 # float64 everywhere (SPEC section 1); tlsjax sets it too, but tests may import jax first.
 jax.config.update("jax_enable_x64", True)
 

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import os
 
 import jax
@@ -35,6 +34,7 @@ import numpy as np
 from .._model._aps import ap_corrections, get_ap
 from .._model._geometry import TWO_PI, cartesian_from_spherical, rotation_matrix
 from .._model._scanner import ARCHITECTURES, Scanner
+from ._json import read_result_json
 from ._point_clouds import MAP_SCALE_RANGE
 
 #: Points per compiled correction step.
@@ -85,19 +85,6 @@ class Calibration:
         return _calibration_from_json(os.fspath(path), architecture, instrument)
 
 
-def _json_doc(source):
-    try:
-        with open(source, encoding="utf-8") as fh:
-            doc = json.load(fh)
-    except FileNotFoundError:
-        raise
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ValueError(f"{source}: not a readable result JSON ({err})") from None
-    if not isinstance(doc, dict) or not isinstance(doc.get("aps"), dict):
-        raise ValueError(f"{source}: not a tlsjax result JSON (no 'aps' object)")
-    return doc
-
-
 def _scanner_from_doc(doc, source, architecture, names):
     settings = doc.get("scanner") if isinstance(doc.get("scanner"), dict) else {}
     arch = architecture or settings.get("architecture")
@@ -115,7 +102,7 @@ def _scanner_from_doc(doc, source, architecture, names):
 
 
 def _calibration_from_json(source, architecture, instrument) -> Calibration:
-    doc = _json_doc(source)
+    doc = read_result_json(source)
     aps = doc["aps"]
     blocks = sorted({n.split("[", 1)[1].rstrip("]") for n in aps if "[" in n})
     if blocks and instrument is None:

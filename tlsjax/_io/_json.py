@@ -159,3 +159,17 @@ def write_json_file(path, obj, option: str = "") -> dict:
     text = json.dumps(value, indent=2, allow_nan=False) + "\n"
     write_text_atomic(path, text, option)
     return value
+
+
+def read_result_json(source) -> dict:
+    """A tlsjax result JSON as a dict; a one-line ValueError naming the file otherwise."""
+    try:
+        with open(source, encoding="utf-8") as fh:
+            doc = json.load(fh)
+    except FileNotFoundError:
+        raise
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"{source}: not a readable result JSON ({err})") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("aps"), dict):
+        raise ValueError(f"{source}: not a tlsjax result JSON (no 'aps' object)")
+    return doc

@@ -27,6 +27,7 @@ import sys
 
 import numpy as np
 
+from .._io._json import read_result_json
 from .._units import ARCSEC, DISPLAY_UNITS
 
 DELTA0 = 4.13
@@ -513,17 +514,7 @@ def png_files(folder) -> dict:
 
 def report_from_json(json_path, html_path, *, plots_dir=None) -> str:
     """``tlsjax report``: the HTML report of a result JSON file."""
-    import json
-
     source = os.fspath(json_path)
-    try:
-        with open(source, encoding="utf-8") as fh:
-            doc = json.load(fh)
-    except FileNotFoundError:
-        raise
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ValueError(f"{source}: not a readable result JSON ({err})") from None
-    if not isinstance(doc, dict) or not isinstance(doc.get("aps"), dict):
-        raise ValueError(f"{source}: not a tlsjax result JSON (no 'aps' object)")
+    doc = read_result_json(source)
     plots = png_files(plots_dir) if plots_dir else None
     return write_html_report(doc, html_path, plots=plots)
