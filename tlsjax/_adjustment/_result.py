@@ -312,6 +312,8 @@ def assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
     )
     code = _result_code(state, q, rank_def, not_est)
     diagnosis = failure_diagnosis(net, plan, q) if code != ResultCode.SUCCESS else {}
+    if code == ResultCode.MAX_ITERATIONS:
+        _name_nearly_absorbed(plan, q, ap_dep | ap_fixed, diagnosis)
     resid, redund, used, txyz, tsig, plane_out = _observation_arrays(
         net, plan, q, state, s0sq_scale
     )
@@ -363,6 +365,32 @@ def assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
         diagnosis=diagnosis,
         **plane_out,
     )
+
+
+#: A failed adjustment names the APs whose columns the primitives explain to all but this share
+#: (1 - R^2 of the AP on the targets or planes): an AP the design separates only through the
+#: noise of the scan positions (one station) leaves a nearly flat direction.
+NEARLY_ABSORBED = 1e-2
+
+
+def _name_nearly_absorbed(plan: Plan, q, held, diagnosis: dict) -> None:
+    ns = plan.spec.n_scans
+    share = np.asarray(q.K_over_N)[6 * ns :]
+    near = [
+        (plan.ap_labels[i], float(share[i]))
+        for i in range(plan.spec.n_aps)
+        if not held[i] and np.isfinite(share[i]) and share[i] < NEARLY_ABSORBED
+    ]
+    if not near:
+        return
+    primitives = "plane" if plan.plane_family is not None and not plan.family_targets else "target"
+    text = (
+        f"the {primitives} parameters nearly absorb "
+        + ", ".join(f"{n} (1 - R^2 = {v:.1e})" for n, v in near)
+        + ": this design barely separates them; add stations or tilts"
+    )
+    diagnosis["nearly_absorbed"] = {n: v for n, v in near}
+    diagnosis["summary"] = text + (f"; {diagnosis['summary']}" if diagnosis.get("summary") else "")
 
 
 def _diagnose(plan: Plan, q, state, columns):

@@ -41,6 +41,8 @@ from ._normal import (
 
 #: An update below this many RMS rounding errors of the whitened residuals cannot be resolved.
 ROUNDING_FACTOR = 1e4
+#: A cost decrease below this many times the cost's rounding noise cannot be resolved.
+COST_RESOLUTION = 10.0
 
 
 class SolveState(eqx.Module):
@@ -120,7 +122,8 @@ def adjust_linearised(
         + len(spec.datum_columns),
         1.0,
     )
-    floor = ROUNDING_FACTOR * rounding_sigma(problem)
+    rho = rounding_sigma(problem)
+    floor = ROUNDING_FACTOR * rho
 
     def linearisation(params, damping, dependent):
         blocks, rows = linearise_rows(spec, problem, params, ap_jac)
@@ -162,7 +165,13 @@ def adjust_linearised(
         finite = jnp.isfinite(new_cost)
         accept = finite & (new_cost <= ref_cost * (1.0 + 1e-12))
         s0 = jnp.sqrt(jnp.maximum(ref_cost, 0.0) / dof)
-        threshold = jnp.maximum(options.tolerance * s0, floor)
+        # A step is accepted by comparing costs, and the cost carries rounding noise of about
+        # 2 rho sqrt(cost) (rho: rounding of one whitened residual). A step of size u (in a
+        # priori sigmas) lowers the cost by about u^2; below COST_RESOLUTION times that noise
+        # its acceptance is decided by rounding, so it cannot be resolved either (warm starts
+        # at small noise otherwise alternate rejected and damped steps at the solution).
+        resolvable = jnp.sqrt(COST_RESOLUTION * 2.0 * rho * jnp.sqrt(jnp.maximum(ref_cost, 0.0)))
+        threshold = jnp.maximum(jnp.maximum(options.tolerance * s0, floor), resolvable)
         size = update_size(lin.blocks, red, dz, dps) / threshold
         # Only an undamped step measures the distance to the solution: a damped one is short
         # by construction. At the solution an undamped step is rounding noise and may be
