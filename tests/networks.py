@@ -366,3 +366,16 @@ def survey(builder, n: int, seed: int = 0) -> dict:
         o = outcome(builder(NumpyDrawer(seed + i)))
         counts[o] = counts.get(o, 0) + 1
     return counts
+
+
+if __name__ == "__main__":
+    # A survey of designs hypothesis does not draw (numpy seeds), e.g.
+    #   JAX_PLATFORMS=cpu python tests/networks.py points 40 1000
+    import sys
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    kind, n, seed = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+    builder = {"points": point_case, "planes": plane_case, "partial": partial_case}[kind]
+    print(kind, n, survey(builder, n, seed))
