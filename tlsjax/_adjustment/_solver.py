@@ -165,18 +165,21 @@ def adjust_linearised(
         finite = jnp.isfinite(new_cost)
         accept = finite & (new_cost <= ref_cost * (1.0 + 1e-12))
         s0 = jnp.sqrt(jnp.maximum(ref_cost, 0.0) / dof)
+        threshold = jnp.maximum(options.tolerance * s0, floor)
+        update = update_size(lin.blocks, red, dz, dps)
+        size = update / threshold
         # A step is accepted by comparing costs, and the cost carries rounding noise of about
         # 2 rho sqrt(cost) (rho: rounding of one whitened residual). A step of size u (in a
         # priori sigmas) lowers the cost by about u^2; below COST_RESOLUTION times that noise
-        # its acceptance is decided by rounding, so it cannot be resolved either (warm starts
-        # at small noise otherwise alternate rejected and damped steps at the solution).
+        # its rejection says nothing (warm starts at small noise otherwise alternate rejected
+        # and damped steps at the solution). Accepted steps keep the plain threshold, so the
+        # estimate does not depend on the path (Monte Carlo equals calibrate to 1e-9 sigma).
         resolvable = jnp.sqrt(COST_RESOLUTION * 2.0 * rho * jnp.sqrt(jnp.maximum(ref_cost, 0.0)))
-        threshold = jnp.maximum(jnp.maximum(options.tolerance * s0, floor), resolvable)
-        size = update_size(lin.blocks, red, dz, dps) / threshold
+        unresolved = ~accept & (update < resolvable)
         # Only an undamped step measures the distance to the solution: a damped one is short
         # by construction. At the solution an undamped step is rounding noise and may be
         # rejected by rounding alone; it is converged either way.
-        converged = (damping == 0) & jnp.isfinite(size) & (size < 1.0)
+        converged = (damping == 0) & jnp.isfinite(size) & ((size < 1.0) | unresolved)
         params = _where(accept, new, state.params)
         damping_next = jnp.where(
             accept,
