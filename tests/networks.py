@@ -32,6 +32,17 @@ APS = ("A0", "B6", "B7", "C0")
 N_TARGETS = 24
 N_SCANS = 4
 POINTS_PER_PLANE = 8
+#: Two stations of a 14 x 11 x 3 m room, and the papers' six scans from them: three per
+#: station 60 deg apart, two of the second station rolled by -45 and +45 deg.
+ST1, ST2 = (4.5, 4.0, 1.6), (9.5, 7.0, 1.6)
+SIX_SCANS = (
+    (*ST1, 0.0, 0.0, 0.0),
+    (*ST1, 0.0, 0.0, 60 * DEG),
+    (*ST1, 0.0, 0.0, 120 * DEG),
+    (*ST2, 0.0, 0.0, 20 * DEG),
+    (*ST2, -45 * DEG, 0.0, 80 * DEG),
+    (*ST2, 45 * DEG, 0.0, 140 * DEG),
+)
 
 
 def examples(n: int) -> int:

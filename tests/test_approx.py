@@ -12,6 +12,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from networks import SIX_SCANS, ST1, ST2
 
 import tlsjax as tj
 from tlsjax._adjustment._approx import (
@@ -26,22 +27,12 @@ from tlsjax._model._geometry import rotation_matrix
 
 DEG = np.pi / 180
 ROOM = (14.0, 11.0, 3.0)
-ST1, ST2 = (4.5, 4.0, 1.6), (9.5, 7.0, 1.6)
+
 #: The issue's oblique planes: normals (1,1,1), (-1,2,3), (2,-1,1.5), 0.35 to 2 m from the stations.
 OBLIQUE = (
     tj.DesignPlane((1, 1, 1), (5.0, 4.5, 2.1)),
     tj.DesignPlane((-1, 2, 3), (9.5, 7.0, 2.6)),
     tj.DesignPlane((2, -1, 1.5), (7.0, 5.5, 1.5)),
-)
-#: The papers' six scans: three per station 60 deg apart; two of the second station rolled
-#: by -45 and +45 deg.
-SIX_SCANS = (
-    (*ST1, 0.0, 0.0, 0.0),
-    (*ST1, 0.0, 0.0, 60 * DEG),
-    (*ST1, 0.0, 0.0, 120 * DEG),
-    (*ST2, 0.0, 0.0, 20 * DEG),
-    (*ST2, -45 * DEG, 0.0, 80 * DEG),
-    (*ST2, 45 * DEG, 0.0, 140 * DEG),
 )
 
 

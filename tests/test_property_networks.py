@@ -26,6 +26,9 @@ from networks import (
     DEG,
     N_TARGETS,
     POINTS_PER_PLANE,
+    SIX_SCANS,
+    ST1,
+    ST2,
     Case,
     cases,
     check,
@@ -38,7 +41,6 @@ from networks import (
 
 import tlsjax as tj
 
-ST1, ST2 = (4.5, 4.0, 1.6), (9.5, 7.0, 1.6)
 #: Two stations, one levelled and one rolled scan each (the shapes of the drawn designs).
 FOUR_SCANS = (
     (*ST1, 0.0, 0.0, 0.0),
@@ -72,14 +74,7 @@ PLANE_ROOM = tj.NetworkDesign(
 #: stations, six scans (two rolled by -45 and +45 deg), 30 points per plane and scan.
 OBLIQUE_ROOM = tj.NetworkDesign(
     room=(14.0, 11.0, 3.0),
-    scans=(
-        (*ST1, 0.0, 0.0, 0.0),
-        (*ST1, 0.0, 0.0, 60 * DEG),
-        (*ST1, 0.0, 0.0, 120 * DEG),
-        (*ST2, 0.0, 0.0, 20 * DEG),
-        (*ST2, -45 * DEG, 0.0, 80 * DEG),
-        (*ST2, 45 * DEG, 0.0, 140 * DEG),
-    ),
+    scans=SIX_SCANS,
     faces_as_planes=True,
     planes=(
         tj.DesignPlane((1, 1, 1), (5.0, 4.5, 2.1)),
