@@ -3,6 +3,7 @@
 Usage::
 
     python benchmarks/bench_montecarlo.py [--runs 1000] [--chunk-size 10] [--scipy-runs 20]
+                                          [--devices N]
                                           [--cases physical,chow2013-noscale]
                                           [--out benchmarks/results/montecarlo.json]
 
@@ -24,6 +25,10 @@ readings, as in tlsjax. Its time per realisation is extrapolated to
 ``runs`` (a loop of 1,000 scipy runs would take minutes). Its APs are compared with tlsjax's
 for the same realisations (datum invariant: the peer holds scan S1, tlsjax a minimal datum).
 
+The realisations are sharded over ``--devices`` CPU devices (default: one per available CPU;
+``XLA_FLAGS=--xla_force_host_platform_device_count``); the scipy loop runs on one core, as a
+user's loop would. The device count is recorded (``tlsjax.devices``).
+
 The machine is shared while this runs: ``os.getloadavg()`` is recorded before and after.
 """
 
@@ -35,15 +40,32 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-from scipy.optimize import least_squares
+
+def _host_devices():
+    """``--devices N``: XLA reads the CPU device count when JAX's backend starts, so it is set
+    before anything runs (default: the CPUs available; ``--devices 1`` for one device)."""
+    from tlsjax._cli._common import available_cpus, use_host_devices
+
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("--devices", type=int, default=available_cpus())
+    use_host_devices(p.parse_known_args()[0].devices)
+
+
+_host_devices()
+
+import numpy as np  # noqa: E402
+from scipy.optimize import least_squares  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import write_results  # noqa: E402
 from bench_point import ScipyPeer, machine_info  # noqa: E402
 
 import tlsjax as tj  # noqa: E402
-from tlsjax._simulation._montecarlo import MonteCarloOptions, monte_carlo, monte_carlo_network
+from tlsjax._simulation._montecarlo import (  # noqa: E402
+    MonteCarloOptions,
+    monte_carlo,
+    monte_carlo_network,
+)
 
 CASES = {"physical": "A0 B6 B7 C0", "chow2013-noscale": "chow2013-noscale"}
 
@@ -179,6 +201,12 @@ def main(argv=None):
     ap.add_argument("--lsmr-tol", type=float, default=1e-12)
     ap.add_argument("--max-nfev", type=int, default=1000)
     ap.add_argument("--cases", default=",".join(CASES))
+    ap.add_argument(
+        "--devices",
+        type=int,
+        default=None,
+        help="CPU devices to shard the realisations over (default: the CPUs available)",
+    )
     ap.add_argument("--out", default="benchmarks/results/montecarlo.json")
     ap.add_argument(
         "--level-study",

@@ -12,9 +12,13 @@ clouds of the same room (``tj.simulate_point_clouds``), thinned to about M / 3 p
 (``to_network(max_points=...)``). Each point runs in its own child process, so that its peak
 resident memory (VmHWM) is its own; it records the host-side plan and approximate values, the
 ahead-of-time compile of the adjustment, the compiled run (median of ``--repeats``), one
-public ``tj.calibrate`` after the compile (end to end on the host), XLA's own account of the
-executable's temporaries, and the peak memory after the JAX import and at the end. A plot of
-time and memory per point is written beside the JSON.
+public ``tj.calibrate`` after the compile (end to end on the host) and XLA's own account of the
+executable's temporaries. Memory is recorded per phase, the peak restarted between phases
+(Linux ``clear_refs``): ``import_peak_mb`` (JAX and tlsjax imported), ``simulate_peak_mb``
+(after drawing the network), ``network_rss_mb`` (resident before the adjustment),
+``compile_peak_mb`` (plan, approximate values and XLA's compile: a transient of a few hundred
+MB that does not grow with the network), ``run_peak_mb`` (the compiled runs) and ``peak_mb``
+(runs and ``calibrate``). A plot of time and memory per point is written beside the JSON.
 """
 
 from __future__ import annotations
@@ -44,13 +48,28 @@ def _peak_mb():
     return float("nan")
 
 
+def _reset_peak():
+    """Return freed heap to the system and restart the peak (VmHWM) from the current resident
+    size (Linux ``clear_refs`` 5), so that each phase's peak is its own."""
+    import ctypes
+    import gc
+
+    gc.collect()
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")
+    except OSError:  # pragma: no cover - not Linux: peaks then accumulate
+        pass
+
+
 def _network(kind, size, seed=0):
     import tlsjax as tj
 
     if kind == "targets":
         return tj.simulate(tj.Room(n_targets=int(size)), seed=seed).network
     points = int(size) // 3
-    step = 0.5 * DEG if points > 150_000 else 1.0 * DEG
+    step = (0.25 if points > 300_000 else 0.5 if points > 100_000 else 1.0) * DEG
     clouds = tj.simulate_point_clouds(tj.CloudDesign(angular_step=step), seed=seed)
     per_pair = max(int(points / (len(clouds.plane_names) * len(clouds.scans))), 6)
     return clouds.to_network(max_points=per_pair, seed=seed)
@@ -69,8 +88,11 @@ def child(kind: str, size: int, repeats: int) -> dict:
     out["n_observations"] = int(net.n_observations)
     out["n_targets"] = len(net.targets)
     out["n_plane_points"] = int(net.plane_observations.shape[0])
+    out["simulate_peak_mb"] = _peak_mb()
     model = tj.CalibrationModel(tj.Scanner(aps="A0 B6 B7 C0"))
     opts = tj.SolverOptions(full_covariance=False)
+    _reset_peak()
+    out["network_rss_mb"] = _peak_mb()
     t0 = time.perf_counter()
     adj = tj.Adjustment(net, model, opts)
     p0 = adj.initial
@@ -84,7 +106,9 @@ def child(kind: str, size: int, repeats: int) -> dict:
         out["xla_temp_mb"] = compiled.memory_analysis().temp_size_in_bytes / 2**20
     except Exception:  # pragma: no cover - backend without memory analysis
         out["xla_temp_mb"] = None
+    out["compile_peak_mb"] = _peak_mb()
     dyn = args[1:4]
+    _reset_peak()
     state, _ = jax.block_until_ready(compiled(*dyn))
     ts = []
     for _ in range(repeats):
@@ -94,6 +118,7 @@ def child(kind: str, size: int, repeats: int) -> dict:
     out["run_s"] = sorted(ts)[len(ts) // 2]
     out["run_min_s"] = min(ts)
     out["iterations"] = int(state.iteration)
+    out["run_peak_mb"] = _peak_mb()
     t0 = time.perf_counter()
     res = tj.calibrate(net, model, opts)
     out["calibrate_s"] = time.perf_counter() - t0
@@ -119,12 +144,15 @@ def _plot(results, path):
         axes[0].loglog(
             x, [r["calibrate_s"] for r in pts], marker + "--", label=f"{kind}: calibrate"
         )
-        axes[1].loglog(x, [r["peak_mb"] for r in pts], marker + "-", label=f"{kind}: peak")
+        axes[1].loglog(x, [r["peak_mb"] for r in pts], marker + "-", label=f"{kind}: run peak")
+        axes[1].loglog(
+            x, [r["compile_peak_mb"] for r in pts], marker + "--", label=f"{kind}: compile peak"
+        )
         axes[1].loglog(
             x,
-            [r["peak_mb"] - r["import_peak_mb"] for r in pts],
+            [r["peak_mb"] - r["network_rss_mb"] for r in pts],
             marker + ":",
-            label=f"{kind}: above import",
+            label=f"{kind}: run, above the network",
         )
     axes[0].set_xlabel("observations (range, hz, el)")
     axes[0].set_ylabel("wall time of one adjustment [s]")
@@ -173,7 +201,8 @@ def main(argv=None):
             f"{kind:8s} {size:>8d}: "
             + (
                 f"{r['n_observations']} obs, run {r['run_s']:.3f} s, calibrate {r['calibrate_s']:.3f} s, "
-                f"compile {r['compile_s']:.1f} s, peak {r['peak_mb']:.0f} MB ({r['layout']})"
+                f"compile {r['compile_s']:.1f} s, peak {r['peak_mb']:.0f} MB (compile {r['compile_peak_mb']:.0f} MB, "
+                f"network {r['network_rss_mb']:.0f} MB) ({r['layout']})"
                 if "run_s" in r
                 else r["error"][-300:]
             ),

@@ -1,11 +1,13 @@
 """The engine's specialisations equal its general path, and there is one engine.
 
 * The point family's Jacobians by the chain rule through a per-scan rotation (and on the grid,
-  with the scan as an axis) equal ``jacfwd`` of the whole point model.
+  with the scan as an axis) equal ``jacfwd`` of the whole point model; so do the plane
+  family's (one instrument or two, away from the approximate values).
 * The grid layout of a family's sums (reshapes) gives the same adjustment as segment sums.
 * No second copy of the normal equations, the Schur reduction or the datum in the package.
 """
 
+import dataclasses
 import pathlib
 import re
 
@@ -31,6 +33,38 @@ def test_structured_point_jacobian_equals_autodiff_of_the_model(architecture):
             np.testing.assert_allclose(e, e2, rtol=0, atol=1e-12)
             for a, b in ((Jp, Jp2), (Js, Js2), (Ja, Ja2)):
                 np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * float(jnp.abs(b).max()))
+
+
+@pytest.mark.parametrize("two_instruments", [False, True])
+def test_structured_plane_jacobian_equals_autodiff_of_the_model(two_instruments):
+    clouds = tj.simulate_point_clouds(
+        tj.CloudDesign(angular_step=4 * np.pi / 180, tilted=True), seed=1
+    )
+    net = clouds.to_network(max_points=20)
+    scanner = tj.Scanner(aps="A0 B6 B7 C0 A2 B2 C2", architecture="hybrid")
+    model = tj.CalibrationModel(scanner)
+    if two_instruments:
+        split = np.arange(len(net.scans)) % 2
+        net = dataclasses.replace(net, instruments=("a", "b"), instrument_of_scan=split)
+        other = tj.Scanner(aps="A0 B6 C0", architecture="hybrid")
+        model = tj.CalibrationModel({"a": scanner, "b": other})
+    adj = Adjustment(net, model)
+    spec, params = adj.plan.spec, adj.initial
+    # Away from the approximate values, with APs that bend the observations.
+    rng = np.random.default_rng(0)
+    params = F.Params(
+        tuple(P * (1 + 1e-3 * rng.normal(size=P.shape)) for P in params.prims),
+        params.eops + 1e-3 * rng.normal(size=params.eops.shape),
+        params.aps + 1e-3 * rng.normal(size=params.aps.shape),
+    )
+    for problem in (adj.plan.problem, F.on_grid(adj.plan.problem)):
+        for fi, fam in enumerate(problem.families):
+            assert isinstance(fam, F.PlaneFamily)
+            got = fam.linear_rows(spec, problem, params, fi)
+            want = F.Family.linear_rows(fam, spec, problem, params, fi)
+            for a, b in zip(got[:4], want[:4]):
+                assert a.shape == b.shape
+                np.testing.assert_allclose(a, b, rtol=0, atol=1e-11 * float(jnp.abs(b).max()))
 
 
 def _without_layouts(adj):

@@ -331,12 +331,22 @@ def _target_noise(data: _Data, A, S) -> float:
         return 0.0
     X = np.einsum("mij,mj->mi", A[data.t_scan], data.x_t) + S[data.t_scan]
     dist = []
-    for t in np.unique(data.t_index):
-        q = np.flatnonzero(data.t_index == t)
-        if len(q) > 1:
-            d = np.linalg.norm(X[q] - np.median(X[q], axis=0), axis=1) / data.t_weight[q]
-            dist.append(d * np.sqrt(len(q) / (len(q) - 1)))
+    for q in _groups_by_size(data.t_index):
+        k = q.shape[1]
+        if k > 1:
+            d = np.linalg.norm(X[q] - np.median(X[q], axis=1, keepdims=True), axis=-1)
+            dist.append((d / data.t_weight[q]).ravel() * np.sqrt(k / (k - 1)))
     return float(np.median(np.concatenate(dist)) / 1.54) if dist else 0.0
+
+
+def _groups_by_size(index):
+    """The rows of each group of ``index`` (e.g. a target's observations), one (G, k) array of
+    row numbers per group size k, ascending within a group: per-group work is then vectorised
+    over the groups of one size (a loop over groups would cost O(groups x rows))."""
+    order = np.argsort(index, kind="stable")
+    _, start, count = np.unique(index[order], return_index=True, return_counts=True)
+    for k in np.unique(count):
+        yield order[start[count == k][:, None] + np.arange(k)]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -825,42 +835,42 @@ def _consensus(data: _Data, A, S, cfg: ApproxConfig):
         js = data.pair_scan
         o1, o2 = _transform_moments(data.cnt, data.s1, data.s2, A[js], S[js])
         n, has_n, sn, c, sc = _plane_fit(data.cnt, o1, o2, cfg)
-        for k in np.unique(data.pair_plane):
-            q = np.flatnonzero(data.pair_plane == k)
-            if len(q) > 1:
+        for q in _groups_by_size(data.pair_plane):
+            if q.shape[1] > 1:
                 agree = _planes_agree(n[q], has_n[q], sn[q], c[q], sc[q], cfg)
-                use_p[q] = agree[np.argmax(agree @ data.cnt[q])]
+                best = np.argmax(np.einsum("gpq,gq->gp", agree, data.cnt[q]), axis=1)
+                use_p[q] = agree[np.arange(len(q)), best]
     use_t = np.ones(len(data.t_scan), dtype=bool)
     if len(data.t_scan):
         X = np.einsum("mij,mj->mi", A[data.t_scan], data.x_t) + S[data.t_scan]
         rows = np.arange(len(data.t_scan))
         sx2 = _target_sigma(np.linalg.norm(data.x_t, axis=1), cfg, data.target_noise(rows)) ** 2
-        for t in np.unique(data.t_index):
-            q = np.flatnonzero(data.t_index == t)
-            if len(q) > 1:
-                tol = np.maximum(cfg.distance_tol, 4.0 * np.sqrt(sx2[q, None] + sx2[None, q]))
-                agree = np.linalg.norm(X[q, None] - X[None, q], axis=-1) < tol
-                use_t[q] = agree[np.argmax(agree.sum(axis=1))]
+        for q in _groups_by_size(data.t_index):
+            if q.shape[1] > 1:
+                s2 = sx2[q]
+                tol = np.maximum(cfg.distance_tol, 4.0 * np.sqrt(s2[:, :, None] + s2[:, None, :]))
+                agree = np.linalg.norm(X[q][:, :, None] - X[q][:, None, :], axis=-1) < tol
+                use_t[q] = agree[np.arange(len(q)), np.argmax(agree.sum(axis=2), axis=1)]
     return use_p, use_t
 
 
 def _planes_agree(n, has_n, sn, c, sc, cfg: ApproxConfig):
-    """(m, m) agreement of m object-space fits of one plane: normals within
-    ``max(angle_tol, 4 sigma)`` (either sign) and each centroid within ``max(distance_tol,
-    4 sigma)`` of the other's plane, sigma including the normal's error over the lever."""
-    both = has_n[:, None] & has_n[None, :]
+    """(..., m, m) agreement of m object-space fits of one plane (batched over leading axes):
+    normals within ``max(angle_tol, 4 sigma)`` (either sign) and each centroid within
+    ``max(distance_tol, 4 sigma)`` of the other's plane, sigma including the normal's error
+    over the lever."""
+    col, row = (lambda x: x[..., :, None]), (lambda x: x[..., None, :])
+    both = col(has_n) & row(has_n)
     sn2 = np.where(has_n, sn, 0.0) ** 2
-    s2 = sn2[:, None] + sn2[None, :]
-    cos = np.abs(n @ n.T)
+    s2 = col(sn2) + row(sn2)
+    cos = np.abs(np.einsum("...pi,...qi->...pq", n, n))
     ang_ok = ~both | (cos > np.cos(np.maximum(cfg.angle_tol, 4.0 * np.sqrt(s2))))
-    diff = c[None, :, :] - c[:, None, :]  # c_q - c_p
+    diff = c[..., None, :, :] - c[..., :, None, :]  # c_q - c_p
     lever2 = np.sum(diff * diff, axis=-1)
-    tol = np.maximum(
-        cfg.distance_tol, 4.0 * np.sqrt(sc[:, None] ** 2 + sc[None, :] ** 2 + s2 * lever2)
-    )
-    off = np.abs(np.einsum("pi,pqi->pq", n, diff))  # |n_p . (c_q - c_p)|
-    dist_ok = (~has_n[:, None] | (off < tol)) & (~has_n[None, :] | (off.T < tol))
-    return ang_ok & dist_ok | np.eye(len(n), dtype=bool)
+    tol = np.maximum(cfg.distance_tol, 4.0 * np.sqrt(col(sc) ** 2 + row(sc) ** 2 + s2 * lever2))
+    off = np.abs(np.einsum("...pi,...pqi->...pq", n, diff))  # |n_p . (c_q - c_p)|
+    dist_ok = (~col(has_n) | (off < tol)) & (~row(has_n) | (np.swapaxes(off, -1, -2) < tol))
+    return ang_ok & dist_ok | np.eye(n.shape[-2], dtype=bool)
 
 
 def _raise_undetermined(net, j, fit):

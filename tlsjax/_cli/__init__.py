@@ -15,7 +15,7 @@ import os
 import sys
 
 from ._calibrate import add_calibrate_parser
-from ._common import EXIT_BAD_INPUT, EXIT_INTERNAL
+from ._common import EXIT_BAD_INPUT, EXIT_INTERNAL, use_host_devices
 from ._compare import add_compare_parser
 from ._correct import add_correct_parser
 from ._design import add_design_parser
@@ -69,6 +69,8 @@ def _one_line(text) -> str:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    if getattr(args, "devices", None):
+        use_host_devices(args.devices)
     _enable_compilation_cache()
     prefix = f"tlsjax {args.command}: error:"
     try:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERNAL = 0, 1, 2, 3
 
 
@@ -19,3 +21,37 @@ def scanner_args(p):
         metavar="M",
         help="unit length U [m] of the cyclic range terms A3/A4 (default 1.2)",
     )
+
+
+def available_cpus() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def devices_arg(p):
+    p.add_argument(
+        "--devices",
+        type=int,
+        default=available_cpus(),
+        metavar="N",
+        help="split the CPU into N JAX devices and shard the realisations over them "
+        "(default: the CPUs available; results do not depend on it)",
+    )
+
+
+def use_host_devices(n: int) -> None:
+    """Ask XLA for ``n`` CPU devices. XLA reads the count when JAX's backend starts, so this
+    must run before the first computation; later (tests calling ``main`` in-process) nothing is
+    changed. A batch of realisations is sharded over every device (``_simulation._batch``):
+    on a CPU without another device, each core then runs its own share."""
+    if n <= 1 or "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", ""):
+        return
+    try:
+        from jax._src.xla_bridge import backends_are_initialized
+    except ImportError:  # pragma: no cover - JAX moved it; the flag is then left alone
+        return
+    if not backends_are_initialized():
+        flag = f"--xla_force_host_platform_device_count={int(n)}"
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()

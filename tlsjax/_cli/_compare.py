@@ -7,6 +7,7 @@ from .._inference._compat import APSet, CompatibilityOptions, compatibility_test
 from .._model._scanner import Scanner
 from .._simulation._room import Room
 from .._units import ARCSEC
+from ._common import devices_arg
 
 
 def add_compare_parser(subparsers):
@@ -26,6 +27,7 @@ def add_compare_parser(subparsers):
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", default=None, help="write the result as JSON to this file")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    devices_arg(p)
     p.set_defaults(func=cli_compare)
     return p
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from .._simulation._montecarlo import MonteCarloOptions
+from ._common import devices_arg
 
 
 def add_montecarlo_parser(subparsers):
@@ -27,6 +28,7 @@ def add_montecarlo_parser(subparsers):
     p.add_argument("--png", default=None, help="write the plot to this PNG file")
     p.add_argument("--json", default=None, help="write the summary as JSON to this file")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    devices_arg(p)
     p.set_defaults(func=cli_montecarlo)
     return p
 
