@@ -260,16 +260,14 @@ def machine_info():
                     break
     except OSError:
         pass
-    try:
-        affinity = len(os.sched_getaffinity(0))
-    except AttributeError:
-        affinity = os.cpu_count()
+    from tlsjax._cli._common import available_cpus
+
     return {
         "platform": platform.platform(),
         "machine": platform.machine(),
         "cpu_model": cpu_model,
         "cpu_count": os.cpu_count(),
-        "cpus_available": affinity,
+        "cpus_available": available_cpus(),
         "python": sys.version.split()[0],
         "jax_version": jax.__version__,
         "jaxlib_version": getattr(jax.lib, "__version__", None) or _jaxlib_version(),
