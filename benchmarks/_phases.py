@@ -55,7 +55,7 @@ def phase_times(spec, problem, params, options, repeats: int = 20) -> dict:
         return tuple(f.linear_rows(spec, pr, p, fi, a[fi]) for fi, f in enumerate(pr.families))
 
     out["linearisation"], _ = _time(rows, (grid, params, ap_jac), repeats)
-    lin_ms, (blocks, _) = _time(
+    lin_ms, (blocks, rows) = _time(
         lambda pr, p, a: N.linearise_rows(spec, pr, p, a), (grid, params, ap_jac), repeats
     )
     out["assembly"] = max(lin_ms - out["linearisation"], 0.0)
@@ -79,7 +79,11 @@ def phase_times(spec, problem, params, options, repeats: int = 20) -> dict:
     out["update_size"], _ = _time(
         lambda b, r, z, d: N.update_size(b, r, z, d), (blocks, red, dz, dps), repeats
     )
-    out["step_cost"], _ = _time(lambda pr, p: F.cost(spec, pr, p), (grid, new), repeats)
+    # As the loop does: Gauss-Helmert weights held at the linearisation point (its rows).
+    frozen = rows if any(f.frozen_cost for f in grid.families) else None
+    out["step_cost"], _ = _time(
+        lambda pr, p, fr: F.cost(spec, pr, p, frozen=fr), (grid, new, frozen), repeats
+    )
     lin = Q.linearisation_at(spec, grid, params, options.rank_tolerance)
     out["quality"], _ = _time(
         lambda pr, g, p, li: Q.quality_from(spec, pr, g, p, li),

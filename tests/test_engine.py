@@ -18,6 +18,7 @@ import pytest
 import tlsjax as tj
 from tlsjax._adjustment import _families as F
 from tlsjax._adjustment._calibrate import Adjustment, _replace
+from tlsjax._adjustment._normal import Rows
 
 
 @pytest.mark.parametrize("architecture", ["hybrid", "panoramic"])
@@ -65,6 +66,15 @@ def test_structured_plane_jacobian_equals_autodiff_of_the_model(two_instruments)
             for a, b in zip(got[:4], want[:4]):
                 assert a.shape == b.shape
                 np.testing.assert_allclose(a, b, rtol=0, atol=1e-11 * float(jnp.abs(b).max()))
+            # B = dg/dl against the model's condition_variance (jax.grad per point), and the
+            # step's cost with the weights held at this point against the model's condition.
+            m, B = fam._variance(spec, fam.observation_args(problem, params, fi), params.aps)
+            np.testing.assert_allclose(got[5], B, rtol=0, atol=1e-11 * float(jnp.abs(B).max()))
+            rows = Rows(*got)
+            cost = fam.cost_rows(spec, problem, params, fi, rows)
+            np.testing.assert_allclose(
+                cost, want[0], rtol=0, atol=1e-11 * float(jnp.abs(cost).max())
+            )
 
 
 def _without_layouts(adj):

@@ -38,7 +38,6 @@ from .._model._geometry import (
 from .._model._levelling import compensator_reading
 from .._model._planes import (
     condition_variance,
-    plane_condition,
     unit_normal_constraint,
     whitened_condition,
 )
@@ -112,6 +111,22 @@ class Family(eqx.Module):
             inst,
         )
 
+    def at_rows(self, problem, fi, v, by: str):
+        """Per-primitive (n, ...), per-scan (s, ...) or per-pair (n, s, ...) values ``v`` at
+        the family's rows (``by`` = "prim", "scan" or "pair"): on the family's grid a broadcast
+        over the slots, which XLA fuses into the consumer (no gather, no copy); a gather
+        otherwise."""
+        grid = problem.grids[fi] if problem.grids else None
+        tail = v.shape[2 if by == "pair" else 1 :]
+        if not grid:
+            return v[
+                {"prim": (self.prim,), "scan": (self.scan,), "pair": (self.prim, self.scan)}[by]
+            ]
+        n, ns, c = grid
+        lead = {"prim": (n, 1, 1), "scan": (1, ns, 1), "pair": (n, ns, 1)}[by]
+        v = jnp.broadcast_to(v.reshape(lead + tail), (n, ns, c) + tail)
+        return v.reshape((n * ns * c,) + tail)
+
     def ap_block(self, spec, problem, params, fi):
         """``d e / d AP`` (m, rows, a) when it is constant in an adjustment
         (``constant_ap_jacobian``), else None."""
@@ -149,7 +164,7 @@ class Family(eqx.Module):
 
     def cost_rows(self, spec, problem, params, fi, frozen, ap_jac=None):
         """Rows whose squares a step's acceptance compares (the residuals unless the family
-        holds weights at the linearisation point ``frozen``)."""
+        holds weights at the linearisation point; ``frozen``: its :class:`._normal.Rows`)."""
         return self.residuals(spec, problem, params, fi, ap_jac=ap_jac)
 
     def active_rows(self):
@@ -293,14 +308,10 @@ class PointFamily(Family):
         return raw, redundancy, jnp.sum(active), jnp.sum((raw * self.weight) ** 2)
 
 
-def _corrections_linearised(obs, coeffs, names, scanner):
-    """``Delta(l)`` at the observations with ``d Delta / d l`` (m, 3, 3) and the AP bases
-    ``d Delta / d a`` (m, 3, a), by ``jacfwd``."""
-    f = lambda l_, c_: (lambda D: (D, D))(ap_corrections(c_, names, l_, scanner))
-    (Dl, Da), D = jax.vmap(jax.jacfwd(f, argnums=(0, 1), has_aux=True), in_axes=(0, None))(
-        obs, coeffs
-    )
-    return D, Dl, Da
+def _dot3(a, b):
+    """``sum(a * b, axis=-1)`` over an axis of 3, written out: XLA then fuses it with its
+    operands (a reduction of these shapes goes to a separate, slower library kernel on CPU)."""
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 
 class PlaneFamily(Family):
@@ -328,56 +339,96 @@ class PlaneFamily(Family):
             P, eop, aps, l, w, spec.scanners, spec.ap_names, spec.ap_slices, inst
         )
 
+    def _pair_geometry(self, problem, params, fi, jacobian: bool):
+        """At the rows, from each (plane, scan) pair: the rotated normal ``u = R n`` and ``c =
+        n . S - d`` (so ``g = u . x + c``); with ``jacobian`` also ``R``, ``S`` and ``du_k =
+        dR_k n``. The rotation and its derivative are taken once per scan."""
+        P, E = params.prims[fi], params.eops
+        rot = lambda a: rotation_matrix(a[0], a[1], a[2])
+        n, S = P[:, :3], E[:, :3]
+        R = jax.vmap(rot)(E[:, 3:])  # (s, 3, 3)
+        at = lambda v, by: self.at_rows(problem, fi, v, by)
+        geo = dict(
+            u=at(jnp.einsum("sij,nj->nsi", R, n), "pair"),
+            c=at(n @ S.T - P[:, 3:], "pair"),
+        )
+        if jacobian:
+            dR = jax.vmap(jax.jacfwd(rot))(E[:, 3:])  # (s, 3, 3, 3): dR_ij / d angle_k
+            du = jnp.einsum("sijk,nj->nski", dR, n)
+            geo.update(R=at(R, "scan"), S=at(S, "scan"), du=at(du, "pair"))
+        return geo
+
+    def _instruments(self, spec, problem):
+        """Per instrument: (rows of its scans, AP names, AP slice, scanner)."""
+        inst = problem.scan_instrument[self.scan]
+        for i, (scanner, names, sl) in enumerate(zip(spec.scanners, spec.ap_names, spec.ap_slices)):
+            yield inst == i, names, sl, scanner
+
+    def _condition(self, spec, problem, params, fi):
+        """The condition ``g = n . (R^T x + S) - d`` of every row, ``x = cart(l - Delta(l))``
+        (:func:`tlsjax._model._planes.plane_condition`), rotations once per scan."""
+        geo = self._pair_geometry(problem, params, fi, jacobian=False)
+        g = jnp.zeros(self.obs.shape[0])
+        for sel, names, (a, b), scanner in self._instruments(spec, problem):
+            y = self.obs
+            if names:
+                y = y - ap_corrections(params.aps[a:b], names, y, scanner)
+            x = cartesian_from_spherical(y)
+            g = jnp.where(sel, _dot3(geo["u"], x) + geo["c"], g)
+        return g
+
     def linear_rows(self, spec, problem, params, fi, ap_jac=None):
         """The whitened condition ``e = g / sqrt(m)`` (m held) and its Jacobian blocks by the
-        chain rule, with the rotation and its derivatives taken once per scan.
+        chain rule, with the rotation and its derivatives taken once per scan; returns (e, Jp,
+        Js, Ja, raw = e, B) with ``B = dg/dl`` (m, 3) for the step's cost and the quality.
 
-        Per instrument: ``y = l - Delta(l)`` with ``d Delta / d l`` and the AP bases
-        ``d Delta / d a`` (``jacfwd``, linear in a), ``x = cart(y)`` with ``J_c = d x / d y``
-        (``jacfwd``, 3 tangents). With ``X = R^T x + S`` and ``u = R n`` (``g = u . x + n . S -
-        d``): ``dg/d(n, d) = (X, -1)``, ``dg/dS = n``, ``dg/d angle_k = x . (dR_k n)``,
-        ``b = dg/dy = u^T J_c``, ``dg/da = -b dDelta/da``, ``B = dg/dl = b (I - dDelta/dl)``
-        and ``m = sum (B sigma)^2`` (SPEC section 4). The same numbers as ``jacfwd`` of
-        :func:`tlsjax._model._planes.whitened_condition` (tested); that took a rotation matrix
-        and its 14-tangent derivative per point, five times the time of this.
+        Per instrument: ``y = l - Delta(l)``, ``x = cart(y)``. With ``X = R^T x + S`` and ``u =
+        R n`` (``g = u . x + n . S - d``): ``dg/d(n, d) = (X, -1)``, ``dg/dS = n``, ``dg/d
+        angle_k = x . (dR_k n)``; ``b = dg/dy = u^T dx/dy`` is the VJP of ``cart`` with ``u``,
+        and ``(B, dg/da) = (b (I - dDelta/dl), -b dDelta/da)`` the VJP of ``y(l, a)`` with ``b``
+        (the APs broadcast per row, so the VJP gives each row its own ``dg/da``); ``m = sum (B
+        sigma)^2`` (SPEC section 4). No Jacobian of ``cart`` or ``Delta`` is formed. The same
+        numbers as ``jacfwd`` of :func:`tlsjax._model._planes.whitened_condition` (tested).
         """
-        P, E = params.prims[fi][self.prim], params.eops
+        geo = self._pair_geometry(problem, params, fi, jacobian=True)
+        P = self.at_rows(problem, fi, params.prims[fi], "prim")
         n, d = P[:, :3], P[:, 3]
-        rot = lambda a: rotation_matrix(a[0], a[1], a[2])
-        Rs = jax.vmap(rot)(E[:, 3:])[self.scan]  # (m, 3, 3)
-        dRs = jax.vmap(jax.jacfwd(rot))(E[:, 3:])[self.scan]  # (m, 3, 3, 3): dR_ij / d angle_k
-        S = E[self.scan, :3]
-        u = jnp.einsum("mij,mj->mi", Rs, n)
-        du = jnp.einsum("mijk,mj->mki", dRs, n)  # (m, angle, 3): dR_k n
-        inst = problem.scan_instrument[self.scan]
-        cart = jax.vmap(
-            jax.jacfwd(lambda y: (lambda x: (x, x))(cartesian_from_spherical(y)), has_aux=True)
-        )
-        m_rows, na = self.obs.shape[0], spec.n_aps
-        g, X, Jang, B, Ja = 0.0, 0.0, 0.0, 0.0, jnp.zeros((m_rows, na))
-        for i, (scanner, names, (a, b)) in enumerate(
-            zip(spec.scanners, spec.ap_names, spec.ap_slices)
-        ):
-            y, Dl, Da = self.obs, jnp.zeros((m_rows, 3, 3)), jnp.zeros((m_rows, 3, 0))
-            if names:
-                D, Dl, Da = _corrections_linearised(self.obs, params.aps[a:b], names, scanner)
-                y = self.obs - D
-            Jc, x = cart(y)
-            bv = jnp.einsum("mi,mij->mj", u, Jc)
-            Xi = jnp.einsum("mji,mj->mi", Rs, x) + S
-            sel = (inst == i)[:, None]
-            g = jnp.where(sel[:, 0], jnp.sum(n * Xi, axis=-1) - d, g)
-            X = jnp.where(sel, Xi, X)
-            Jang = jnp.where(sel, jnp.einsum("mi,mki->mk", x, du), Jang)
-            B = jnp.where(sel, bv - jnp.einsum("mj,mjk->mk", bv, Dl), B)
-            Ja = Ja.at[:, a:b].set(jnp.where(sel, -jnp.einsum("mj,mja->ma", bv, Da), 0.0))
-        m = jnp.sum((B * self._sigma()) ** 2, axis=-1)
-        active = self.active_rows()[:, 0]
-        w = jnp.where(active, 1.0 / jnp.sqrt(jnp.where(m > 0, m, 1.0)), 0.0)[:, None]
+        m_rows = self.obs.shape[0]
+        g, X, Jang, B = 0.0, 0.0, 0.0, 0.0
+        Ja = jnp.zeros((m_rows, spec.n_aps))
+        for sel, names, (a, b), scanner in self._instruments(spec, problem):
+            coeffs = jnp.broadcast_to(params.aps[a:b], (m_rows, b - a))
+            observed = lambda l, c, names=names, sc=scanner: (
+                l - ap_corrections(c, names, l, sc) if names else l
+            )
+            y, pull_y = jax.vjp(observed, self.obs, coeffs)
+            x, pull_x = jax.vjp(cartesian_from_spherical, y)
+            (bv,) = pull_x(geo["u"])
+            Bi, Jai = pull_y(bv)
+            # Materialised once: otherwise XLA recomputes their trigonometry inside every
+            # fusion that consumes them (measured: plane run 93 -> 77 ms, 39k conditions).
+            x, Bi, Jai = jax.lax.optimization_barrier((x, Bi, Jai))
+            Xi = _dot3(jnp.swapaxes(geo["R"], -1, -2), x[:, None, :]) + geo["S"]
+            g = jnp.where(sel, _dot3(geo["u"], x) + geo["c"], g)
+            X = jnp.where(sel[:, None], Xi, X)
+            Jang = jnp.where(sel[:, None], _dot3(x[:, None, :], geo["du"]), Jang)
+            B = jnp.where(sel[:, None], Bi, B)
+            Ja = Ja.at[:, a:b].set(jnp.where(sel[:, None], Jai, 0.0))
+        w = self._whitening(B)[:, None]
         e = g[:, None] * w
         Jp = jnp.concatenate([X, -jnp.ones_like(d)[:, None]], axis=-1) * w
         Js = jnp.concatenate([n, Jang], axis=-1) * w
-        return e, Jp[:, None], Js[:, None], (Ja * w)[:, None], e
+        return e, Jp[:, None], Js[:, None], (Ja * w)[:, None], e, B
+
+    def _variance_from(self, B):
+        """``m = B Sigma_l B^T`` of each condition."""
+        return jnp.sum((B * self._sigma()) ** 2, axis=-1)
+
+    def _whitening(self, B):
+        """``1 / sqrt(m)`` of the active rows, 0 for removed ones."""
+        m = self._variance_from(B)
+        active = self.active_rows()[:, 0]
+        return jnp.where(active, 1.0 / jnp.sqrt(jnp.where(m > 0, m, 1.0)), 0.0)
 
     def prior_args(self):
         return (self.unit_weight,)
@@ -413,22 +464,17 @@ class PlaneFamily(Family):
         )(P, E, l, self._sigma(), inst)
 
     def cost_rows(self, spec, problem, params, fi, frozen, ap_jac=None):
-        new = self.observation_args(problem, params, fi)
-        m, _ = self._variance(spec, self.observation_args(problem, frozen, fi), frozen.aps)
-        sl = (spec.scanners, spec.ap_names, spec.ap_slices)
-        g = jax.vmap(lambda P_, E_, l_, i_: plane_condition(P_, E_, params.aps, l_, *sl, i_))(
-            new[0], new[1], self.obs, new[6]
-        )
-        rows = self.active_rows()[:, 0]
-        return jnp.where(rows, g / jnp.sqrt(jnp.where(m > 0, m, 1.0)), 0.0)[:, None]
+        """``g / sqrt(m)`` at ``params`` with m of the linearisation point (``frozen``: its
+        :class:`Rows`, whose ``B`` gives m)."""
+        return (self._condition(spec, problem, params, fi) * self._whitening(frozen.B))[:, None]
 
     def observation_quality(self, spec, problem, params, fi, JQJ, rows):
         """Gauss-Helmert residuals ``v = -Sigma_l B^T g / m`` of the three observations; the
         condition's redundancy ``1 - a Q a^T`` split over them in the ratio
         ``sigma_l^2 b_l^2 / m`` (so the three sum to at most 1, SPEC section 4)."""
-        args = self.observation_args(problem, params, fi)
         active = self.active_rows()[:, 0]
-        m, B = self._variance(spec, args, params.aps)
+        B = rows.B
+        m = self._variance_from(B)
         share = (self._sigma() * B) ** 2 / jnp.where(m > 0, m, 1.0)[:, None]
         redundancy = jnp.where(active, 1.0 - JQJ[:, 0], 0.0)[:, None] * share
         # The condition itself from the linearisation's whitened row, e = g / sqrt(m).
@@ -484,18 +530,18 @@ def levelling_jacobian(problem, eops):
     return jax.vmap(jax.jacfwd(compensator_reading))(eops) * problem.levelling_weight[:, :, None]
 
 
-def cost(spec, problem, params, frozen: Params | None = None, ap_jac: tuple | None = None):
+def cost(spec, problem, params, frozen: tuple | None = None, ap_jac: tuple | None = None):
     """``v^T P v``: sum of squared whitened residuals, observations and pseudo-observations.
 
-    ``frozen``: the linearisation point at which families with ``frozen_cost`` hold their
-    weights (a Gauss-Helmert step is accepted under its own M). ``ap_jac``: the constant AP
-    blocks (``Family.ap_block``), if taken.
+    ``frozen``: the :class:`._normal.Rows` per family of the linearisation point, at which
+    families with ``frozen_cost`` hold their weights (a Gauss-Helmert step is accepted under
+    its own M). ``ap_jac``: the constant AP blocks (``Family.ap_block``), if taken.
     """
     total = jnp.sum(levelling_residual(problem, params.eops) ** 2)
     for fi, fam in enumerate(problem.families):
         aj = None if ap_jac is None else ap_jac[fi]
         if frozen is not None and fam.frozen_cost:
-            e = fam.cost_rows(spec, problem, params, fi, frozen, aj)
+            e = fam.cost_rows(spec, problem, params, fi, frozen[fi], aj)
         else:
             e = fam.residuals(spec, problem, params, fi, ap_jac=aj)
         total = total + jnp.sum(e**2) + jnp.sum(fam.prior_residuals(params.prims[fi]) ** 2)

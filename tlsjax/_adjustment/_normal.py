@@ -66,14 +66,16 @@ def ap_jacobians(spec: Spec, problem: Problem, params: Params) -> tuple:
 
 class Rows(eqx.Module):
     """One family's linearisation per observation: whitened residual rows ``e`` (m, k),
-    Jacobian blocks ``Jp`` (m, k, p), ``Js`` (m, k, 6), ``Ja`` (m, k, a), and ``raw``, the
-    residual the quality pass reports (see :meth:`Family.linear_rows`)."""
+    Jacobian blocks ``Jp`` (m, k, p), ``Js`` (m, k, 6), ``Ja`` (m, k, a), ``raw``, the
+    residual the quality pass reports (see :meth:`Family.linear_rows`), and for a
+    Gauss-Helmert family ``B = dg/dl`` (m, 3), which sets its weights (None otherwise)."""
 
     e: Array
     Jp: Array
     Js: Array
     Ja: Array
     raw: Array
+    B: Array | None = None
 
 
 def _sums_on_grid(shape, e, Jp, Js, Ja):

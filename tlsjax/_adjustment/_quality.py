@@ -61,7 +61,12 @@ class Quality(eqx.Module):
 
 
 def _quad(Jl, Q, Jr):
-    return jnp.sum(jnp.sum(Jl[..., :, :, None] * Q[..., None, :, :], axis=-2) * Jr, axis=-1)
+    """``diag(Jl Q Jr^T)`` per observation, (..., k). The sums are written out over the small
+    axes: XLA then makes one loop of the whole expression, where ``jnp.sum`` or ``einsum``
+    sends each reduction to a library kernel that is slow at these shapes on CPU (measured:
+    13 ms less in a plane adjustment of 39k conditions, 76 against 89 ms)."""
+    T = sum(Jl[..., :, i, None] * Q[..., None, i, :] for i in range(Q.shape[-2]))
+    return sum(T[..., j] * Jr[..., j] for j in range(Q.shape[-1]))
 
 
 def _scan_blocks(Qzz, ns):
@@ -82,14 +87,17 @@ def _family_quality(spec, problem, params, fi, red, Qzz, r):
     Qpz = -jnp.einsum("npr,rq->npq", Y, Qzz)  # (n, p, r)
     Qpp = red.Npp_inv[fi] - jnp.einsum("npr,nqr->npq", Qpz, Y)  # Ninv + Y Qzz Y^T
     Tss, Tsa, Taa = _scan_blocks(Qzz, ns)
-    Qps_obs = Qpz[:, :, : 6 * ns].reshape(fam.n, fam.p, ns, 6)[fam.prim, :, fam.scan, :]
-    Qpa_obs = Qpz[:, :, 6 * ns :][fam.prim]  # (m, p, a)
+    at = lambda v, by: fam.at_rows(problem, fi, v, by)
+    Qps = jnp.swapaxes(Qpz[:, :, : 6 * ns].reshape(fam.n, fam.p, ns, 6), 1, 2)  # (n, s, p, 6)
+    Qps_obs = at(Qps, "pair")
+    Qpa_obs = at(Qpz[:, :, 6 * ns :], "prim")  # (m, p, a)
+    Tsa_obs = at(Tsa, "scan")
     JQJ = (
-        _quad(Jp, Qpp[fam.prim], Jp)
+        _quad(Jp, at(Qpp, "prim"), Jp)
         + 2 * _quad(Jp, Qps_obs, Js)
         + 2 * _quad(Jp, Qpa_obs, Ja)
-        + _quad(Js, Tss[fam.scan], Js)
-        + 2 * _quad(Js, Tsa[fam.scan], Ja)
+        + _quad(Js, at(Tss, "scan"), Js)
+        + 2 * _quad(Js, Tsa_obs, Ja)
         + _quad(Ja, jnp.broadcast_to(Taa, (Ja.shape[0],) + Taa.shape), Ja)
     )
     v, redundancy, n_active, vtpv = fam.observation_quality(spec, problem, params, fi, JQJ, r)
@@ -97,7 +105,7 @@ def _family_quality(spec, problem, params, fi, red, Qzz, r):
     # Written as small matmuls: broadcast-multiply-sum over (m, 3, a, a) was 10x slower.
     infl = (
         jnp.einsum("mkp,mpa->mka", Jp, Qpa_obs)
-        + jnp.einsum("mks,msa->mka", Js, Tsa[fam.scan])
+        + jnp.einsum("mks,msa->mka", Js, Tsa_obs)
         + jnp.einsum("mkb,ab->mka", Ja, Taa)
     )
     sa = jnp.sqrt(jnp.clip(jnp.diagonal(Taa), 0.0, None))

@@ -159,9 +159,7 @@ def adjust_linearised(
     def _step(state, lin, ref_cost, damping):
         red = lin.reduced
         new, dps, dz = solve_step(spec, problem, state.params, lin.blocks, red, lin.Hp, lin.Hz)
-        new_cost = cost(
-            spec, problem, new, frozen=state.params if frozen_cost else None, ap_jac=ap_jac
-        )
+        new_cost = cost(spec, problem, new, frozen=lin.rows if frozen_cost else None, ap_jac=ap_jac)
         finite = jnp.isfinite(new_cost)
         accept = finite & (new_cost <= ref_cost * (1.0 + 1e-12))
         s0 = jnp.sqrt(jnp.maximum(ref_cost, 0.0) / dof)
