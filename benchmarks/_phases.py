@@ -27,9 +27,11 @@ import time
 import jax
 import jax.numpy as jnp
 
+from tlsjax._jit import jit
+
 
 def _time(fn, args, repeats):
-    c = jax.jit(fn).lower(*args).compile()
+    c = jit(fn).lower(*args).compile()
     jax.block_until_ready(c(*args))
     ts = []
     for _ in range(repeats):

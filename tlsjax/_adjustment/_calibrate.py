@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._jit import jit
 from ._config import CalibrationModel, SolverOptions
 from ._families import Params, grid_layout, on_grid
 from ._network import Network, check_calibration_arguments
@@ -37,7 +38,7 @@ from ._result import (
 from ._solver import adjust_linearised
 
 
-@functools.partial(jax.jit, static_argnums=(0, 4))
+@functools.partial(jit, static_argnums=(0, 4))
 def _run(spec, problem, params0, options, full_covariance):
     """The compiled adjustment and its quality; pure in (problem, params0, options)."""
     grid = on_grid(problem)

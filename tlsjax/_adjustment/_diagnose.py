@@ -29,17 +29,17 @@ from __future__ import annotations
 
 import functools
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._jit import jit
 from ._families import on_grid
 from ._normal import linearise, null_space, reduce
 
 RIDGE = 1e-9
 
 
-@functools.partial(jax.jit, static_argnums=0)
+@functools.partial(jit, static_argnums=0)
 def _reduced_system(spec, problem, params):
     """Raw reduced normal matrix K, target-datum constraint C (d, r) and the datum columns Hz,
     from the engine's linearisation and Schur reduction (:func:`._normal.reduce`)."""

@@ -50,6 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._jit import jit
 from .._model._datum import s_transform_vector
 from .._model._planes import plane_condition
 from ._families import Params, PlaneFamily, Problem, Spec, cost
@@ -340,7 +341,7 @@ def estimates_from_solution(spec, problem, state, rank_tolerance, rows, plane_fa
     )
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1, 2, 3))
+@functools.partial(jit, static_argnums=(0, 1, 2, 3))
 def _estimates(spec, plane_family, sizes, steps, problem, rows, inputs, params0, options):
     problem = problem_from_inputs(problem, rows, plane_family, inputs)
     state = solve_implicit(spec, problem, params0, options, steps)

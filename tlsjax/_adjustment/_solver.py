@@ -125,6 +125,10 @@ def adjust_linearised(
     rho = rounding_sigma(problem)
     floor = ROUNDING_FACTOR * rho
 
+    # A nested jit: the loop's carry needs the linearisation's shapes before the loop body is
+    # traced, and jit's trace cache lets the body reuse that one trace (eval_shape of a plain
+    # function would trace it a second time, a third of the lowering time).
+    @jax.jit
     def linearisation(params, damping, dependent):
         blocks, rows = linearise_rows(spec, problem, params, ap_jac)
         Hp, Hz = null_space(spec, problem.families, params)

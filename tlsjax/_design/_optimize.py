@@ -23,6 +23,7 @@ import numpy as np
 import optax
 from tqdm.auto import tqdm
 
+from .._jit import jit
 from .._simulation._room import Room
 from .._units import DEG
 from ._criteria import DesignCriterion, predicted_cofactor
@@ -231,7 +232,7 @@ def optimize_design(
     loss = lambda u: criterion.smooth(predicted_cofactor(dn, param.design(u)), spec.n_scans, names)
     opt = optax.adam(learning_rate)
 
-    @jax.jit
+    @jit
     def step(U, state):
         vals, grads = jax.vmap(jax.value_and_grad(loss))(U)
         ok = jnp.isfinite(vals)
@@ -268,7 +269,7 @@ def optimize_design(
         U = U_next
     run_s = time.perf_counter() - t0
     designs = tuple(param.design(jax.tree.map(lambda a, k=k: a[k], best_U)) for k in range(starts))
-    cofactor = jax.jit(lambda d: predicted_cofactor(dn, d))
+    cofactor = jit(lambda d: predicted_cofactor(dn, d))
     exact = np.array([_exact(cofactor(d), criterion, spec, names) for d in designs])
     k = int(np.nanargmin(np.where(np.isfinite(exact), exact, np.inf)))
     return DesignOptimisation(

@@ -21,6 +21,7 @@ import numpy as np
 
 from .._adjustment._calibrate import Adjustment, analyze
 from .._adjustment._implicit import differentiable_adjustment, network_inputs
+from .._jit import jit
 
 GROUPS = ("range", "hz", "el")
 
@@ -80,7 +81,7 @@ def ap_sensitivity(network_or_adjustment, model=None) -> Sensitivity:
     f = differentiable_adjustment(adj)
     theta = network_inputs(adj)
     est = f(theta)
-    jac = jax.jit(jax.jacrev(lambda obs: f(_with_obs(theta, obs)).aps))(theta.observations)
+    jac = jit(jax.jacrev(lambda obs: f(_with_obs(theta, obs)).aps))(theta.observations)
     d = np.diagonal(np.asarray(est.ap_covariance)) / float(est.sigma0) ** 2
     sa = np.sqrt(np.clip(d, 0.0, None))
     S = np.transpose(np.asarray(jac), (1, 2, 0)) * np.asarray(theta.sigmas)[:, :, None]

@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._jit import jit
 from .._model._aps import ap_corrections, get_ap
 from .._model._geometry import TWO_PI, cartesian_from_spherical, rotation_matrix
 from .._model._scanner import ARCHITECTURES, Scanner
@@ -167,7 +168,7 @@ def _observations(x, architecture):
     return jnp.stack([rho, theta, alpha], axis=-1)
 
 
-@functools.partial(jax.jit, static_argnames=("scanner", "with_sigma"))
+@functools.partial(jit, static_argnames=("scanner", "with_sigma"))
 def _correct_chunk(x, coeffs, cov, scanner: Scanner, with_sigma: bool):
     """Corrected scanner-space points of one chunk and, if asked, their sigma [m]."""
 

@@ -13,6 +13,7 @@ import functools
 import jax
 import jax.numpy as jnp
 
+from .._jit import jit
 from ._aps import ap_corrections
 from ._geometry import TWO_PI, is_face2, rotation_matrix, spherical_from_cartesian, wrap_angle
 from ._scanner import Scanner
@@ -94,7 +95,7 @@ def simulate_point_observations(
     return distorted_observations(base, correction)
 
 
-@functools.partial(jax.jit, static_argnames=("scanner", "names"))
+@functools.partial(jit, static_argnames=("scanner", "names"))
 def observe_points(X, eops, noise, face2, coeffs, scanner: Scanner, names: tuple):
     """:func:`simulate_point_observations` for many points of one instrument: ``X``, ``eops``,
     ``noise`` (m, 3)/(m, 6)/(m, 3), ``face2`` (m,). Compiled once per (scanner, AP names, m)."""

@@ -18,6 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from .._jit import jit
+
 
 def device_mesh() -> Mesh:
     """One mesh axis, "batch", over every device (a no-op on one CPU device)."""
@@ -56,7 +58,7 @@ def compile_batched(one, constants, chunk: int) -> Batched:
     batched = NamedSharding(mesh, PartitionSpec("batch"))
     replicated = NamedSharding(mesh, PartitionSpec())
     n_const = len(constants)
-    fn = jax.jit(
+    fn = jit(
         jax.vmap(one, in_axes=(0,) + (None,) * n_const),
         in_shardings=(batched,) + (replicated,) * n_const,
         out_shardings=batched,

@@ -45,6 +45,7 @@ from .._adjustment._calibrate import Adjustment, estimate
 from .._adjustment._config import CalibrationModel, SolverOptions
 from .._adjustment._families import Params
 from .._adjustment._result import NOT_ESTIMABLE, RESULT_MESSAGES, SUCCESS
+from .._jit import jit
 from .._model._aps import ap_corrections, on_reregistration
 from .._model._levelling import compensator_reading
 from .._model._points import FIXED_POINT_ITERATIONS, distorted_observations
@@ -480,7 +481,7 @@ def monte_carlo(
     )
 
 
-@jax.jit
+@jit
 def _draw_many(simulator, seed_key, indices):
     return jax.vmap(lambda i: simulator.draw(jax.random.fold_in(seed_key, i)))(indices)
 
