@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/bench_montecarlo.py [--runs 1000] [--chunk-size 10] [--scipy-runs 20]
+    python benchmarks/bench_montecarlo.py [--runs 1000] [--chunk-size N] [--scipy-runs 20]
                                           [--devices N]
                                           [--cases physical,chow2013-noscale]
                                           [--out benchmarks/results/montecarlo.json]
@@ -194,7 +194,9 @@ def level_study(tests, sims, shifts=(0.0, 3.0, 5.0, 8.0), seed=5):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=int, default=1000)
-    ap.add_argument("--chunk-size", type=int, default=10)
+    ap.add_argument(
+        "--chunk-size", type=int, default=None, help="default: tlsjax's (16 per device)"
+    )
     ap.add_argument("--scipy-runs", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--scipy-tol", type=float, default=1e-10)

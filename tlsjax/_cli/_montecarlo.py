@@ -21,7 +21,12 @@ def add_montecarlo_parser(subparsers):
         "--levelled", action="store_true", help="all scans levelled (default: tilted variant)"
     )
     p.add_argument("--runs", type=int, default=1000)
-    p.add_argument("--chunk-size", type=int, default=MonteCarloOptions.chunk_size)
+    p.add_argument(
+        "--chunk-size",
+        type=int,
+        default=MonteCarloOptions.chunk_size,
+        help="realisations per compiled call (default: 16 per device)",
+    )
     p.add_argument(
         "--seed", type=int, default=0, help="seed of the realisations (the design uses seed 0)"
     )

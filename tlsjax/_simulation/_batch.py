@@ -31,9 +31,20 @@ def device_key() -> tuple:
     return tuple(str(d) for d in jax.devices())
 
 
-def round_chunk(chunk_size: int) -> int:
-    """``chunk_size`` rounded up to a multiple of the device count."""
+#: Realisations per device in one compiled call when the user gives no chunk size: 10-20 per
+#: device ran 1,000 Chow-room realisations fastest on 2 CPU devices (1.23-1.25 s with 20 or 40
+#: per call, 1.51 s with 10, 1.59 s with 80; measured 2026-11-24 in one process, alternately).
+PER_DEVICE_CHUNK = 16
+
+
+def round_chunk(chunk_size: int | None, runs: int | None = None) -> int:
+    """``chunk_size`` rounded up to a multiple of the device count; ``None``:
+    :data:`PER_DEVICE_CHUNK` per device, but no more than ``runs`` need (rounded up)."""
     n_dev = len(jax.devices())
+    if chunk_size is None:
+        chunk_size = PER_DEVICE_CHUNK * n_dev
+        if runs is not None:
+            chunk_size = min(chunk_size, int(runs))
     return int(math.ceil(int(chunk_size) / n_dev) * n_dev)
 
 

@@ -58,9 +58,9 @@ from ._truth import SimulationTruth
 class MonteCarloOptions:
     """Settings of :func:`monte_carlo`.
 
-    ``runs``: number of realisations N. ``chunk_size``: realisations per compiled call (a
-    measured choice, see ``benchmarks/README.md``; rounded up to a multiple of the device
-    count). ``seed``: realisation k uses ``fold_in(PRNGKey(seed), k)``. ``ap_sigma``: optional
+    ``runs``: number of realisations N. ``chunk_size``: realisations per compiled call
+    (rounded up to a multiple of the device count; default None: 16 per device, a measured
+    choice, see ``benchmarks/README.md``). ``seed``: realisation k uses ``fold_in(PRNGKey(seed), k)``. ``ap_sigma``: optional
     {AP name: sigma [SI]}; each realisation's true AP is then drawn ``N(true, sigma^2)`` (for
     every instrument that has the term). ``max_iterations``, ``tolerance``: those of
     :class:`tlsjax.SolverOptions` (the same convergence test as :func:`tlsjax.calibrate`: the
@@ -69,7 +69,7 @@ class MonteCarloOptions:
     """
 
     runs: int = 1000
-    chunk_size: int = 10
+    chunk_size: int | None = None
     seed: int = 0
     ap_sigma: Mapping[str, float] | None = None
     max_iterations: int = 10
@@ -80,7 +80,7 @@ class MonteCarloOptions:
     def __post_init__(self):
         if int(self.runs) < 1:
             raise ValueError(f"MonteCarloOptions.runs must be >= 1, got {self.runs}")
-        if int(self.chunk_size) < 1:
+        if self.chunk_size is not None and int(self.chunk_size) < 1:
             raise ValueError(f"MonteCarloOptions.chunk_size must be >= 1, got {self.chunk_size}")
         if int(self.max_iterations) < 1:
             raise ValueError(
@@ -450,7 +450,7 @@ def monte_carlo(
     Lichti (2008) for the empirical-precision analysis.
     """
     options = options or MonteCarloOptions()
-    chunk = round_chunk(options.chunk_size)
+    chunk = round_chunk(options.chunk_size, options.runs)
     design, b = _compiled_chunk(simulation, model, options.ap_sigma, chunk)
     constants = (jax.random.PRNGKey(int(options.seed)), options.solver().arrays())
     res, run_s = run_batched(
