@@ -31,21 +31,26 @@ def device_key() -> tuple:
     return tuple(str(d) for d in jax.devices())
 
 
-#: Realisations per device in one compiled call when the user gives no chunk size: 10-20 per
-#: device ran 1,000 Chow-room realisations fastest on 2 CPU devices (1.23-1.25 s with 20 or 40
-#: per call, 1.51 s with 10, 1.59 s with 80; measured 2026-11-24 in one process, alternately).
-PER_DEVICE_CHUNK = 16
+#: Working set of one device's share of a compiled call [bytes] when the user gives no chunk
+#: size: the Jacobian rows of its realisations. On 2 CPU devices 1,000 Chow-room realisations
+#: ran fastest with about 2-4 MB per device and slowed by a third or more above 8 MB (4 APs:
+#: 1.51 / 1.23 / 1.59 s with 5 / 16 / 40 per device; 23 APs: 3.5-3.6 s with 3-10 per device,
+#: 5.3 s with 16; measured 2026-11-24 in one process, alternately).
+DEVICE_WORKING_SET = 4e6
 
 
-def round_chunk(chunk_size: int | None, runs: int | None = None) -> int:
-    """``chunk_size`` rounded up to a multiple of the device count; ``None``:
-    :data:`PER_DEVICE_CHUNK` per device, but no more than ``runs`` need (rounded up)."""
+def round_chunk(chunk_size: int) -> int:
+    """``chunk_size`` rounded up to a multiple of the device count."""
     n_dev = len(jax.devices())
-    if chunk_size is None:
-        chunk_size = PER_DEVICE_CHUNK * n_dev
-        if runs is not None:
-            chunk_size = min(chunk_size, int(runs))
     return int(math.ceil(int(chunk_size) / n_dev) * n_dev)
+
+
+def auto_chunk(bytes_per_item: float, runs: int) -> int:
+    """Items per compiled call: as many per device as fit :data:`DEVICE_WORKING_SET` (1 to
+    64), but no more than ``runs`` need; a multiple of the device count."""
+    n_dev = len(jax.devices())
+    per_device = int(min(max(DEVICE_WORKING_SET // max(bytes_per_item, 1.0), 1), 64))
+    return round_chunk(min(per_device * n_dev, int(runs)))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

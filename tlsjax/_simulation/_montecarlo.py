@@ -50,7 +50,7 @@ from .._model._aps import ap_corrections, on_reregistration
 from .._model._levelling import compensator_reading
 from .._model._points import FIXED_POINT_ITERATIONS, distorted_observations
 from .._units import display_unit
-from ._batch import compile_batched, device_key, round_chunk, run_batched
+from ._batch import auto_chunk, compile_batched, device_key, round_chunk, run_batched
 from ._truth import SimulationTruth
 
 
@@ -59,8 +59,8 @@ class MonteCarloOptions:
     """Settings of :func:`monte_carlo`.
 
     ``runs``: number of realisations N. ``chunk_size``: realisations per compiled call
-    (rounded up to a multiple of the device count; default None: 16 per device, a measured
-    choice, see ``benchmarks/README.md``). ``seed``: realisation k uses ``fold_in(PRNGKey(seed), k)``. ``ap_sigma``: optional
+    (rounded up to a multiple of the device count; default None: as many per device as keep
+    the Jacobian rows near 4 MB, a measured choice, see :data:`._batch.DEVICE_WORKING_SET`). ``seed``: realisation k uses ``fold_in(PRNGKey(seed), k)``. ``ap_sigma``: optional
     {AP name: sigma [SI]}; each realisation's true AP is then drawn ``N(true, sigma^2)`` (for
     every instrument that has the term). ``max_iterations``, ``tolerance``: those of
     :class:`tlsjax.SolverOptions` (the same convergence test as :func:`tlsjax.calibrate`: the
@@ -320,18 +320,30 @@ _COMPILED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 on_reregistration(_COMPILED.clear)
 
 
-def _compiled_chunk(simulation, model, ap_sigma, chunk: int):
+def _compiled_chunk(simulation, model, ap_sigma, chunk_size: int | None, runs: int):
     # repr: a model with several instruments holds a dict of scanners (unhashable).
-    key = (repr(model), tuple(sorted(dict(ap_sigma or {}).items())), chunk, device_key())
+    dkey = (repr(model), tuple(sorted(dict(ap_sigma or {}).items())))
     cache = _COMPILED.setdefault(simulation, {})
+    if dkey not in cache:
+        cache[dkey] = _design(simulation, model, ap_sigma)
+    design = cache[dkey]
+    if chunk_size is None:
+        chunk = auto_chunk(_row_bytes(design.adjustment.plan), runs)
+    else:
+        chunk = round_chunk(chunk_size)
+    key = dkey + (chunk, device_key())
     if key in cache:
-        design, b = cache[key]
-        return design, dataclasses.replace(b, compile_s=0.0)
-    design = _design(simulation, model, ap_sigma)
+        return design, dataclasses.replace(cache[key], compile_s=0.0)
     constants = (jax.random.PRNGKey(0), SolverOptions().arrays())
     b = compile_batched(lambda i, k, o: _realisation(design, i, k, o), constants, chunk)
-    cache[key] = (design, b)
+    cache[key] = b
     return design, b
+
+
+def _row_bytes(plan) -> float:
+    """Bytes of one realisation's whitened Jacobian rows (primitive, pose and AP columns)."""
+    cols = 6 + plan.spec.n_aps
+    return 8.0 * sum(f.obs.shape[0] * f.rows * (f.p + cols) for f in plan.problem.families)
 
 
 # ----------------------------------------------------------------------------------------
@@ -450,8 +462,10 @@ def monte_carlo(
     Lichti (2008) for the empirical-precision analysis.
     """
     options = options or MonteCarloOptions()
-    chunk = round_chunk(options.chunk_size, options.runs)
-    design, b = _compiled_chunk(simulation, model, options.ap_sigma, chunk)
+    design, b = _compiled_chunk(
+        simulation, model, options.ap_sigma, options.chunk_size, int(options.runs)
+    )
+    chunk = b.chunk
     constants = (jax.random.PRNGKey(int(options.seed)), options.solver().arrays())
     res, run_s = run_batched(
         b, int(options.runs), constants, desc="Monte Carlo chunks", progress=options.progress
