@@ -3,11 +3,12 @@
 XLA's CPU backend has two code generators for fused kernels: the newer MLIR "fusion emitters"
 (the default in current jaxlib) and the older LLVM IR emitters. For tlsjax's programs the older
 ones compile about twice as fast and without the compiler's memory transient of about 0.5 GB,
-while the compiled adjustment runs at the same speed for large networks and planes and 5-15 %
-slower for the small Chow room (measured 2026-11-24 in one process, both executables timed
-alternately; README "Speed"). A self-calibration is compiled once and run a few times (a CLI
-call, a notebook cell), so the compile is most of what a user waits for, and the
-memory transient set the peak of a plane adjustment: the older emitters are chosen.
+while the compiled adjustment runs at the same speed for large networks, planes and Monte Carlo
+and 7 % (4 APs) to 20 % (23 APs) slower for the small Chow room (measured 2026-11-24 in one
+process, both executables timed alternately; ``benchmarks/README.md``). A self-calibration is
+compiled once and run a few times (a CLI call, a notebook cell), so the compile is most of what
+a user waits for, and the memory transient set the peak of a plane adjustment: the older
+emitters are chosen.
 
 The option is a field of XLA's debug options; a jaxlib without it rejects it when compiling, so
 it is tried once, on a trivial function, at the first compile (not at import: the backend must
