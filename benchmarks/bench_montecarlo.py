@@ -195,7 +195,10 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--runs", type=int, default=1000)
     ap.add_argument(
-        "--chunk-size", type=int, default=None, help="default: tlsjax's (16 per device)"
+        "--chunk-size",
+        type=int,
+        default=None,
+        help="default: tlsjax's (from the design's working set)",
     )
     ap.add_argument("--scipy-runs", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
