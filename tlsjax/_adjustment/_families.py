@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from .._model._aps import ap_corrections
+from .._model._aps import corrected_observations
 from .._model._datum import move_plane, move_points
 from .._model._geometry import (
     cartesian_from_spherical,
@@ -372,10 +372,9 @@ class PlaneFamily(Family):
         geo = self._pair_geometry(problem, params, fi, jacobian=False)
         g = jnp.zeros(self.obs.shape[0])
         for sel, names, (a, b), scanner in self._instruments(spec, problem):
-            y = self.obs
-            if names:
-                y = y - ap_corrections(params.aps[a:b], names, y, scanner)
-            x = cartesian_from_spherical(y)
+            x = cartesian_from_spherical(
+                corrected_observations(params.aps[a:b], names, self.obs, scanner)
+            )
             g = jnp.where(sel, _dot3(geo["u"], x) + geo["c"], g)
         return g
 
@@ -400,9 +399,7 @@ class PlaneFamily(Family):
         Ja = jnp.zeros((m_rows, spec.n_aps))
         for sel, names, (a, b), scanner in self._instruments(spec, problem):
             coeffs = jnp.broadcast_to(params.aps[a:b], (m_rows, b - a))
-            observed = lambda l, c, names=names, sc=scanner: (
-                l - ap_corrections(c, names, l, sc) if names else l
-            )
+            observed = lambda l, c, names=names, sc=scanner: corrected_observations(c, names, l, sc)
             y, pull_y = jax.vjp(observed, self.obs, coeffs)
             x, pull_x = jax.vjp(cartesian_from_spherical, y)
             (bv,) = pull_x(geo["u"])

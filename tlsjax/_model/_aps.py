@@ -460,3 +460,9 @@ def ap_corrections(coefficients, names: tuple[str, ...], l, scanner):
         g = GROUP_INDEX[term.group]
         out[g] = out[g] + coefficients[..., k] * term.basis(rho, theta, alpha, scanner)
     return jnp.stack(out, axis=-1)
+
+
+def corrected_observations(coefficients, names: tuple[str, ...], l, scanner):
+    """``l - Delta(l)``: the observations with the modelled systematic errors removed, the
+    input of the Gauss-Helmert plane condition (SPEC section 4); ``l`` itself without APs."""
+    return l - ap_corrections(coefficients, names, l, scanner)

@@ -30,7 +30,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ._aps import ap_corrections
+from ._aps import corrected_observations
 from ._geometry import cartesian_from_spherical, rotation_matrix
 
 
@@ -45,8 +45,7 @@ def plane_condition(
     """
     out = jnp.zeros(())
     for i, (scanner, names, (a, b)) in enumerate(zip(scanners, ap_names, ap_slices)):
-        delta = ap_corrections(coeffs[a:b], names, l, scanner) if names else jnp.zeros(3)
-        x = cartesian_from_spherical(l - delta)
+        x = cartesian_from_spherical(corrected_observations(coeffs[a:b], names, l, scanner))
         R = rotation_matrix(eop[3], eop[4], eop[5])
         g = jnp.dot(plane[:3], R.T @ x + eop[:3]) - plane[3]
         out = jnp.where(instrument == i, g, out)

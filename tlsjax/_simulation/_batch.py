@@ -33,9 +33,10 @@ def device_key() -> tuple:
 
 #: Working set of one device's share of a compiled call [bytes] when the user gives no chunk
 #: size: the Jacobian rows of its realisations. On 2 CPU devices 1,000 Chow-room realisations
-#: ran fastest with about 2-4 MB per device and slowed by a third or more above 8 MB (4 APs:
-#: 1.51 / 1.23 / 1.59 s with 5 / 16 / 40 per device; 23 APs: 3.5-3.6 s with 3-10 per device,
-#: 5.3 s with 16; measured 2026-11-24 in one process, alternately).
+#: ran fastest with about 2-5 MB per device and slowed by a quarter or more above 8 MB (4 APs,
+#: 225 kB per realisation: 1.51 / 1.25 / 1.23 / 1.59 s with 5 / 10 / 20 / 40 per device; 23 APs,
+#: 553 kB: 3.47-3.63 s with 3 / 5 / 10, 5.26 s with 16; measured 2026-11-24 in one process,
+#: alternately).
 DEVICE_WORKING_SET = 4e6
 
 

@@ -60,7 +60,8 @@ class MonteCarloOptions:
 
     ``runs``: number of realisations N. ``chunk_size``: realisations per compiled call
     (rounded up to a multiple of the device count; default None: as many per device as keep
-    the Jacobian rows near 4 MB, a measured choice, see :data:`._batch.DEVICE_WORKING_SET`). ``seed``: realisation k uses ``fold_in(PRNGKey(seed), k)``. ``ap_sigma``: optional
+    the Jacobian rows near 4 MB, a measured choice, see :data:`._batch.DEVICE_WORKING_SET`).
+    ``seed``: realisation k uses ``fold_in(PRNGKey(seed), k)``. ``ap_sigma``: optional
     {AP name: sigma [SI]}; each realisation's true AP is then drawn ``N(true, sigma^2)`` (for
     every instrument that has the term). ``max_iterations``, ``tolerance``: those of
     :class:`tlsjax.SolverOptions` (the same convergence test as :func:`tlsjax.calibrate`: the
