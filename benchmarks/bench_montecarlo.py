@@ -58,6 +58,7 @@ from scipy.optimize import least_squares  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import write_results  # noqa: E402
+from _phases import arithmetic, matmul_gflops, phase_times  # noqa: E402
 from bench_point import ScipyPeer, machine_info  # noqa: E402
 
 import tlsjax as tj  # noqa: E402
@@ -101,6 +102,18 @@ def scipy_loop(sim, scanner, n, seed, tol, lsmr_tol, max_nfev):
     return np.array(times), np.array(aps), nfev
 
 
+def _arithmetic(sim, scanner, res):
+    """The adjustments' work in the batch beside its time: every realisation's iterations each
+    linearise, reduce and step once (no final pass, no quality pass; the draw is left out),
+    with the phases' flops and bytes of the same room (:func:`_phases.phase_times`)."""
+    opts = tj.SolverOptions(full_covariance=False)
+    adj = tj.Adjustment(sim.network, tj.CalibrationModel(scanner), opts)
+    costs = {}
+    phase_times(adj.plan.spec, adj.plan.problem, adj.initial, opts.arrays(), 1, costs)
+    n = float(np.sum(res.iterations))
+    return arithmetic(costs, n, n, res.run_s, matmul_gflops(), quality=False)
+
+
 def bench_case(label, aps, runs, chunk, scipy_runs, seed, tol, lsmr_tol, max_nfev):
     out = {"aps": aps, "loadavg_1_5_15_before": list(os.getloadavg())}
     sim = tj.simulate(seed=0, aps=aps)
@@ -119,6 +132,7 @@ def bench_case(label, aps, runs, chunk, scipy_runs, seed, tol, lsmr_tol, max_nfe
         "iterations_histogram": np.bincount(res.iterations).tolist(),
         "failures": res.failures(),
     }
+    out["arithmetic"] = _arithmetic(sim, scanner, res)
     sm = res.summary()
     out["coverage"] = {
         "sigma0_sq_mean": sm["sigma0_sq_mean"],

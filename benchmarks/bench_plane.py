@@ -551,9 +551,12 @@ def child_tlsjax(a, workdir: Path) -> dict:
     out["ru_maxrss_mb"] = _ru_maxrss_mb()
     # Where an iteration's time goes (each phase compiled and timed on its own; after the
     # peak memory figure above, which it would otherwise raise).
-    from _phases import phase_times
+    from _phases import arithmetic, matmul_gflops, phase_times
 
-    out["phases_ms"] = phase_times(plan.spec, plan.problem, p0, opts.arrays(), a.repeats)
+    costs = {}
+    out["phases_ms"] = phase_times(plan.spec, plan.problem, p0, opts.arrays(), a.repeats, costs)
+    n_it = out["run_iterations"]
+    out["arithmetic"] = arithmetic(costs, n_it + 1, n_it, out["run_s"]["median"], matmul_gflops())
     out["machine"] = machine_info()
     out.update(
         iterations=res.iterations,

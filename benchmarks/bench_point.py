@@ -40,7 +40,7 @@ import numpy as np
 import scipy
 import scipy.sparse as sp
 from _common import loadavg, rotations, timed, write_results
-from _phases import phase_times
+from _phases import arithmetic, matmul_gflops, phase_times
 from scipy.optimize import least_squares
 
 import tlsjax as tj
@@ -343,8 +343,13 @@ def bench_case(
     out["run_iterations"] = int(state.iteration)
     out["layout"] = ["grid" if lay is not None else "segments" for lay in plan.problem.layouts]
     # Where an iteration's time goes (each phase compiled and timed on its own).
-    out["phases_ms"] = phase_times(plan.spec, plan.problem, p0, opts.arrays(), repeats)
+    costs = {}
+    out["phases_ms"] = phase_times(plan.spec, plan.problem, p0, opts.arrays(), repeats, costs)
     out["run_ms_per_pass"] = 1e3 * out["run_s"]["median"] / (out["run_iterations"] + 1)
+    # The work beside the time: flops and bytes of the compiled run (iterations + 1 passes,
+    # iterations steps, the quality pass) and the time at the machine's matmul rate.
+    n_it = out["run_iterations"]
+    out["arithmetic"] = arithmetic(costs, n_it + 1, n_it, out["run_s"]["median"], matmul_gflops())
 
     # ---- tlsjax: public calibrate after warm-up ----
     t0 = time.perf_counter()
