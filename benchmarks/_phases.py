@@ -112,11 +112,10 @@ def phase_times(spec, problem, params, options, repeats: int = 20, costs: dict |
         raw,
         "update_size",
     )
-    # As the loop does: Gauss-Helmert weights held at the linearisation point (its rows).
-    frozen = rows if any(f.frozen_cost for f in grid.families) else None
+    # As the loop does: v^T P v with one Gauss-Helmert update of the residuals (planes).
     out["step_cost"], _ = _time(
-        lambda pr, p, fr: F.cost(spec, pr, p, frozen=fr),
-        (grid, new, frozen),
+        lambda pr, p, st: F.cost_and_state(spec, pr, p, st),
+        (grid, new, F.initial_state(grid)),
         repeats,
         raw,
         "step_cost",

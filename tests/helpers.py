@@ -117,3 +117,115 @@ def perturbed_start(res, target_scale, eop_shift=0.0, ap_factor=1.0, seed=0):
     return np.concatenate(
         [X.reshape(-1) + d, res.eops.reshape(-1) + eop_shift, res.ap_values * ap_factor]
     )
+
+
+# --- The rigorous Gauss-Helmert model of plane networks, dense (SPEC sections 4 and 6) --------
+
+
+def _g_plane(plane, eop, aps, names, l):
+    """``g = n . (R^T x(l - Delta(l)) + S) - d`` of one point, hybrid bases of ``BASES``."""
+    corr = [l[0], l[1], l[2]]
+    for k, name in enumerate(names):
+        grp, b = BASES[name]
+        corr[grp] = corr[grp] - aps[k] * b(l[0], l[1], l[2])
+    rho, th, al = corr
+    x = rho * jnp.array([jnp.cos(al) * jnp.cos(th), jnp.cos(al) * jnp.sin(th), jnp.sin(al)])
+    return plane[:3] @ (_R(*eop[3:]).T @ x + eop[:3]) - plane[3]
+
+
+def _compensator(eop):
+    g = _R(*eop[3:])[:, 2]
+    return jnp.stack([jnp.arcsin(g[1]), jnp.arcsin(-g[0] / jnp.sqrt(1 - g[1] ** 2))])
+
+
+def dense_gauss_helmert(net, names, x0, pseudo=(), iterations=40, tol=1e-10):
+    """The textbook rigorous Gauss-Helmert adjustment of a (small) plane network, dense.
+
+    Unknowns ``x = (planes (k, 4), eops (s, 6), APs)``; observations ``L``: the three of every
+    plane point, then the pseudo-observations (the levelling readings of ``net`` as compensator
+    readings, then ``pseudo``: (f(x) -> scalar, observed value, sigma) each). Conditions
+    ``g(x, L + v) = 0``: one per point, ``f(x) - (l + v) = 0`` per pseudo-observation. Each
+    iteration linearises at ``(x, L + v)`` (Lenzmann & Lenzmann 2004; Neitzel 2010):
+    ``A dx + B v_new + w = 0``, ``w = g(x, L + v) - B v``, and solves the bordered normal
+    equations ``[[A^T M^-1 A, C^T, G], [C, 0, 0], [G^T, 0, 0]]`` with ``M = B Sigma B^T``, the
+    hard unit-normal constraints ``C dx = -(|n|^2 - 1)`` and the inner constraints on the planes
+    ``G^T dx = 0``; ``v_new = -Sigma B^T M^-1 (A dx + w)``; until dx and v settle (``|dx| <
+    tol`` and ``|v_new - v| / sigma < tol (1 + max |v| / sigma)``, i.e. to rounding).
+
+    Returns a dict: ``x``, ``Q`` (bordered inverse, inner-constraint cofactor), ``v`` and ``r``
+    (residuals and redundancy numbers ``diag(Q_vv P)`` of all observations, points first),
+    ``vtpv``, ``dof = c - u + h + d``, ``iterations``.
+    """
+    pl, sc = jnp.asarray(net.plane_index), jnp.asarray(net.plane_scan_index)
+    n_pl, n_s, n_a = len(net.planes), len(net.scans), len(names)
+    m = len(pl)
+    lw = np.isfinite(net.levelling_sigma)
+    lev = [(s, c) for s in range(n_s) for c in range(2) if lw[s, c]]
+    p_obs = [net.levelling[s, c] for s, c in lev] + [o for _, o, _ in pseudo]
+    p_sig = [net.levelling_sigma[s, c] for s, c in lev] + [s_ for _, _, s_ in pseudo]
+    L = np.concatenate([np.asarray(net.plane_observations).reshape(-1), p_obs])
+    sig = np.concatenate([np.asarray(net.plane_sigmas).reshape(-1), p_sig])
+    Sigma = np.diag(sig**2)
+    u = 4 * n_pl + 6 * n_s + n_a
+
+    def unpack(x):
+        return (
+            x[: 4 * n_pl].reshape(n_pl, 4),
+            x[4 * n_pl : 4 * n_pl + 6 * n_s].reshape(n_s, 6),
+            x[4 * n_pl + 6 * n_s :],
+        )
+
+    def g_all(x, Lh):
+        P, E, A = unpack(x)
+        pts = Lh[: 3 * m].reshape(m, 3)
+        g = [jax.vmap(lambda i: _g_plane(P[pl[i]], E[sc[i]], A, names, pts[i]))(jnp.arange(m))]
+        f = [_compensator(E[s])[c] for s, c in lev] + [fn(x) for fn, _, _ in pseudo]
+        if f:
+            g.append(jnp.stack(f) - Lh[3 * m :])
+        return jnp.concatenate(g)
+
+    def h_all(x):
+        return jnp.sum(unpack(x)[0][:, :3] ** 2, axis=1) - 1.0
+
+    levelled = lw.all(axis=1).any()
+    cols = [0, 1, 2, 5] if levelled else list(range(6))
+
+    def datum(x):
+        # Rigid motion of object space: translation t changes d by n . t, rotation w turns n.
+        P = np.asarray(unpack(x)[0])
+        G = np.zeros((u, 6))
+        for k in range(n_pl):
+            n = P[k, :3]
+            G[4 * k + 3, :3] = n
+            G[4 * k : 4 * k + 3, 3:] = -np.array([[0, -n[2], n[1]], [n[2], 0, -n[0]], [-n[1], n[0], 0]])
+        return G[:, cols]
+
+    gx = jax.jit(g_all)
+    A_f = jax.jit(jax.jacfwd(g_all, argnums=0))
+    B_f = jax.jit(jax.jacfwd(g_all, argnums=1))
+    C_f = jax.jit(jax.jacfwd(h_all))
+    x = np.asarray(x0, dtype=float).copy()
+    v = np.zeros_like(L)
+    for it in range(iterations):
+        Lh = L + v
+        A, B = np.asarray(A_f(x, Lh)), np.asarray(B_f(x, Lh))
+        w = np.asarray(gx(x, Lh)) - B @ v
+        Mi = np.linalg.inv(B @ Sigma @ B.T)
+        C, G = np.asarray(C_f(x)), datum(x)
+        K = np.vstack([C, G.T])
+        N = np.block([[A.T @ Mi @ A, K.T], [K, np.zeros((K.shape[0], K.shape[0]))]])
+        rhs = np.concatenate([-A.T @ Mi @ w, -np.asarray(h_all(x)), np.zeros(G.shape[1])])
+        dx = np.linalg.solve(N, rhs)[:u]
+        v_new = -Sigma @ B.T @ Mi @ (A @ dx + w)
+        x = x + dx
+        scale = 1.0 + np.max(np.abs(v_new) / sig)
+        settled = np.max(np.abs(v_new - v) / sig) < tol * scale and np.max(np.abs(dx)) < tol
+        v = v_new
+        if settled:
+            break
+    Q = np.linalg.inv(N)[:u, :u]
+    Qvv = Sigma @ B.T @ Mi @ (B @ Sigma @ B.T - A @ Q @ A.T) @ Mi @ B @ Sigma
+    r = np.diag(Qvv) / sig**2
+    vtpv = float(np.sum(v**2 / sig**2))
+    dof = len(w) - u + n_pl + len(cols)
+    return dict(x=x, Q=Q, v=v, r=r, vtpv=vtpv, dof=dof, iterations=it + 1, n_points=m)

@@ -24,7 +24,7 @@ from .._jit import jit
 from ._config import CalibrationModel, SolverOptions
 from ._families import Params, grid_layout, on_grid
 from ._network import Network, check_calibration_arguments
-from ._plan import UNIT_NORMAL_STRENGTH, build_plan, initial_params
+from ._plan import build_plan, initial_params
 from ._quality import quality_from, summary_from
 from ._result import (
     MAX_ITERATIONS,
@@ -178,8 +178,7 @@ class Adjustment:
             fam = fams[fi]
             if fi == plan.plane_family:
                 if plane_observations is not None:
-                    obs = jnp.asarray(plane_observations)[rows]
-                    fam = _replace(fam, obs=obs, unit_weight=_unit_normal_weight(fam, obs))
+                    fam = _replace(fam, obs=jnp.asarray(plane_observations)[rows])
             else:
                 if observations is not None:
                     fam = _replace(fam, obs=jnp.asarray(observations)[rows])
@@ -213,13 +212,6 @@ class Adjustment:
         state, q = self.run(problem, initial)
         plan = dataclasses.replace(self.plan, problem=problem)
         return assemble(self.network, self.model, plan, state, q)
-
-
-def _unit_normal_weight(fam, obs):
-    """The plane family's unit-normal weight for other observations (as :mod:`._plan` sets it
-    from the network's): ``UNIT_NORMAL_STRENGTH sqrt(sum_i (rho_i / sigma_rho,i)^2)`` per plane."""
-    info = (obs[:, 0] * fam.weight[:, 0]) ** 2
-    return UNIT_NORMAL_STRENGTH * jnp.sqrt(jax.ops.segment_sum(info, fam.prim, fam.n))
 
 
 def analyze(

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._jit import jit
-from ._families import on_grid
+from ._families import on_grid, settled_state
 from ._normal import linearise, null_space, reduce
 
 RIDGE = 1e-9
@@ -44,7 +44,7 @@ def _reduced_system(spec, problem, params):
     """Raw reduced normal matrix K, target-datum constraint C (d, r) and the datum columns Hz,
     from the engine's linearisation and Schur reduction (:func:`._normal.reduce`)."""
     grid = on_grid(problem)
-    blocks = linearise(spec, grid, params)
+    blocks = linearise(spec, grid, params, state=settled_state(spec, grid, params))
     Hp, Hz = null_space(spec, grid.families, params)
     red = reduce(spec, grid, blocks, Hz, jnp.asarray(0.0), jnp.asarray(0.0))
     C = jnp.zeros((Hz.shape[1], spec.r))

@@ -7,8 +7,12 @@ primitive, which (primitive, scan) pairs exist. Each family supplies, for the so
 quality pass, what differs between kinds of primitive:
 
 * ``residual``: the whitened residual rows of one observation (SPEC sections 2 and 4);
-* ``prior``: the per-primitive pseudo-observations (control points, scale-bar lengths, the
-  unit-normal constraint of a plane);
+* ``prior``: the per-primitive pseudo-observations (control points, scale-bar lengths);
+* ``constraint_basis``, ``hard_constraints``: hard constraints on a primitive (a plane's unit
+  normal), in null-space form: a step of the primitive is ``E delta``;
+* ``state_init``, ``cost_state``, ``state_from_rows``: what a family carries through the
+  iterations besides the unknowns (a Gauss-Helmert family: the residuals v at which it is
+  linearised);
 * ``motion``: the rigid-motion action on one primitive, whose derivative gives the datum's
   null-space columns (:mod:`tlsjax._model._datum`);
 * ``observation_quality``: residuals and redundancy numbers in observation space.
@@ -36,11 +40,7 @@ from .._model._geometry import (
     wrap_angle,
 )
 from .._model._levelling import compensator_reading
-from .._model._planes import (
-    condition_variance,
-    unit_normal_constraint,
-    whitened_condition,
-)
+from .._model._planes import PROJECTION_STEPS, plane_step_basis, whitened_condition
 from .._model._points import point_misclosure
 
 #: vmap axes of :meth:`Family.residual` over the observations of a family.
@@ -90,15 +90,14 @@ class Family(eqx.Module):
     rows: ClassVar[int] = 3
     #: True when ``d residual / d AP`` does not change during an adjustment (taken once).
     constant_ap_jacobian: ClassVar[bool] = True
-    #: True when a step's acceptance must compare costs at the linearisation point's weights.
-    frozen_cost: ClassVar[bool] = False
 
     @property
     def n(self) -> int:
         return self.prior_args()[0].shape[0]
 
-    def observation_args(self, problem, params, fi):
-        """Per-observation arguments of :meth:`residual`, in the order of ``OBS_AXES``."""
+    def observation_args(self, problem, params, fi, state=None):
+        """Per-observation arguments of :meth:`residual`, in the order of ``OBS_AXES``
+        (``state``: the family's iteration state, :meth:`state_init`)."""
         P = params.prims[fi]
         inst = problem.scan_instrument[self.scan]
         return (
@@ -132,18 +131,20 @@ class Family(eqx.Module):
         (``constant_ap_jacobian``), else None."""
         return None
 
-    def residuals(self, spec, problem, params, fi, unit_weight: bool = False, ap_jac=None):
+    def residuals(
+        self, spec, problem, params, fi, unit_weight: bool = False, ap_jac=None, state=None
+    ):
         """Whitened residual rows of every observation, (m, rows)."""
-        args = list(self.observation_args(problem, params, fi))
+        args = list(self.observation_args(problem, params, fi, state))
         if unit_weight:
             args[4] = jnp.ones_like(self.weight)
         return jax.vmap(lambda *a: self.residual(spec, *a), in_axes=OBS_AXES)(*args)
 
-    def linear_rows(self, spec, problem, params, fi, ap_jac=None):
+    def linear_rows(self, spec, problem, params, fi, ap_jac=None, state=None):
         """Whitened residual rows and their Jacobian blocks w.r.t. the primitive, the pose and
         the APs (``ap_jac``: the constant AP block, if the family has one), plus what the
         quality pass reports as the observation residual: (e, Jp, Js, Ja, raw)."""
-        args = self.observation_args(problem, params, fi)
+        args = self.observation_args(problem, params, fi, state)
         f = lambda *a: (lambda r: (r, r))(self.residual(spec, *a))
         if ap_jac is None:
             (Jp, Js, Ja), e = jax.vmap(
@@ -162,10 +163,27 @@ class Family(eqx.Module):
     def prior_jacobian(self, P):
         return jax.vmap(jax.jacfwd(self.prior))(P, *self.prior_args())
 
-    def cost_rows(self, spec, problem, params, fi, frozen, ap_jac=None):
-        """Rows whose squares a step's acceptance compares (the residuals unless the family
-        holds weights at the linearisation point; ``frozen``: its :class:`._normal.Rows`)."""
-        return self.residuals(spec, problem, params, fi, ap_jac=ap_jac)
+    def state_init(self):
+        """The family's state before the first step (None: it has none)."""
+        return None
+
+    def cost_state(self, spec, problem, params, fi, state, ap_jac=None):
+        """The rows whose squares are ``v^T P v`` at ``params``, the family's next state and how
+        far (in a priori sigmas) the state moved: (e, state, change)."""
+        return self.residuals(spec, problem, params, fi, ap_jac=ap_jac), state, 0.0
+
+    def state_from_rows(self, rows, state):
+        """The next state and its change from a linearisation's rows (:class:`._normal.Rows`),
+        at the same unknowns (a rejected step)."""
+        return state, 0.0
+
+    def constraint_basis(self, P):
+        """Hard constraints on the primitives in null-space form, ``E`` (n, p, p - c), or None."""
+        return None
+
+    def hard_constraints(self) -> int:
+        """Number of hard constraints on the family's primitives (counted in the dof)."""
+        return 0
 
     def active_rows(self):
         """Which residual rows are observations in the adjustment (weight > 0), (m, rows)."""
@@ -215,7 +233,9 @@ class PointFamily(Family):
         jac = jax.jacfwd(lambda *a: self.residual(spec, *a), argnums=2)
         return jax.vmap(jac, in_axes=OBS_AXES)(*args)
 
-    def residuals(self, spec, problem, params, fi, unit_weight: bool = False, ap_jac=None):
+    def residuals(
+        self, spec, problem, params, fi, unit_weight: bool = False, ap_jac=None, state=None
+    ):
         if ap_jac is None:
             return Family.residuals(self, spec, problem, params, fi, unit_weight)
         f = self._misclosure(spec, problem, params, fi, ap_jac, jacobian=False)[0]
@@ -275,7 +295,7 @@ class PointFamily(Family):
             Jp = (one[:, None, :, None] * JX[:, :, None, :]).reshape(JX.shape[0], 3, -1)
         return f, Jp, Js
 
-    def linear_rows(self, spec, problem, params, fi, ap_jac=None):
+    def linear_rows(self, spec, problem, params, fi, ap_jac=None, state=None):
         """As :meth:`Family.linear_rows`, with the unweighted misclosure ``f`` whitened after
         (``e = f w``, ``J = J_f w``): ``raw = f`` is the residual ``F + Delta - l`` even of a
         removed (weight-0) observation. See :meth:`_misclosure`; ``ap_jac`` is the AP block of
@@ -319,27 +339,45 @@ def _dot3(a, b):
 class PlaneFamily(Family):
     """Planes ``(n_x, n_y, n_z, d)``, one Gauss-Helmert condition per point (SPEC section 4).
 
-    The condition is whitened by ``sqrt(m)``, ``m = B Sigma B^T``, held fixed in the
-    linearisation; the unit-normal constraint is a heavy pseudo-observation of weight
-    ``unit_weight`` (counted in the degrees of freedom).
+    The rigorous Gauss-Helmert iteration (:mod:`tlsjax._model._planes`): every linearisation is
+    taken at the current unknowns and at the observations ``l + v`` of the current residuals
+    v, the family's state in the solver's loop (:meth:`state_init`, :meth:`cost_state`); the row
+    of a point is ``w / sqrt(m)`` with ``w = g(x, l + v) - B v``, ``m = B Sigma_l B^T``. The unit
+    normal is a hard constraint: a step moves n in its tangent plane
+    (:meth:`constraint_basis`: three unknowns per plane in the step, one constraint each in the
+    degrees of freedom) and :meth:`retract` renormalises it.
     """
 
-    unit_weight: Float[Array, " n"]
+    n_planes: int = eqx.field(static=True)
 
     rows: ClassVar[int] = 1
     # The condition mixes the corrected observation with the plane and the pose, so d g / d AP
     # changes with them.
     constant_ap_jacobian: ClassVar[bool] = False
-    # A Gauss-Helmert step holds M at its linearisation point; with M re-evaluated the step
-    # can look like an ascent near the solution and Levenberg-Marquardt would stall.
-    frozen_cost: ClassVar[bool] = True
 
     p: ClassVar[int] = 4
 
-    def residual(self, spec, P, eop, aps, l, w, point, inst):
-        return whitened_condition(
-            P, eop, aps, l, w, spec.scanners, spec.ap_names, spec.ap_slices, inst
-        )
+    @property
+    def n(self) -> int:
+        return self.n_planes
+
+    def observation_args(self, problem, params, fi, state=None):
+        """As :meth:`Family.observation_args`, with the observations and the residuals of the
+        current state stacked, (m, 2, 3): the linearisation point is ``l + v``."""
+        args = Family.observation_args(self, problem, params, fi)
+        lv = jnp.stack([self.obs, self.residual_state(state)], axis=1)
+        return args[:3] + (lv,) + args[4:]
+
+    def residual(self, spec, P, eop, aps, lv, w, point, inst):
+        sl = (spec.scanners, spec.ap_names, spec.ap_slices, inst)
+        return whitened_condition(P, eop, aps, lv[0], lv[1], w, *sl)
+
+    def residual_state(self, state):
+        """The residuals v (m, 3) at which the family is linearised (0 before the first step)."""
+        return jnp.zeros_like(self.obs) if state is None else state
+
+    def state_init(self):
+        return jnp.zeros_like(self.obs)
 
     def _pair_geometry(self, problem, params, fi, jacobian: bool):
         """At the rows, from each (plane, scan) pair: the rotated normal ``u = R n`` and ``c =
@@ -366,82 +404,104 @@ class PlaneFamily(Family):
         for i, (scanner, names, sl) in enumerate(zip(spec.scanners, spec.ap_names, spec.ap_slices)):
             yield inst == i, names, sl, scanner
 
-    def _condition(self, spec, problem, params, fi):
-        """The condition ``g = n . (R^T x + S) - d`` of every row, ``x = cart(l - Delta(l))``
-        (:func:`tlsjax._model._planes.plane_condition`), rotations once per scan."""
-        geo = self._pair_geometry(problem, params, fi, jacobian=False)
-        g = jnp.zeros(self.obs.shape[0])
-        for sel, names, (a, b), scanner in self._instruments(spec, problem):
-            x = cartesian_from_spherical(
-                corrected_observations(params.aps[a:b], names, self.obs, scanner)
-            )
-            g = jnp.where(sel, _dot3(geo["u"], x) + geo["c"], g)
-        return g
+    def _gauss_helmert(self, spec, problem, params, fi, state, jacobian: bool):
+        """At ``(x, l + v)`` of every row: ``g``, ``B = dg/dl`` (m, 3), ``w = g - B v`` and ``m =
+        B Sigma B^T``; with ``jacobian`` also ``X = R^T x + S``, ``dg/d angle`` and ``dg/da``.
 
-    def linear_rows(self, spec, problem, params, fi, ap_jac=None):
-        """The whitened condition ``e = g / sqrt(m)`` (m held) and its Jacobian blocks by the
-        chain rule, with the rotation and its derivatives taken once per scan; returns (e, Jp,
-        Js, Ja, raw = e, B) with ``B = dg/dl`` (m, 3) for the step's cost and the quality.
-
-        Per instrument: ``y = l - Delta(l)``, ``x = cart(y)``. With ``X = R^T x + S`` and ``u =
-        R n`` (``g = u . x + n . S - d``): ``dg/d(n, d) = (X, -1)``, ``dg/dS = n``, ``dg/d
-        angle_k = x . (dR_k n)``; ``b = dg/dy = u^T dx/dy`` is the VJP of ``cart`` with ``u``,
-        and ``(B, dg/da) = (b (I - dDelta/dl), -b dDelta/da)`` the VJP of ``y(l, a)`` with ``b``
-        (the APs broadcast per row, so the VJP gives each row its own ``dg/da``); ``m = sum (B
-        sigma)^2`` (SPEC section 4). No Jacobian of ``cart`` or ``Delta`` is formed. The same
-        numbers as ``jacfwd`` of :func:`tlsjax._model._planes.whitened_condition` (tested).
+        Per instrument: ``y = (l + v) - Delta(l + v)``, ``x = cart(y)``. With ``u = R n`` (``g
+        = u . x + n . S - d``): ``b = dg/dy = u^T dx/dy`` is the VJP of ``cart`` with ``u``, and
+        ``(B, dg/da) = (b (I - dDelta/dl), -b dDelta/da)`` the VJP of ``y(l, a)`` with ``b`` (the
+        APs broadcast per row, so the VJP gives each row its own ``dg/da``). No Jacobian of
+        ``cart`` or ``Delta`` is formed; the rotation and its derivatives are taken once per
+        scan. The same numbers as ``jacfwd`` of
+        :func:`tlsjax._model._planes.whitened_condition` (tested).
         """
-        geo = self._pair_geometry(problem, params, fi, jacobian=True)
-        P = self.at_rows(problem, fi, params.prims[fi], "prim")
-        n, d = P[:, :3], P[:, 3]
+        geo = self._pair_geometry(problem, params, fi, jacobian)
+        v0 = self.residual_state(state)
+        lhat = self.obs + v0
         m_rows = self.obs.shape[0]
         g, X, Jang, B = 0.0, 0.0, 0.0, 0.0
         Ja = jnp.zeros((m_rows, spec.n_aps))
         for sel, names, (a, b), scanner in self._instruments(spec, problem):
             coeffs = jnp.broadcast_to(params.aps[a:b], (m_rows, b - a))
             observed = lambda l, c, names=names, sc=scanner: corrected_observations(c, names, l, sc)
-            y, pull_y = jax.vjp(observed, self.obs, coeffs)
+            y, pull_y = jax.vjp(observed, lhat, coeffs)
             x, pull_x = jax.vjp(cartesian_from_spherical, y)
             (bv,) = pull_x(geo["u"])
             Bi, Jai = pull_y(bv)
             # Materialised once: otherwise XLA recomputes their trigonometry inside every
             # fusion that consumes them (measured: plane run 93 -> 77 ms, 39k conditions).
             x, Bi, Jai = jax.lax.optimization_barrier((x, Bi, Jai))
-            Xi = _dot3(jnp.swapaxes(geo["R"], -1, -2), x[:, None, :]) + geo["S"]
             g = jnp.where(sel, _dot3(geo["u"], x) + geo["c"], g)
-            X = jnp.where(sel[:, None], Xi, X)
-            Jang = jnp.where(sel[:, None], _dot3(x[:, None, :], geo["du"]), Jang)
             B = jnp.where(sel[:, None], Bi, B)
-            Ja = Ja.at[:, a:b].set(jnp.where(sel[:, None], Jai, 0.0))
-        w = self._whitening(B)[:, None]
-        e = g[:, None] * w
-        Jp = jnp.concatenate([X, -jnp.ones_like(d)[:, None]], axis=-1) * w
-        Js = jnp.concatenate([n, Jang], axis=-1) * w
-        return e, Jp[:, None], Js[:, None], (Ja * w)[:, None], e, B
+            if jacobian:
+                Xi = _dot3(jnp.swapaxes(geo["R"], -1, -2), x[:, None, :]) + geo["S"]
+                X = jnp.where(sel[:, None], Xi, X)
+                Jang = jnp.where(sel[:, None], _dot3(x[:, None, :], geo["du"]), Jang)
+                Ja = Ja.at[:, a:b].set(jnp.where(sel[:, None], Jai, 0.0))
+        return dict(g=g, B=B, w=g - _dot3(B, v0), m=self._variance_from(B), X=X, Jang=Jang, Ja=Ja)
+
+    def linear_rows(self, spec, problem, params, fi, ap_jac=None, state=None):
+        """The whitened Gauss-Helmert row ``e = w / sqrt(m)`` at ``(x, l + v)`` (``state`` = v)
+        and its Jacobian blocks ``A / sqrt(m)`` by the chain rule (:meth:`_gauss_helmert`);
+        returns (e, Jp, Js, Ja, raw = e, B) with ``B = dg/dl`` (m, 3) for the residuals and the
+        quality. With ``X = R^T x + S``: ``dg/d(n, d) = (X, -1)``, ``dg/dS = n``, ``dg/d
+        angle_k = x . (dR_k n)``."""
+        t = self._gauss_helmert(spec, problem, params, fi, state, jacobian=True)
+        P = self.at_rows(problem, fi, params.prims[fi], "prim")
+        n = P[:, :3]
+        w = self._whitening_of(t["m"])[:, None]
+        e = t["w"][:, None] * w
+        Jp = jnp.concatenate([t["X"], -jnp.ones_like(P[:, 3:])], axis=-1) * w
+        Js = jnp.concatenate([n, t["Jang"]], axis=-1) * w
+        return e, Jp[:, None], Js[:, None], (t["Ja"] * w)[:, None], e, t["B"]
+
+    def cost_state(self, spec, problem, params, fi, state, ap_jac=None):
+        """The rows ``w / sqrt(m)`` at ``(params, l + v0)`` (``state`` = v0), the next residuals
+        ``v1 = -Sigma_l B^T w / m`` there (one Gauss-Helmert update at fixed unknowns) and
+        ``max |v1 - v0| / sigma``, how far the residuals still move."""
+        t = self._gauss_helmert(spec, problem, params, fi, state, jacobian=False)
+        return self._state_update(t["w"], t["B"], t["m"], state)
+
+    def _state_update(self, w, B, m, state):
+        whiten = self._whitening_of(m)
+        v1 = -(self._sigma() ** 2) * B * (w * whiten**2)[:, None]
+        change = jnp.max(jnp.abs(v1 - self.residual_state(state)) * self.weight, initial=0.0)
+        return (w * whiten)[:, None], v1, change
+
+    def state_from_rows(self, rows, state):
+        """The residual update and its size from a linearisation's rows (``e = w / sqrt(m)``)."""
+        m = self._variance_from(rows.B)
+        return self._state_update(rows.e[:, 0] * jnp.sqrt(jnp.where(m > 0, m, 1.0)), rows.B, m, state)[1:]
 
     def _variance_from(self, B):
         """``m = B Sigma_l B^T`` of each condition."""
         return jnp.sum((B * self._sigma()) ** 2, axis=-1)
 
-    def _whitening(self, B):
+    def _whitening_of(self, m):
         """``1 / sqrt(m)`` of the active rows, 0 for removed ones."""
-        m = self._variance_from(B)
         active = self.active_rows()[:, 0]
         return jnp.where(active, 1.0 / jnp.sqrt(jnp.where(m > 0, m, 1.0)), 0.0)
 
     def prior_args(self):
-        return (self.unit_weight,)
+        return ()
 
-    def prior(self, P, uw):
-        return (unit_normal_constraint(P) * uw)[None]
+    def prior(self, P):
+        return jnp.zeros((0,), dtype=P.dtype)
+
+    def constraint_basis(self, P):
+        """``E`` (n, 4, 3): the unit normal as a hard constraint, a step is ``E delta``."""
+        return jax.vmap(plane_step_basis)(P)
+
+    def hard_constraints(self):
+        return self.n_planes
 
     def motion(self, P, motion):
         return move_plane(P, motion)
 
     def retract(self, P):
-        """``(n, d) / |n|``: the same plane with a unit normal. A Gauss-Newton step satisfies the
-        unit-normal constraint only to first order; its second-order error, times the heavy
-        weight, would make Levenberg-Marquardt reject good steps (Maratos effect)."""
+        """``(n, d) / |n|``: the same plane with a unit normal (a step in the tangent plane
+        keeps ``|n| = 1`` to first order)."""
         return P / jnp.linalg.norm(P[:, :3], axis=1, keepdims=True)
 
     def active_rows(self):
@@ -455,31 +515,17 @@ class PlaneFamily(Family):
         w = self.weight
         return jnp.where(w > 0, 1.0 / jnp.where(w > 0, w, 1.0), 0.0)
 
-    def _variance(self, spec, args, aps):
-        P, E, _, l, _, _, inst = args
-        sl = (spec.scanners, spec.ap_names, spec.ap_slices)
-        return jax.vmap(
-            lambda P_, E_, l_, s_, i_: condition_variance(P_, E_, aps, l_, s_, *sl, i_)
-        )(P, E, l, self._sigma(), inst)
-
-    def cost_rows(self, spec, problem, params, fi, frozen, ap_jac=None):
-        """``g / sqrt(m)`` at ``params`` with m of the linearisation point (``frozen``: its
-        :class:`Rows`, whose ``B`` gives m)."""
-        return (self._condition(spec, problem, params, fi) * self._whitening(frozen.B))[:, None]
-
     def observation_quality(self, spec, problem, params, fi, JQJ, rows):
-        """Gauss-Helmert residuals ``v = -Sigma_l B^T g / m`` of the three observations; the
-        condition's redundancy ``1 - a Q a^T`` split over them in the ratio
-        ``sigma_l^2 b_l^2 / m`` (so the three sum to at most 1, SPEC section 4)."""
+        """Gauss-Helmert residuals ``v = -Sigma_l B^T w / m`` of the three observations (the
+        residuals of the last step, ``dx = 0`` at the solution); the condition's redundancy
+        ``1 - a Q a^T`` split over them in the ratio ``sigma_l^2 b_l^2 / m`` (so the three sum
+        to at most 1, SPEC section 4)."""
         active = self.active_rows()[:, 0]
         B = rows.B
         m = self._variance_from(B)
         share = (self._sigma() * B) ** 2 / jnp.where(m > 0, m, 1.0)[:, None]
         redundancy = jnp.where(active, 1.0 - JQJ[:, 0], 0.0)[:, None] * share
-        # The condition itself from the linearisation's whitened row, e = g / sqrt(m).
-        m_ = jnp.where(m > 0, m, 1.0)
-        g = rows.e[:, 0] * jnp.sqrt(m_)
-        v = -(self._sigma() ** 2) * B * (g / m_)[:, None]
+        v = self.state_from_rows(rows, None)[0]
         return v, redundancy, jnp.sum(active), jnp.sum(rows.e**2)
 
 
@@ -529,30 +575,57 @@ def levelling_jacobian(problem, eops):
     return jax.vmap(jax.jacfwd(compensator_reading))(eops) * problem.levelling_weight[:, :, None]
 
 
-def cost(spec, problem, params, frozen: tuple | None = None, ap_jac: tuple | None = None):
-    """``v^T P v``: sum of squared whitened residuals, observations and pseudo-observations.
-
-    ``frozen``: the :class:`._normal.Rows` per family of the linearisation point, at which
-    families with ``frozen_cost`` hold their weights (a Gauss-Helmert step is accepted under
-    its own M). ``ap_jac``: the constant AP blocks (``Family.ap_block``), if taken.
-    """
+def cost_and_state(spec, problem, params, state: tuple | None = None, ap_jac: tuple | None = None):
+    """``v^T P v`` (observations and pseudo-observations) at ``params`` with the families'
+    states ``state`` (None: their initial states), the families' next states and the largest
+    change of a state in a priori sigmas (:meth:`Family.cost_state`). ``ap_jac``: the constant
+    AP blocks (``Family.ap_block``), if taken."""
     total = jnp.sum(levelling_residual(problem, params.eops) ** 2)
+    states, change = [], jnp.asarray(0.0)
     for fi, fam in enumerate(problem.families):
         aj = None if ap_jac is None else ap_jac[fi]
-        if frozen is not None and fam.frozen_cost:
-            e = fam.cost_rows(spec, problem, params, fi, frozen[fi], aj)
-        else:
-            e = fam.residuals(spec, problem, params, fi, ap_jac=aj)
+        st = fam.state_init() if state is None else state[fi]
+        e, st, ch = fam.cost_state(spec, problem, params, fi, st, aj)
         total = total + jnp.sum(e**2) + jnp.sum(fam.prior_residuals(params.prims[fi]) ** 2)
-    return total
+        states.append(st)
+        change = jnp.maximum(change, ch)
+    return total, tuple(states), change
+
+
+def cost(spec, problem, params, state: tuple | None = None, ap_jac: tuple | None = None):
+    """``v^T P v`` of :func:`cost_and_state`."""
+    return cost_and_state(spec, problem, params, state, ap_jac)[0]
+
+
+def initial_state(problem) -> tuple:
+    """The families' states before the first step (:meth:`Family.state_init`)."""
+    return tuple(fam.state_init() for fam in problem.families)
+
+
+def state_from_rows(problem, rows, state):
+    """The families' next states at the linearisation point of ``rows`` and the largest change
+    (a rejected step: the unknowns stay, the Gauss-Helmert residuals still settle)."""
+    out = [fam.state_from_rows(r, st) for fam, r, st in zip(problem.families, rows, state)]
+    change = jnp.max(jnp.asarray([0.0] + [jnp.asarray(c, dtype=jnp.float64) for _, c in out]))
+    return tuple(st for st, _ in out), change
+
+
+def settled_state(spec, problem, params, steps: int = PROJECTION_STEPS) -> tuple:
+    """The families' states settled at fixed ``params``: ``steps`` updates from the initial
+    state (for a Gauss-Helmert family, the residuals projected onto the conditions,
+    :func:`tlsjax._model._planes.projection_step`). Differentiable (a rolled loop)."""
+    step = lambda _, st: cost_and_state(spec, problem, params, st)[1]
+    return jax.lax.fori_loop(0, steps, step, initial_state(problem))
 
 
 def count_observations(problem, params):
-    """Active scalar observations and pseudo-observations (one condition per plane point)."""
+    """Active scalar observations and pseudo-observations (one condition per plane point) plus
+    the hard constraints on the primitives (a plane's unit normal): what the degrees of freedom
+    ``r = n - u + d`` count as n, with u the unknowns (four per plane)."""
     n = jnp.sum(problem.levelling_weight > 0)
     for fi, fam in enumerate(problem.families):
         active_prior = jnp.any(fam.prior_jacobian(params.prims[fi]) != 0, axis=-1)
-        n = n + jnp.sum(fam.active_rows()) + jnp.sum(active_prior)
+        n = n + jnp.sum(fam.active_rows()) + jnp.sum(active_prior) + fam.hard_constraints()
     return n
 
 

@@ -25,13 +25,16 @@ adjustment, so forward mode is the rule itself and reverse mode is its transpose
 the linear tangent computation: the adjoint solves the transposed bordered system with the same
 factorisation). Both work under ``jit`` and ``vmap``.
 
-Which objective is differentiated (plane networks). A Gauss-Helmert step holds each condition's
-variance ``m = B Sigma_l B^T`` at the linearisation point; the adjustment therefore converges to
-the fixed point ``F(x, theta) = sum_i (g_i / m_i(x, theta)) dg_i/dx + priors = 0`` with m
-evaluated at the solution itself. That fixed point (not the gradient of ``sum g^2 / m`` with m
-varying, which has an extra term) is what :func:`normal_equations` differentiates, with m a
-function of x, the observations and their sigmas. The weight of a plane's unit-normal
-pseudo-observation is held at its planned value (it only keeps ``|n| = 1``).
+Which objective is differentiated (plane networks). The rigorous Gauss-Helmert iteration
+converges to the fixed point ``F(x, theta) = sum_i (w_i / m_i) A_i^T + priors = 0`` with ``w =
+g(x, l + v) - B v``, A, B and ``m = B Sigma_l B^T`` at ``(x, l + v)`` and ``v = v(x, theta)``
+the residuals settled at x (the projection of l onto the conditions,
+:func:`._families.settled_state`); F is the gradient of the Gauss-Helmert objective
+``Phi = v^T P v`` (envelope theorem). :func:`normal_equations` evaluates it with v, ``B v`` and
+m computed differentiably from (x, theta). The unit normal of a plane is a hard constraint, so F
+vanishes only in its tangent space: the tangent solves the bordered system of the Lagrangian,
+whose Hessian adds ``-(n . F_n) I`` on each plane's normal (:func:`_constraint_curvature`), and
+the structured inverse works in the tangent space of the constraint.
 
 The datum: tangents satisfy ``G^T dx = 0`` with ``G`` the inner-constraint matrix at the solution
 (S-transformation); parameters held fixed (a fixed scan, fixed APs) and parameters the network
@@ -53,7 +56,7 @@ from jaxtyping import Array, Float
 from .._jit import jit
 from .._model._datum import s_transform_vector
 from .._model._planes import plane_condition
-from ._families import Params, PlaneFamily, Problem, Spec, cost
+from ._families import Family, Params, PlaneFamily, Problem, Spec, cost, settled_state
 from ._linalg import cholesky_solve
 from ._normal import linearise, null_space, reduce
 from ._quality import quality
@@ -66,34 +69,62 @@ REFINEMENT_STEPS = 3
 
 
 class FrozenPlaneFamily(PlaneFamily):
-    """A plane family whose condition variances ``m`` (one per point) are data, evaluated at a
-    given solution: the whitened residual ``g(y) / sqrt(m)`` has the Gauss-Helmert Jacobian
-    ``dg/dy / sqrt(m)`` in y, and stays differentiable in m (the engine's family stops the
-    gradient of m, which is right inside a step and wrong for derivatives w.r.t. theta)."""
+    """A plane family whose Gauss-Helmert residuals v, ``B v`` and condition variances ``m`` (one
+    per point) are data, evaluated at a given solution: the whitened row ``(g(y, l + v) - B v) /
+    sqrt(m)`` has the Gauss-Helmert Jacobian ``A / sqrt(m)`` in y, and stays differentiable in v,
+    ``B v`` and m (the engine's family holds them inside a step, which is right there and wrong
+    for derivatives w.r.t. theta). ``point`` holds each row's index into them."""
 
+    v: Float[Array, "m 3"]
+    Bv: Float[Array, " m"]
     variance: Float[Array, " m"]
 
-    def residual(self, spec, P, eop, aps, l, w, point, inst):
+    def residual_state(self, state):
+        return self.v[self.point]
+
+    def residual(self, spec, P, eop, aps, lv, w, point, inst):
         sl = (spec.scanners, spec.ap_names, spec.ap_slices)
-        g = plane_condition(P, eop, aps, l, *sl, inst)
-        m = self.variance[point]  # ``point`` holds the observation's index here
+        g = plane_condition(P, eop, aps, lv[0] + lv[1], *sl, inst)
+        m = self.variance[point]
         active = jnp.any(w > 0)
-        return jnp.where(active, g / jnp.sqrt(jnp.where(m > 0, m, 1.0)), 0.0)[None]
+        return jnp.where(active, (g - self.Bv[point]) / jnp.sqrt(jnp.where(m > 0, m, 1.0)), 0.0)[
+            None
+        ]
+
+    def cost_state(self, spec, problem, params, fi, state, ap_jac=None):
+        return Family.cost_state(self, spec, problem, params, fi, state, ap_jac)
 
 
 def frozen_problem(spec: Spec, problem: Problem, params: Params) -> Problem:
-    """``problem`` with every plane family's condition variances evaluated at ``params``
-    (differentiably); point families are returned as they are."""
+    """``problem`` with every plane family's Gauss-Helmert residuals, ``B v`` and condition
+    variances evaluated at ``params`` (differentiably, the residuals settled at ``params``);
+    point families are returned as they are."""
+    settled = settled_state(spec, problem, params)
     fams = []
     for fi, fam in enumerate(problem.families):
         if isinstance(fam, PlaneFamily) and not isinstance(fam, FrozenPlaneFamily):
-            args = fam.observation_args(problem, params, fi)
-            m, _ = fam._variance(spec, args, params.aps)
+            t = fam._gauss_helmert(spec, problem, params, fi, settled[fi], jacobian=False)
             fields = {f.name: getattr(fam, f.name) for f in dataclasses.fields(fam)}
-            fields["point"] = jnp.arange(m.shape[0], dtype=jnp.int32)
-            fam = FrozenPlaneFamily(**fields, variance=m)
+            fields["point"] = jnp.arange(t["m"].shape[0], dtype=jnp.int32)
+            fam = FrozenPlaneFamily(
+                **fields, v=settled[fi], Bv=t["g"] - t["w"], variance=t["m"]
+            )
         fams.append(fam)
     return dataclasses.replace(problem, families=tuple(fams))
+
+
+def _constraint_curvature(problem: Problem, params: Params, F: Params, dx: Params) -> Params:
+    """The constraints' part of the Lagrangian's Hessian times ``dx``: for the unit normal of
+    each plane, ``c = n . n - 1`` with multiplier ``lambda = -(n . F_n) / 2`` (from ``F_n + 2
+    lambda n = 0`` at the solution), ``2 lambda dn = -(n . F_n) dn``."""
+    out = []
+    for fam, P, Fp, dp in zip(problem.families, params.prims, F.prims, dx.prims):
+        if isinstance(fam, PlaneFamily):
+            lam2 = -jnp.sum(P[:, :3] * Fp[:, :3], axis=1, keepdims=True)
+            out.append(jnp.concatenate([lam2 * dp[:, :3], jnp.zeros_like(dp[:, 3:])], axis=1))
+        else:
+            out.append(jnp.zeros_like(dp))
+    return Params(tuple(out), jnp.zeros_like(dx.eops), jnp.zeros_like(dx.aps))
 
 
 def normal_equations(spec: Spec, problem: Problem, params: Params) -> Params:
@@ -117,7 +148,7 @@ class GaussNewtonInverse:
     @classmethod
     def at(cls, spec: Spec, problem: Problem, params: Params, rank_tolerance):
         params = jax.lax.stop_gradient(params)
-        blocks = linearise(spec, problem, params)
+        blocks = linearise(spec, problem, params, state=settled_state(spec, problem, params))
         Hp, Hz = null_space(spec, problem.families, params)
         red = reduce(spec, problem, blocks, Hz, jnp.asarray(0.0), rank_tolerance)
         return cls(spec, red, Hp, Hz)
@@ -150,7 +181,11 @@ def solution_tangent(spec, problem, params, problem_dot, rank_tolerance, steps=R
     _, F_dot = jax.jvp(lambda pb: normal_equations(spec, pb, x), (problem,), (problem_dot,))
     b = jax.tree.map(jnp.negative, F_dot)
     inverse = GaussNewtonInverse.at(spec, problem, x, rank_tolerance)
-    hvp = lambda v: jax.jvp(lambda y: normal_equations(spec, problem, y), (x,), (v,))[1]
+    F = normal_equations(spec, problem, x)
+    hvp = lambda v: _tree_add(
+        jax.jvp(lambda y: normal_equations(spec, problem, y), (x,), (v,))[1],
+        _constraint_curvature(problem, x, F, v),
+    )
     # A rolled loop (a linear scan, so reverse mode transposes it): one copy of the
     # Hessian-vector product in the compiled code, whatever ``steps`` is.
     refine = lambda _, dx: _tree_add(dx, inverse(_tree_add(b, hvp(dx), -1.0)))

@@ -43,6 +43,19 @@ def spd_inverse(A):
     return jnp.stack(rows, axis=-2)
 
 
+def constrained_spd_inverse(A, E=None):
+    """``E (E^T A E)^-1 E^T`` for a batch of small SPD blocks ``A[..., p, p]`` whose unknowns
+    obey hard linear constraints with null-space basis ``E[..., p, q]`` (None: no constraints,
+    ``A^-1``). It solves ``A dx = b`` subject to ``dx = E delta`` exactly (the bordered system of
+    the constraints, eliminated), so a plane block's inverse leaves its unit normal's length
+    unchanged to first order; with the Schur formulas it is the generalised inverse of the
+    constrained normal equations (Koch 1999, sec. 3.4)."""
+    if E is None:
+        return spd_inverse(A)
+    Et = jnp.swapaxes(E, -1, -2)
+    return E @ spd_inverse(Et @ A @ E) @ Et
+
+
 def rank_revealing_cholesky(A, fixed, tol):
     """In-order Cholesky of a unit-diagonal SPD(-ish) matrix that skips dependent columns.
 

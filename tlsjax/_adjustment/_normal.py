@@ -27,8 +27,8 @@ from ._families import Params, Problem, Spec, levelling_jacobian, levelling_resi
 from ._linalg import (
     cholesky_solve,
     forward_substitution,
+    constrained_spd_inverse,
     rank_revealing_cholesky_damped,
-    spd_inverse,
 )
 
 
@@ -51,9 +51,12 @@ class Blocks(eqx.Module):
     Nzz: Float[Array, "r r"]
     bz: Float[Array, " r"]
     # Diagonal of the observations' part of N_pp (priors left out): the Levenberg-Marquardt
-    # scaling, so that a heavy pseudo-observation (a plane's unit-normal constraint) does not
-    # freeze the directions it does not constrain.
+    # scaling, so that a heavy pseudo-observation (a control point) does not freeze the
+    # directions it does not constrain.
     Dp: tuple = ()
+    # Per family the null-space basis of its hard constraints (``Family.constraint_basis``:
+    # (n, p, q) for planes, None for points).
+    Ep: tuple = ()
 
 
 def ap_jacobians(spec: Spec, problem: Problem, params: Params) -> tuple:
@@ -120,37 +123,44 @@ def _sums_by_segment(fam, ns, e, Jp, Js, Ja):
     )
 
 
-def linearise(spec: Spec, problem: Problem, params: Params, ap_jac: tuple | None = None) -> Blocks:
+def linearise(
+    spec: Spec, problem: Problem, params: Params, ap_jac: tuple | None = None, state=None
+) -> Blocks:
     """Assemble the normal-equation blocks (never a dense Jacobian); see :func:`linearise_rows`.
 
     ``ap_jac``: the AP Jacobians of :func:`ap_jacobians`, if already taken.
     """
-    return linearise_rows(spec, problem, params, ap_jac)[0]
+    return linearise_rows(spec, problem, params, ap_jac, state)[0]
 
 
-def linearise_rows(spec: Spec, problem: Problem, params: Params, ap_jac: tuple | None = None):
+def linearise_rows(
+    spec: Spec, problem: Problem, params: Params, ap_jac: tuple | None = None, state=None
+):
     """The one linearisation of the engine: per family the residual rows and Jacobian blocks
     (:class:`Rows`, from ``vmap(jacfwd)``) and the normal-equation :class:`Blocks` summed from
     them, on the family's grid when it has one (:class:`._families.Layout`), by segment sums
-    otherwise. The solver and the quality pass share it. Returns (blocks, rows per family)."""
+    otherwise. ``state``: the families' iteration states (the Gauss-Helmert residuals at which a
+    plane family is linearised; None: their initial states). The solver and the quality pass
+    share it. Returns (blocks, rows per family)."""
     ns, na = spec.n_scans, spec.n_aps
     Nss = jnp.zeros((ns, 6, 6))
     Nsa = jnp.zeros((ns, 6, na))
     Naa = jnp.zeros((na, na))
     bs = jnp.zeros((ns, 6))
     ba = jnp.zeros((na,))
-    Npp, Npz, bp, Dp, rows = [], [], [], [], []
+    Npp, Npz, bp, Dp, Ep, rows = [], [], [], [], [], []
     grids = problem.grids or (None,) * len(problem.families)
     for fi, (fam, grid) in enumerate(zip(problem.families, grids)):
         P = params.prims[fi]
-        r = Rows(
-            *fam.linear_rows(spec, problem, params, fi, None if ap_jac is None else ap_jac[fi])
-        )
+        aj = None if ap_jac is None else ap_jac[fi]
+        st = None if state is None else state[fi]
+        r = Rows(*fam.linear_rows(spec, problem, params, fi, aj, st))
+        Ep.append(fam.constraint_basis(P))
         rows.append(r)
         J = (r.e, r.Jp, r.Js, r.Ja)
         sums = _sums_on_grid(grid, *J) if grid else _sums_by_segment(fam, ns, *J)
         npp, bpp, nps, npa, nss, nsa, naa, bss, baa = sums
-        # Priors on primitives (control points, scale-bar lengths, unit normals).
+        # Priors on primitives (control points, scale-bar lengths).
         pr, Jpr = fam.prior_residuals(P), fam.prior_jacobian(P)
         Dp.append(jnp.diagonal(npp, axis1=-2, axis2=-1))
         Npp.append(npp + outer(Jpr, Jpr))
@@ -168,7 +178,7 @@ def linearise_rows(spec: Spec, problem: Problem, params: Params, ap_jac: tuple |
     Nsa_full = Nsa.reshape(6 * ns, na)
     Nzz = jnp.block([[Nss_full, Nsa_full], [Nsa_full.T, Naa]])
     bz = jnp.concatenate([bs.reshape(-1), ba])
-    return Blocks(tuple(Npp), tuple(Npz), tuple(bp), Nzz, bz, tuple(Dp)), tuple(rows)
+    return Blocks(tuple(Npp), tuple(Npz), tuple(bp), Nzz, bz, tuple(Dp), tuple(Ep)), tuple(rows)
 
 
 def linearised_cost(problem: Problem, params: Params, rows) -> Array:
@@ -220,8 +230,12 @@ def reduce(spec, problem, blocks: Blocks, Hz, damping, rank_tolerance, dependent
     """
     K = blocks.Nzz
     inv_list, Y_list = [], []
-    for Npp, Npz, D in zip(blocks.Npp, blocks.Npz, blocks.Dp):
-        Ninv = spd_inverse(Npp + damping * D[..., :, None] * jnp.eye(Npp.shape[-1]))
+    Ep = blocks.Ep or (None,) * len(blocks.Npp)
+    for Npp, Npz, D, E in zip(blocks.Npp, blocks.Npz, blocks.Dp, Ep):
+        # Hard constraints (a plane's unit normal) in null-space form: the block's inverse is
+        # the constrained one, and everything below (Schur complement, back substitution,
+        # cofactors) is that of the constrained normal equations.
+        Ninv = constrained_spd_inverse(Npp + damping * D[..., :, None] * jnp.eye(Npp.shape[-1]), E)
         Y = jnp.sum(Ninv[..., :, :, None] * Npz[..., None, :, :], axis=-2)  # (n, p, r)
         K = K - jnp.einsum("npr,npq->rq", Npz, Y)
         inv_list.append(Ninv)
@@ -265,9 +279,9 @@ def solve_step(spec, problem, params, blocks, red: Reduced, Hp, Hz):
     if spec.inner and Hz.shape[1]:
         dps, dz = s_transform_vector(Hp, Hz, dps, dz)
     ns = spec.n_scans
+    # The update in the constraints' tangent space measures convergence; the retraction onto
+    # the constraints (a plane renormalised) changes it at second order only.
     prims = tuple(fam.retract(P + dp) for fam, P, dp in zip(problem.families, params.prims, dps))
-    # The update as applied (after the retraction onto the constraints): it measures convergence.
-    dps = tuple(new - P for new, P in zip(prims, params.prims))
     new = Params(prims, params.eops + dz[: 6 * ns].reshape(ns, 6), params.aps + dz[6 * ns :])
     return new, dps, dz
 
@@ -289,6 +303,9 @@ def update_size(blocks, red: Reduced, dz, dps):
         initial=0.0,
     )
     for dp, Ninv in zip(dps, red.Npp_inv):
-        qp = jnp.diagonal(Ninv, axis1=-2, axis2=-1)
-        size = jnp.maximum(size, jnp.max(jnp.abs(dp) / jnp.sqrt(jnp.abs(qp)), initial=0.0))
+        # A hard constraint can leave a component without variance (the z of a horizontal
+        # plane's normal); the step in it is then 0 as well.
+        qp = jnp.abs(jnp.diagonal(Ninv, axis1=-2, axis2=-1))
+        ratio = jnp.where(qp > 0, jnp.abs(dp) / jnp.sqrt(jnp.where(qp > 0, qp, 1.0)), 0.0)
+        size = jnp.maximum(size, jnp.max(ratio, initial=0.0))
     return size

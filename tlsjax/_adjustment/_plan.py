@@ -20,13 +20,6 @@ from ._config import CalibrationModel
 from ._families import Params, PlaneFamily, PointFamily, Problem, Spec
 from ._network import Network
 
-#: Strength of the unit-normal constraint ``|n|^2 - 1`` of a plane, as a pseudo-observation,
-#: relative to what the plane's points say about its normal: its weight is this factor times
-#: ``sqrt(sum_i rho_i^2 / sigma_i^2)`` over the plane's points (their information on n), so the
-#: constraint holds to ~1e-13 while the normal matrix stays well conditioned, whatever the
-#: scale of the sigmas (a hard constraint in a bordered system gives the same solution,
-#: tests/test_plane_adjustment.py).
-UNIT_NORMAL_STRENGTH = 1e3
 PLANE_PARAMETERS = ("nx", "ny", "nz", "d")
 
 
@@ -163,21 +156,15 @@ def _point_families(net: Network, datum: str):
 
 
 def _plane_family(net: Network):
-    """Planes: one Gauss-Helmert condition per point (SPEC section 4), p = 4 per plane."""
+    """Planes: one Gauss-Helmert condition per point (SPEC section 4), p = 4 per plane with its
+    unit normal as a hard constraint."""
     return PlaneFamily(
         obs=jnp.asarray(net.plane_observations),
         weight=jnp.asarray(1.0 / net.plane_sigmas),
         point=jnp.zeros(len(net.plane_index), dtype=jnp.int32),
         **_index_pairs(net.plane_index, net.plane_scan_index),
-        unit_weight=jnp.asarray(_unit_normal_weight(net)),
+        n_planes=len(net.planes),
     )
-
-
-def _unit_normal_weight(net: Network):
-    """Weight of each plane's unit-normal pseudo-observation (see ``UNIT_NORMAL_STRENGTH``)."""
-    info = (net.plane_observations[:, 0] / net.plane_sigmas[:, 0]) ** 2
-    total = np.bincount(net.plane_index, weights=info, minlength=len(net.planes))
-    return UNIT_NORMAL_STRENGTH * np.sqrt(total)
 
 
 def _parameter_names(net: Network, fam_targets, labels):

@@ -35,6 +35,7 @@ from ._families import (
     levelling_jacobian,
     levelling_residual,
     on_grid,
+    settled_state,
 )
 from ._linalg import cholesky_inverse, forward_substitution
 from ._normal import linearise_rows, linearised_cost, null_space, reduce
@@ -44,7 +45,9 @@ from ._solver import Linearisation
 class Quality(eqx.Module):
     vtpv: Float[Array, ""]
     dof: Float[Array, ""]
-    n_observations: Float[Array, ""]  # with nonzero weight, pseudo-observations included
+    # Conditions with nonzero weight (three per target observation, one per plane point),
+    # pseudo-observations and hard constraints (a plane's unit normal): the n of r = n - u + d.
+    n_observations: Float[Array, ""]
     Qzz: Float[Array, "r r"]  # datum cofactor of the scan poses and APs (AP block: invariant)
     prim_cofactor: tuple  # per family (n, p, p): diagonal blocks in the datum
     prim_cross: tuple  # per family (n, p, r): blocks with the scan poses and APs, in the datum
@@ -120,14 +123,18 @@ def _family_quality(spec, problem, params, fi, red, Qzz, r):
         influence=influence,
         redundancy_prior=redundancy_prior,
         misclosure=r.e,
-        n=n_active + jnp.sum(active),
+        n=n_active + jnp.sum(active) + fam.hard_constraints(),
         vtpv=vtpv + jnp.sum(pr**2),
     )
 
 
-def linearisation_at(spec: Spec, problem: Problem, params: Params, rank_tolerance):
-    """The undamped :class:`._solver.Linearisation` at ``params`` (of a problem on its grid)."""
-    blocks, rows = linearise_rows(spec, problem, params)
+def linearisation_at(spec: Spec, problem: Problem, params: Params, rank_tolerance, state=None):
+    """The undamped :class:`._solver.Linearisation` at ``params`` (of a problem on its grid),
+    with the families' states ``state`` (default: settled at ``params``,
+    :func:`._families.settled_state`: the Gauss-Helmert residuals of the solution)."""
+    if state is None:
+        state = settled_state(spec, problem, params)
+    blocks, rows = linearise_rows(spec, problem, params, state=state)
     Hp, Hz = null_space(spec, problem.families, params)
     red = reduce(spec, problem, blocks, Hz, jnp.asarray(0.0), rank_tolerance)
     return Linearisation(blocks, rows, Hp, Hz, red)

@@ -51,10 +51,16 @@ class CalibrationResult:
     Non-estimable APs have NaN value and sigma and are listed in ``not_estimable`` with the
     parameter they are confounded with; they are never reported as numbers.
 
-    ``n_observations`` counts scalar observations, three per target observation and per plane
-    point (plus the pseudo-observations); a plane point gives one condition, so with planes
-    ``dof = conditions + unit-normal constraints + other pseudo-observations - unknowns + datum
-    defect`` (Gauss-Helmert) rather than ``n_observations - n_unknowns + defect``.
+    Counting (as the papers do, Chow et al. 2013, Table 5): ``n_observations`` counts scalar
+    observations, three per target observation and per plane point, plus the
+    pseudo-observations (levelling, orientation and AP priors, control, scale bars);
+    ``n_unknowns`` counts four per plane ``(n, d)``, three per target, six per scan and the
+    estimable APs. A plane point gives one condition, so with planes the degrees of freedom are
+    those of the Gauss-Helmert model, ``dof = n_conditions - n_unknowns + n_constraints + d``,
+    with ``n_conditions`` the condition equations (three per target observation, one per plane
+    point, one per pseudo-observation), ``n_constraints`` the hard constraints on the unknowns
+    (one unit normal per plane) and d the datum defect; without planes ``n_conditions =
+    n_observations`` and ``n_constraints = 0``.
     """
 
     result: int
@@ -65,6 +71,8 @@ class CalibrationResult:
     dof: float
     n_observations: int
     n_unknowns: int
+    n_conditions: int
+    n_constraints: int
     datum: str
     ap_names: tuple
     ap_units: tuple
@@ -322,9 +330,12 @@ def assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
     )
     eop_sig[eop_dep.reshape(ns, 6)] = np.nan
     cov = None if q.Qfull is None else np.asarray(q.Qfull) * s0sq_scale
-    n_obs_total = int(round(float(q.n_observations)))
+    # The solver counts one condition per plane point and the hard constraints; a point is
+    # three observations.
+    n_constraints = sum(fam.hard_constraints() for fam in plan.problem.families)
+    n_conditions = int(round(float(q.n_observations))) - n_constraints
+    n_obs_total = n_conditions
     if plane_out:
-        # The solver counts one condition per plane point; a point is three observations.
         n_obs_total += 2 * int(plane_out["plane_used"].any(axis=1).sum())
     return CalibrationResult(
         result=code,
@@ -335,6 +346,8 @@ def assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
         dof=dof,
         n_observations=n_obs_total,
         n_unknowns=int(n_p + (~dep).sum()),
+        n_conditions=n_conditions,
+        n_constraints=n_constraints,
         datum=plan.datum,
         ap_names=plan.ap_labels,
         ap_units=plan.ap_units,

@@ -16,6 +16,12 @@ common factor (dx does not, ``sqrt(Q_ii)`` and ``1/s0`` scale alike). On noise-f
 itself rounding noise, so the test is floored at the rounding level of the whitened residuals
 (``ROUNDING_FACTOR`` times their RMS rounding error): an update that small cannot be resolved
 in float64, and a step there is accepted or rejected by rounding alone.
+
+Gauss-Helmert families (planes) carry their residuals v through the loop (``SolveState.state``,
+the families' ``state_init``/``cost_state`` hooks): each linearisation is taken at ``l + v``
+(the rigorous iteration of Lenzmann & Lenzmann 2004), the cost of a trial step is ``v^T P v``
+after one Gauss-Helmert update of v at the trial unknowns, and the loop has converged when the
+update of the unknowns and the change of v are both below the threshold.
 """
 
 from __future__ import annotations
@@ -26,7 +32,17 @@ import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
-from ._families import Options, Params, Problem, Spec, cost, count_observations, on_grid
+from ._families import (
+    Options,
+    Params,
+    Problem,
+    Spec,
+    cost_and_state,
+    count_observations,
+    initial_state,
+    on_grid,
+    state_from_rows,
+)
 from ._normal import (
     Blocks,
     Reduced,
@@ -57,6 +73,8 @@ class SolveState(eqx.Module):
     # damped step holds them too (damping the primitives' blocks would hide the dependency of
     # an AP whose effect they absorb, and the step would wander along it).
     dependent: Bool[Array, " r"]
+    # Per family its iteration state (the Gauss-Helmert residuals v of a plane family).
+    state: tuple = ()
 
 
 class Linearisation(eqx.Module):
@@ -115,7 +133,6 @@ def adjust_linearised(
     about 1e-10 relatively, tested against calibrate), and ``state.cost`` is the cost of the
     accepted step (at the final estimate)."""
     ap_jac = ap_jacobians(spec, problem, params0)
-    frozen_cost = any(fam.frozen_cost for fam in problem.families)
     dof = jnp.maximum(
         count_observations(problem, params0)
         - _unknowns(spec, problem, params0)
@@ -129,8 +146,8 @@ def adjust_linearised(
     # traced, and jit's trace cache lets the body reuse that one trace (eval_shape of a plain
     # function would trace it a second time, a third of the lowering time).
     @jax.jit
-    def linearisation(params, damping, dependent):
-        blocks, rows = linearise_rows(spec, problem, params, ap_jac)
+    def linearisation(params, fam_state, damping, dependent):
+        blocks, rows = linearise_rows(spec, problem, params, ap_jac, fam_state)
         Hp, Hz = null_space(spec, problem.families, params)
         red = reduce(spec, problem, blocks, Hz, damping, options.rank_tolerance, dependent)
         return Linearisation(blocks, rows, Hp, Hz, red)
@@ -143,12 +160,12 @@ def adjust_linearised(
             | (state.damping > options.damping_max)
         )
         if not final_pass:
-            lin = linearisation(state.params, state.damping, state.dependent)
+            lin = linearisation(state.params, state.state, state.damping, state.dependent)
             ref_cost = linearised_cost(problem, state.params, lin.rows)
             new_state = _step(state, lin, ref_cost, state.damping)
             return _Loop(new_state, lin, _stop(new_state))
         damping = jnp.where(last, 0.0, state.damping)
-        lin = linearisation(state.params, damping, state.dependent)
+        lin = linearisation(state.params, state.state, damping, state.dependent)
         ref_cost = linearised_cost(problem, state.params, lin.rows)
         new_state = lax.cond(last, lambda: state, lambda: _step(state, lin, ref_cost, damping))
         return _Loop(new_state, lin, last)
@@ -163,7 +180,10 @@ def adjust_linearised(
     def _step(state, lin, ref_cost, damping):
         red = lin.reduced
         new, dps, dz = solve_step(spec, problem, state.params, lin.blocks, red, lin.Hp, lin.Hz)
-        new_cost = cost(spec, problem, new, frozen=lin.rows if frozen_cost else None, ap_jac=ap_jac)
+        new_cost, new_fam, moved = cost_and_state(spec, problem, new, state.state, ap_jac)
+        # A rejected step keeps the unknowns; the Gauss-Helmert residuals still take their
+        # update at them (from the linearisation's own rows).
+        kept_fam, moved_kept = state_from_rows(problem, lin.rows, state.state)
         finite = jnp.isfinite(new_cost)
         accept = finite & (new_cost <= ref_cost * (1.0 + 1e-12))
         s0 = jnp.sqrt(jnp.maximum(ref_cost, 0.0) / dof)
@@ -181,7 +201,9 @@ def adjust_linearised(
         # Only an undamped step measures the distance to the solution: a damped one is short
         # by construction. At the solution an undamped step is rounding noise and may be
         # rejected by rounding alone; it is converged either way.
-        converged = (damping == 0) & jnp.isfinite(size) & ((size < 1.0) | unresolved)
+        # ... and the residuals of Gauss-Helmert families have settled as well.
+        settled = jnp.where(accept, moved, moved_kept) < threshold
+        converged = (damping == 0) & jnp.isfinite(size) & ((size < 1.0) | unresolved) & settled
         params = _where(accept, new, state.params)
         damping_next = jnp.where(
             accept,
@@ -197,6 +219,7 @@ def adjust_linearised(
             finite | accept,
             jnp.where(damping == 0, size, state.size),
             jnp.where(damping == 0, red.dependent, state.dependent),
+            _where(accept, new_fam, kept_fam),
         )
 
     init = SolveState(
@@ -208,9 +231,10 @@ def adjust_linearised(
         jnp.asarray(True),
         jnp.asarray(jnp.inf),
         jnp.zeros(spec.r, dtype=bool),
+        initial_state(problem),
     )
     # The loop carries the last linearisation; its first pass fills it.
-    lin0 = jax.eval_shape(linearisation, params0, jnp.asarray(0.0), init.dependent)
+    lin0 = jax.eval_shape(linearisation, params0, init.state, jnp.asarray(0.0), init.dependent)
     zeros = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), lin0)
     out = lax.while_loop(lambda loop: ~loop.done, body, _Loop(init, zeros, jnp.asarray(False)))
     state = out.state

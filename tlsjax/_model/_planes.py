@@ -9,18 +9,30 @@ scan j on plane k gives the condition
                       cos(alpha - Dalpha) sin(theta - Dtheta),
                       sin(alpha - Dalpha)),
 
-with the AP corrections ``Delta(l)`` evaluated at the observations. Linearised,
-``A dx + B v + w = 0`` with ``A = dg/dx`` and ``B = dg/dl`` from autodiff; the condition's
-variance is ``m = B Sigma_l B^T`` (one scalar per point, so ``M`` is diagonal). Dividing the
-condition by ``sqrt(m)`` (held fixed in the linearisation) turns each point into one row of
-a whitened Gauss-Markov system, so the structured solver (segment sums, Schur elimination of
-the planes) applies unchanged; the observation residuals follow as
-``v = -Sigma_l B^T m^-1 g`` and the three redundancy numbers of a point split the condition's
-redundancy in the ratio ``sigma_l^2 b_l^2 / m`` (so they sum to at most 1).
+with the AP corrections ``Delta(l)`` evaluated at the observations. The rigorous Gauss-Helmert linearisation (Lenzmann & Lenzmann 2004; Neitzel 2010; SPEC section
+4) is taken at the current estimates of both the unknowns x0 and the observations ``l + v0``:
 
-The unit length of n is a constraint, ``c = n . n - 1 = 0``, and the rigid-motion action on a
-plane, ``n -> R n``, ``d -> d + (R n) . t``, gives its inner-constraint columns by autodiff
-(Lichti & Chow 2013), as for points in :mod:`._datum`.
+    A dx + B v + w = 0,    w = g(x0, l + v0) - B v0,    A = dg/dx, B = dg/dl at (x0, l + v0),
+
+with ``A`` and ``B`` from autodiff. The condition's variance is ``m = B Sigma_l B^T`` (one
+scalar per point, so ``M`` is diagonal); dividing by ``sqrt(m)`` turns each point into one row
+``e = w / sqrt(m)`` of a whitened Gauss-Markov system, so the structured solver (segment sums,
+Schur elimination of the planes) applies unchanged. The residuals follow as
+``v = -Sigma_l B^T m^-1 (A dx + w)`` and the three redundancy numbers of a point split the
+condition's redundancy in the ratio ``sigma_l^2 b_l^2 / m`` (so they sum to at most 1).
+
+For fixed x, ``v(x)`` is the Sigma-orthogonal projection of l onto the condition surface
+``g(x, l + v) = 0``, the fixed point of :func:`projection_step` (``dx = 0`` in the update above);
+``sum_i v_i^T P v_i = sum_i w_i^2 / m_i = Phi(x)`` is then the objective that the adjustment
+minimises, and ``J^T e`` with ``J = A / sqrt(m)`` is exactly ``grad Phi / 2`` (the envelope
+theorem): the iteration's fixed point is the least-squares solution of the Gauss-Helmert model,
+not the one of ``sum g(x, l)^2 / m`` (which linearising at l would give).
+
+The unit length of n is a hard constraint, ``c = n . n - 1 = 0``: a step moves the normal in
+its tangent plane (:func:`tangent_basis`, three unknowns per plane: two for n and d) and the
+plane is renormalised after the step. The rigid-motion action on a plane, ``n -> R n``,
+``d -> d + (R n) . t``, gives its inner-constraint columns by autodiff (Lichti & Chow 2013), as
+for points in :mod:`._datum`.
 
 This module holds the pure model; the plane family of the structured solver is built on it.
 """
@@ -61,30 +73,80 @@ def condition_variance(plane, eop, coeffs, l, sigma, scanners, ap_names, ap_slic
     return jnp.sum((B * sigma) ** 2), B
 
 
-def whitened_condition(plane, eop, coeffs, l, weight, scanners, ap_names, ap_slices, instrument):
-    """``g / sqrt(m)`` as a (1,) row, m held fixed (the Gauss-Helmert weight ``M^-1``).
+def _sigma(weight):
+    return jnp.where(weight > 0, 1.0 / jnp.where(weight > 0, weight, 1.0), 0.0)
+
+
+def gauss_helmert_terms(plane, eop, coeffs, l, v, sigma, scanners, ap_names, ap_slices, instrument):
+    """At ``(x0, l + v)``: ``w = g - B v``, ``B = dg/dl`` and ``m = B Sigma_l B^T`` of one point
+    (Lenzmann & Lenzmann 2004); ``sigma`` the three observations' sigmas (0 = removed)."""
+    args = (scanners, ap_names, ap_slices, instrument)
+    g, B = jax.value_and_grad(plane_condition, argnums=3)(plane, eop, coeffs, l + v, *args)
+    return g - jnp.dot(B, v), B, jnp.sum((B * sigma) ** 2)
+
+
+def whitened_condition(plane, eop, coeffs, l, v, weight, scanners, ap_names, ap_slices, instrument):
+    """``w / sqrt(m)`` as a (1,) row, the Gauss-Helmert row linearised at ``l + v`` with ``B v``
+    and ``m`` held fixed (so its Jacobian w.r.t. the unknowns is ``A / sqrt(m)``).
 
     ``weight`` = 1/sigma of the three observations; a zero weight removes the observation
     from ``m`` (an all-zero weight removes the point, see the solver's masking).
     """
-    sigma = jnp.where(weight > 0, 1.0 / jnp.where(weight > 0, weight, 1.0), 0.0)
-    m, _ = condition_variance(
-        plane, eop, coeffs, l, sigma, scanners, ap_names, ap_slices, instrument
+    sl = (scanners, ap_names, ap_slices, instrument)
+    held = jax.lax.stop_gradient(
+        gauss_helmert_terms(plane, eop, coeffs, l, v, _sigma(weight), *sl)
     )
-    m = jax.lax.stop_gradient(m)
+    _, B, m = held
     active = jnp.any(weight > 0)
-    g = plane_condition(plane, eop, coeffs, l, scanners, ap_names, ap_slices, instrument)
-    return jnp.where(active, g / jnp.sqrt(jnp.where(m > 0, m, 1.0)), 0.0)[None]
+    g = plane_condition(plane, eop, coeffs, l + v, *sl)
+    w = g - jnp.dot(B, v)
+    return jnp.where(active, w / jnp.sqrt(jnp.where(m > 0, m, 1.0)), 0.0)[None]
+
+
+def projection_step(plane, eop, coeffs, l, v, weight, scanners, ap_names, ap_slices, instrument):
+    """One Gauss-Helmert update of the residuals at fixed unknowns,
+    ``v_new = -Sigma_l B^T w / m`` with ``w``, B and m at ``l + v`` [m, rad, rad]; from v = 0 it
+    is the first-order residual ``-Sigma_l B^T g(l) / m``, and its fixed point is the
+    Sigma-orthogonal projection of l onto ``g(x, l + v) = 0``."""
+    sigma = _sigma(weight)
+    w, B, m = gauss_helmert_terms(
+        plane, eop, coeffs, l, v, sigma, scanners, ap_names, ap_slices, instrument
+    )
+    return -(sigma**2) * B * w / jnp.where(m > 0, m, 1.0)
 
 
 def observation_residuals(plane, eop, coeffs, l, weight, scanners, ap_names, ap_slices, instrument):
-    """Gauss-Helmert residuals of the three observations, ``v = -Sigma_l B^T g / m`` [m, rad, rad]."""
-    sigma = jnp.where(weight > 0, 1.0 / jnp.where(weight > 0, weight, 1.0), 0.0)
-    m, B = condition_variance(
-        plane, eop, coeffs, l, sigma, scanners, ap_names, ap_slices, instrument
-    )
-    g = plane_condition(plane, eop, coeffs, l, scanners, ap_names, ap_slices, instrument)
-    return -(sigma**2) * B * g / jnp.where(m > 0, m, 1.0)
+    """Gauss-Helmert residuals of the three observations at fixed unknowns [m, rad, rad]: the
+    projection of l onto the condition surface (:func:`projection_step` iterated to its fixed
+    point; the first step is ``v = -Sigma_l B^T g / m``)."""
+    sl = (scanners, ap_names, ap_slices, instrument)
+    v = jnp.zeros_like(l)
+    for _ in range(PROJECTION_STEPS):
+        v = projection_step(plane, eop, coeffs, l, v, weight, *sl)
+    return v
+
+
+#: Projection steps that take the residuals from 0 to their fixed point at fixed unknowns: each
+#: step contracts the error by about the angular residual (in rad) and ``v_rho / rho``, 1e-4 or
+#: less, so four steps reach float64 resolution.
+PROJECTION_STEPS = 4
+
+
+def tangent_basis(n):
+    """An orthonormal basis (3, 2) of the plane orthogonal to the unit vector n: the directions
+    in which a step may move n without breaking ``|n| = 1`` to first order."""
+    axis = jax.nn.one_hot(jnp.argmin(jnp.abs(n)), 3, dtype=n.dtype)
+    t1 = axis - jnp.dot(axis, n) * n
+    t1 = t1 / jnp.linalg.norm(t1)
+    return jnp.stack([t1, jnp.cross(n, t1)], axis=1)
+
+
+def plane_step_basis(plane):
+    """``E`` (4, 3): a step of the plane ``(n, d)`` is ``E delta`` (n in its tangent plane, d
+    free), the hard unit-normal constraint in its null-space form."""
+    T = tangent_basis(plane[:3] / jnp.linalg.norm(plane[:3]))
+    E = jnp.zeros((4, 3), dtype=plane.dtype)
+    return E.at[:3, :2].set(T).at[3, 2].set(1.0)
 
 
 def unit_normal_constraint(plane):

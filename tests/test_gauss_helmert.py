@@ -1,0 +1,90 @@
+"""The plane adjustment is the rigorous Gauss-Helmert solution (SPEC section 4; issue 30).
+
+Small plane networks with oblique planes are drawn at random (tests/networks.py drawers,
+derandomised) and adjusted by ``tj.calibrate`` and by the dense textbook Gauss-Helmert
+adjustment of ``helpers.dense_gauss_helmert`` (full A and B, linearised at ``l + v``, hard
+unit-normal constraints and inner constraints in a bordered system), started from the truth.
+APs agree to 1e-6 of their sigma, their sigmas and sigma0 to 1e-6 relatively, the residuals and
+redundancy numbers of every observation to 1e-6 of a sigma, and the degrees of freedom exactly.
+"""
+
+import numpy as np
+from helpers import dense_gauss_helmert
+from hypothesis import given, settings
+from networks import DEG, HypothesisDrawer, _near, _room, _scans, examples
+from hypothesis import strategies as st
+
+import tlsjax as tj
+
+APS = ("A0", "B6", "B7", "C0")
+
+
+def _oblique_plane(dr, stations, room, k):
+    """An infinite plane crossing the room near a station, its normal 20 to 70 deg from the
+    vertical, the k-th of them turned by a further 120 deg in azimuth (no two alike)."""
+    tilt = dr.uniform(20.0, 70.0) * DEG
+    az = dr.uniform(0.0, 2 * np.pi / 3) + k * 2 * np.pi / 3
+    n = np.array([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), np.cos(tilt)])
+    return tj.DesignPlane(tuple(n), tuple(_near(dr, stations, room, n)))
+
+
+def oblique_case(dr):
+    """Two or three stations, three scans (levelled with compensator readings, or tilted), the
+    room's faces and two to three planes of any orientation crossing the room."""
+    room = _room(dr)
+    room = (min(room[0], 12.0), min(room[1], 9.0), room[2])
+    levelling = dr.choice((True, False))
+    n_st = dr.choice((2, 3))
+    scans = _scans(dr, room, n_st, 3, levelling)
+    stations = [np.asarray(s[:3]) for s in scans]
+    design = tj.NetworkDesign(
+        room=room,
+        scans=scans,
+        faces_as_planes=True,
+        planes=tuple(_oblique_plane(dr, stations, room, k) for k in range(dr.integer(2, 3))),
+        points_per_plane=6,
+        architecture="hybrid",
+        aps=APS,
+        levelling=levelling,
+        elevation_limits=(-80.0 * DEG, 80.0 * DEG),
+        max_incidence=80.0 * DEG,
+        sigma_scale=dr.choice((1.0, 1e-3, 1e3)),
+    )
+    return design, dr.integer(0, 2**16)
+
+
+def _oracle_start(sim):
+    return np.concatenate(
+        [sim.true_planes.reshape(-1), sim.true_eops.reshape(-1), np.zeros(len(APS))]
+    )
+
+
+@settings(max_examples=examples(3))
+@given(st.composite(lambda draw: oblique_case(HypothesisDrawer(draw)))())
+def test_plane_calibration_is_the_rigorous_gauss_helmert_solution(case):
+    design, seed = case
+    sim = tj.simulate_design(design, seed=seed)
+    res = tj.calibrate(
+        sim.network, tj.CalibrationModel(sim.scanner), tj.SolverOptions(tolerance=1e-10)
+    )
+    assert res.result == 0, res.message
+    ref = dense_gauss_helmert(sim.network, APS, _oracle_start(sim))
+    assert ref["iterations"] < 40
+    assert res.dof == ref["dof"]
+    assert res.n_constraints == len(sim.network.planes)
+    assert res.n_observations == 3 * ref["n_points"] + int(np.isfinite(sim.network.levelling_sigma).sum())
+    s0 = np.sqrt(ref["vtpv"] / ref["dof"])
+    np.testing.assert_allclose(res.sigma0, s0, rtol=1e-6)
+    a = slice(-len(APS), None)
+    sig = s0 * np.sqrt(np.diag(ref["Q"])[a])
+    np.testing.assert_allclose((res.ap_values - ref["x"][a]) / sig, 0.0, atol=1e-6)
+    np.testing.assert_allclose(res.ap_sigmas, sig, rtol=1e-6)
+    m = ref["n_points"]
+    sigmas = np.asarray(sim.network.plane_sigmas)
+    np.testing.assert_allclose(
+        res.plane_residuals / sigmas, ref["v"][: 3 * m].reshape(m, 3) / sigmas, atol=1e-6
+    )
+    np.testing.assert_allclose(res.plane_redundancy, ref["r"][: 3 * m].reshape(m, 3), atol=1e-6)
+    # Redundancy numbers sum to the degrees of freedom (points and levelling).
+    np.testing.assert_allclose(ref["r"].sum(), ref["dof"], rtol=1e-9)
+    np.testing.assert_allclose(res.redundancy_summary()["total"]["sum"], res.dof, rtol=1e-9)
