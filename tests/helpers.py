@@ -197,7 +197,9 @@ def dense_gauss_helmert(net, names, x0, pseudo=(), iterations=40, tol=1e-10):
         for k in range(n_pl):
             n = P[k, :3]
             G[4 * k + 3, :3] = n
-            G[4 * k : 4 * k + 3, 3:] = -np.array([[0, -n[2], n[1]], [n[2], 0, -n[0]], [-n[1], n[0], 0]])
+            G[4 * k : 4 * k + 3, 3:] = -np.array(
+                [[0, -n[2], n[1]], [n[2], 0, -n[0]], [-n[1], n[0], 0]]
+            )
         return G[:, cols]
 
     gx = jax.jit(g_all)
@@ -206,7 +208,8 @@ def dense_gauss_helmert(net, names, x0, pseudo=(), iterations=40, tol=1e-10):
     C_f = jax.jit(jax.jacfwd(h_all))
     x = np.asarray(x0, dtype=float).copy()
     v = np.zeros_like(L)
-    for it in range(iterations):
+    for it in range(1, iterations + 1):
+        done = it
         Lh = L + v
         A, B = np.asarray(A_f(x, Lh)), np.asarray(B_f(x, Lh))
         w = np.asarray(gx(x, Lh)) - B @ v
@@ -228,4 +231,4 @@ def dense_gauss_helmert(net, names, x0, pseudo=(), iterations=40, tol=1e-10):
     r = np.diag(Qvv) / sig**2
     vtpv = float(np.sum(v**2 / sig**2))
     dof = len(w) - u + n_pl + len(cols)
-    return dict(x=x, Q=Q, v=v, r=r, vtpv=vtpv, dof=dof, iterations=it + 1, n_points=m)
+    return dict(x=x, Q=Q, v=v, r=r, vtpv=vtpv, dof=dof, iterations=done, n_points=m)

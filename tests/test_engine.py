@@ -11,6 +11,7 @@ import dataclasses
 import pathlib
 import re
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -18,7 +19,7 @@ import pytest
 import tlsjax as tj
 from tlsjax._adjustment import _families as F
 from tlsjax._adjustment._calibrate import Adjustment, _replace
-from tlsjax._adjustment._normal import Rows
+from tlsjax._model._planes import condition_variance, projection_step
 
 
 @pytest.mark.parametrize("architecture", ["hybrid", "panoramic"])
@@ -61,20 +62,33 @@ def test_structured_plane_jacobian_equals_autodiff_of_the_model(two_instruments)
     for problem in (adj.plan.problem, F.on_grid(adj.plan.problem)):
         for fi, fam in enumerate(problem.families):
             assert isinstance(fam, F.PlaneFamily)
-            got = fam.linear_rows(spec, problem, params, fi)
-            want = F.Family.linear_rows(fam, spec, problem, params, fi)
+            # Linearised at l + v (the Gauss-Helmert residuals of a previous step).
+            sig = jnp.where(fam.weight > 0, 1 / jnp.where(fam.weight > 0, fam.weight, 1.0), 0.0)
+            v = jnp.asarray(rng.normal(size=fam.obs.shape)) * sig
+            got = fam.linear_rows(spec, problem, params, fi, state=v)
+            want = F.Family.linear_rows(fam, spec, problem, params, fi, state=v)
             for a, b in zip(got[:4], want[:4]):
                 assert a.shape == b.shape
                 np.testing.assert_allclose(a, b, rtol=0, atol=1e-11 * float(jnp.abs(b).max()))
-            # B = dg/dl against the model's condition_variance (jax.grad per point), and the
-            # step's cost with the weights held at this point against the model's condition.
-            m, B = fam._variance(spec, fam.observation_args(problem, params, fi), params.aps)
+            # B = dg/dl at l + v against the model's condition_variance (jax.grad per point),
+            # and the step's cost against the model's whitened condition.
+            args = fam.observation_args(problem, params, fi, v)
+            sl = (spec.scanners, spec.ap_names, spec.ap_slices)
+            _, B = jax.vmap(
+                lambda P, E, lv, s, i: condition_variance(
+                    P, E, params.aps, lv[0] + lv[1], s, *sl, i
+                )
+            )(args[0], args[1], args[3], sig, args[6])
             np.testing.assert_allclose(got[5], B, rtol=0, atol=1e-11 * float(jnp.abs(B).max()))
-            rows = Rows(*got)
-            cost = fam.cost_rows(spec, problem, params, fi, rows)
+            cost, v1, _ = fam.cost_state(spec, problem, params, fi, v)
             np.testing.assert_allclose(
                 cost, want[0], rtol=0, atol=1e-11 * float(jnp.abs(cost).max())
             )
+            # The next residuals: one Gauss-Helmert update at fixed unknowns.
+            v_model = jax.vmap(
+                lambda P, E, lv, w, i: projection_step(P, E, params.aps, lv[0], lv[1], w, *sl, i)
+            )(args[0], args[1], args[3], fam.weight, args[6])
+            np.testing.assert_allclose(v1, v_model, rtol=0, atol=1e-11 * float(jnp.abs(v1).max()))
 
 
 def _without_layouts(adj):

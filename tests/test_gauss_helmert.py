@@ -11,8 +11,8 @@ redundancy numbers of every observation to 1e-6 of a sigma, and the degrees of f
 import numpy as np
 from helpers import dense_gauss_helmert
 from hypothesis import given, settings
-from networks import DEG, HypothesisDrawer, _near, _room, _scans, examples
 from hypothesis import strategies as st
+from networks import DEG, HypothesisDrawer, _near, _room, _scans, examples
 
 import tlsjax as tj
 
@@ -72,7 +72,9 @@ def test_plane_calibration_is_the_rigorous_gauss_helmert_solution(case):
     assert ref["iterations"] < 40
     assert res.dof == ref["dof"]
     assert res.n_constraints == len(sim.network.planes)
-    assert res.n_observations == 3 * ref["n_points"] + int(np.isfinite(sim.network.levelling_sigma).sum())
+    assert res.n_observations == 3 * ref["n_points"] + int(
+        np.isfinite(sim.network.levelling_sigma).sum()
+    )
     s0 = np.sqrt(ref["vtpv"] / ref["dof"])
     np.testing.assert_allclose(res.sigma0, s0, rtol=1e-6)
     a = slice(-len(APS), None)

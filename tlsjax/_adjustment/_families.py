@@ -472,7 +472,9 @@ class PlaneFamily(Family):
     def state_from_rows(self, rows, state):
         """The residual update and its size from a linearisation's rows (``e = w / sqrt(m)``)."""
         m = self._variance_from(rows.B)
-        return self._state_update(rows.e[:, 0] * jnp.sqrt(jnp.where(m > 0, m, 1.0)), rows.B, m, state)[1:]
+        return self._state_update(
+            rows.e[:, 0] * jnp.sqrt(jnp.where(m > 0, m, 1.0)), rows.B, m, state
+        )[1:]
 
     def _variance_from(self, B):
         """``m = B Sigma_l B^T`` of each condition."""

@@ -106,9 +106,7 @@ def frozen_problem(spec: Spec, problem: Problem, params: Params) -> Problem:
             t = fam._gauss_helmert(spec, problem, params, fi, settled[fi], jacobian=False)
             fields = {f.name: getattr(fam, f.name) for f in dataclasses.fields(fam)}
             fields["point"] = jnp.arange(t["m"].shape[0], dtype=jnp.int32)
-            fam = FrozenPlaneFamily(
-                **fields, v=settled[fi], Bv=t["g"] - t["w"], variance=t["m"]
-            )
+            fam = FrozenPlaneFamily(**fields, v=settled[fi], Bv=t["g"] - t["w"], variance=t["m"])
         fams.append(fam)
     return dataclasses.replace(problem, families=tuple(fams))
 

@@ -26,8 +26,8 @@ from .._model._datum import move_eop, null_space_columns, s_transform_vector
 from ._families import Params, Problem, Spec, levelling_jacobian, levelling_residual
 from ._linalg import (
     cholesky_solve,
-    forward_substitution,
     constrained_spd_inverse,
+    forward_substitution,
     rank_revealing_cholesky_damped,
 )
 

@@ -93,9 +93,7 @@ def whitened_condition(plane, eop, coeffs, l, v, weight, scanners, ap_names, ap_
     from ``m`` (an all-zero weight removes the point, see the solver's masking).
     """
     sl = (scanners, ap_names, ap_slices, instrument)
-    held = jax.lax.stop_gradient(
-        gauss_helmert_terms(plane, eop, coeffs, l, v, _sigma(weight), *sl)
-    )
+    held = jax.lax.stop_gradient(gauss_helmert_terms(plane, eop, coeffs, l, v, _sigma(weight), *sl))
     _, B, m = held
     active = jnp.any(weight > 0)
     g = plane_condition(plane, eop, coeffs, l + v, *sl)
