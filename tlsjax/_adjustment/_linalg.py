@@ -119,6 +119,54 @@ def rank_revealing_cholesky_damped(A, damping, fixed, tol):
     return L, dep, piv, Ld
 
 
+def estimable_cholesky_damped(A, damping, fixed, tol, check):
+    """:func:`rank_revealing_cholesky_damped` with the columns in ``check`` (the APs) tested
+    against *all* other columns, not only the ones before them.
+
+    The in-order pivot of column j is ``1 - R^2`` of j regressed on the columns before it; a
+    near dependency on columns *after* j stays hidden (A1 without an independent scale: the
+    scale motion explains A1's column up to the other APs' corrections, which come later). On
+    the unit-diagonal matrix, ``1 / (A^-1)_jj`` is ``1 - R^2`` of column j regressed on every
+    other column (and, with A the scaled Schur complement, on the eliminated primitives too): a
+    ratio, independent of the parameters' units and of their order. The checked column with the
+    smallest such value below ``tol`` is held fixed and the matrix refactorised, until none is
+    (backward elimination, at most once per checked column; in practice zero or one round).
+    Returns (L, dependent, pivots, L_damped) as :func:`rank_revealing_cholesky_damped`, the
+    pivots of the checked columns being their ``1 - R^2`` against all others."""
+    n = A.shape[0]
+    eye = jnp.eye(n, dtype=A.dtype)
+
+    def factor(held):
+        L, dep, piv = rank_revealing_cholesky(A, held, tol)
+        Li = forward_substitution(L, eye)
+        q = jnp.sum(Li * Li, axis=0)  # diag(A^-1) over the independent columns
+        r2 = jnp.where(dep, 0.0, 1.0 / jnp.where(q > 0, q, 1.0))
+        return L, dep, jnp.where(check & ~dep, r2, piv), r2
+
+    def weakest(carry):
+        held, _, _, _, r2, _ = carry
+        free = check & ~held
+        j = jnp.argmin(jnp.where(free, r2, jnp.inf))
+        return free[j] & (r2[j] <= tol), j
+
+    def body(carry):
+        held, *_, rounds = carry
+        _, j = weakest(carry)
+        held = held.at[j].set(True)
+        return (held, *factor(held), rounds + 1)
+
+    def cond(carry):
+        return weakest(carry)[0] & (carry[-1] < n)
+
+    held0 = jnp.asarray(fixed)
+    held, L, dep, piv, _, _ = jax.lax.while_loop(
+        cond, body, (held0, *factor(held0), jnp.asarray(0))
+    )
+    # The damped factor with the same columns held (the rank is judged on the undamped matrix).
+    _, _, _, Ld = rank_revealing_cholesky_damped(A, damping, dep, tol)
+    return L, dep, piv, Ld
+
+
 def forward_substitution(L, B):
     """``L^-1 B`` for lower-triangular L, row by row in a ``fori_loop``.
 

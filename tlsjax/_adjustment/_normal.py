@@ -27,8 +27,8 @@ from ._families import Params, Problem, Spec, levelling_jacobian, levelling_resi
 from ._linalg import (
     cholesky_solve,
     constrained_spd_inverse,
+    estimable_cholesky_damped,
     forward_substitution,
-    rank_revealing_cholesky_damped,
 )
 
 
@@ -217,11 +217,12 @@ def reduce(spec, problem, blocks: Blocks, Hz, damping, rank_tolerance, dependent
 
     The reduced matrix K is scaled by the diagonal of the *unreduced* normal matrix,
     ``K_s = D^-1/2 K D^-1/2`` with ``D = diag(N_zz)``, so that the in-order Cholesky pivot of
-    parameter j is ``1 - R^2`` of its column regressed on every other unknown, the eliminated
-    targets and planes included. A parameter whose effect the primitives absorb entirely (A0
-    with every scan at one station) has pivot 0 and is found dependent; on the unit-diagonal K
-    its pivot would be rounding noise of any size. The test is a ratio, so it does not depend
-    on the scale of the sigmas. The datum defect is closed by ``+ Q Q^T`` (Q an orthonormal
+    parameter j is ``1 - R^2`` of its column regressed on the reduced unknowns before it and
+    the eliminated targets and planes, and ``1 / (K_s^-1)_jj`` that on every other unknown (the
+    test of the APs, :func:`._linalg.estimable_cholesky_damped`). A parameter whose effect the
+    primitives absorb entirely (A0 with every scan at one station) has pivot 0 and is found
+    dependent; on the unit-diagonal K its pivot would be rounding noise of any size. The test
+    is a ratio, so it does not depend on the scale of the sigmas or the parameters' units. The datum defect is closed by ``+ Q Q^T`` (Q an orthonormal
     basis of the rigid-motion null space in the scaled coordinates).
 
     ``dependent``: the columns found dependent at the last undamped linearisation, held as
@@ -253,7 +254,10 @@ def reduce(spec, problem, blocks: Blocks, Hz, damping, rank_tolerance, dependent
     held = problem.fixed | ~ok
     if dependent is not None:
         held = held | ((damping > 0) & dependent)
-    L, dep, piv, Ld = rank_revealing_cholesky_damped(Ks, damping, held, rank_tolerance)
+    # The APs are tested against every other unknown (not only those before them): a term the
+    # network cannot determine is held, named later (_diagnose), never left to diverge.
+    aps = jnp.arange(spec.r) >= 6 * spec.n_scans
+    L, dep, piv, Ld = estimable_cholesky_damped(Ks, damping, held, rank_tolerance, aps)
     L = jnp.where(damping > 0, Ld, L)
     return Reduced(tuple(inv_list), tuple(Y_list), scale, L, dep, piv, Ks, K)
 

@@ -388,10 +388,43 @@ _NIST = [
 for _name, _group, _basis, _unit, _desc in _NIST:
     _store(APTerm(_name, _group, _basis, _unit, _desc, next(_TOKENS)))
 
-#: Named AP sets. "chow2013" is the full 24-term model of Chow et al. 2013 eqs. (4)-(6).
+# Lichti & Licht 2006 (seed 003), section 3, Tables 1 and 2: 19 APs, a0 a2..a8 b1..b7 c0 c2 c3
+# c4 (a1, scale, "is not included in the model since its estimation requires inclusion of an
+# independent scale definition"; c1 is not defined), of which a5 and a6 "are excluded from the
+# model hereafter": the final model has 17 terms. The paper's symbols in tlsjax's names:
+#
+#   paper  basis                         tlsjax  paper's explanation
+#   a0     1                             A0      rangefinder additive constant
+#   a2     sin(alpha)                    A2      sinusoidal range error vs elevation (empirical)
+#   a3 a4  sin, cos(4 pi rho / U)        A3 A4   cyclic error, finest unit length U (0.6 m period:
+#                                                Scanner.unit_length = 1.2 m, the default)
+#   a5 a6  sin, cos(4 pi rho / U2)       A5 A6   cyclic error, median wavelength
+#                                                (Scanner.unit_length_2); not in the final model
+#   a7 a8  sin, cos(4 theta)             A7 A8   range vs horizontal direction, 90 deg period
+#   b1     sec(alpha)                    B6      collimation axis error (hybrid: sec - 1)
+#   b2     tan(alpha)                    B7      trunnion axis error
+#   b3 b4  sin, cos(2 theta)             B4 B5   non-orthogonality of encoder plane and
+#                                                vertical axis
+#   b5     theta                         B1      horizontal direction encoder scale error
+#   b6 b7  sin(3 alpha), sin(4 alpha)    B11 B12 horizontal direction vs elevation, 120 and
+#                                                90 deg periods
+#   c0     1                             C0      vertical circle index error
+#   c2     sin(alpha)                    C2      vertical eccentricity (sine term only)
+#   c3 c4  sin, cos(3 theta)             C9 C10  elevation vs horizontal direction, 120 deg
+#
+# Chow, Lichti, Glennie & Hartzell 2013 (seeds 000/002): eqs. (4)-(6) are the full model A0-A4,
+# B1-B10, C0-C8 (24 terms, B6 reduced to sec(alpha) - 1 for hybrid scanners, the note to eq.
+# 5); without an independent scale A1 is left out (23 terms); Tables 1-5 calibrate "the four
+# fundamental systematic errors" A0, B6, B7, C0.
+_LICHTI2006 = ("A0", "A2", "A3", "A4", "A7", "A8", "B1", "B4", "B5", "B6", "B7", "B11", "B12")
+_LICHTI2006 += ("C0", "C2", "C9", "C10")
+
+#: Named AP sets, each exactly a paper's model (see the tables above). "none" is the papers'
+#: "without self-calibration" adjustment.
 PRESETS: dict[str, tuple[str, ...]] = {
     "none": (),
     "physical": ("A0", "B6", "B7", "C0"),
+    "chow2013-fundamental": ("A0", "B6", "B7", "C0"),
     "chow2013": tuple(f"A{i}" for i in range(5))
     + tuple(f"B{i}" for i in range(1, 11))
     + tuple(f"C{i}" for i in range(9)),
@@ -399,23 +432,10 @@ PRESETS: dict[str, tuple[str, ...]] = {
     + tuple(f"A{i}" for i in range(2, 5))
     + tuple(f"B{i}" for i in range(1, 11))
     + tuple(f"C{i}" for i in range(9)),
-    "lichti2006": (
-        "A0",
-        "A1",
-        "A3",
-        "A4",
-        "A5",
-        "A6",
-        "A7",
-        "A8",
-        "B6",
-        "B7",
-        "B11",
-        "B12",
-        "C0",
-        "C9",
-        "C10",
-    ),
+    # The final 17-term model of Lichti & Licht 2006 (Tables 1 and 2 without a5, a6).
+    "lichti2006": _LICHTI2006,
+    # All 19 terms of Tables 1 and 2 (with the median-wavelength cyclic pair a5, a6).
+    "lichti2006-19": _LICHTI2006[:4] + ("A5", "A6") + _LICHTI2006[4:],
     # NIST model (Muralikrishnan et al. 2015, 2017), one term per estimable quantity (see above).
     "nist": tuple(n for n, *_ in _NIST if n not in ("x7", "x9n")),
 }
