@@ -6,6 +6,7 @@ import dataclasses
 from collections.abc import Mapping
 
 import jax.numpy as jnp
+import numpy as np
 
 from .._model._scanner import Scanner
 from ._families import Options
@@ -26,6 +27,13 @@ class CalibrationModel:
     exceeds it is flagged as weakly determined. ``fixed_aps``: AP labels held at zero (they keep
     their place in the parameter vector, so a model that differs only in which APs are fixed
     reuses the compiled adjustment: stepwise selection fits every candidate set this way).
+    ``ap_priors``: AP label -> (value, sigma) in SI units (m, rad, or 1 for scale terms), the
+    result of a prior calibration, e.g. ``{"B6": (40 * ARCSEC, 5 * ARCSEC)}``: each is a
+    weighted constraint ``AP = value +- sigma``, a linear pseudo-observation with its residual,
+    redundancy number and variance group (Chow et al. 2013, eq. 7; SPEC section 6). It belongs
+    to the model, not the network: it is knowledge about the model's terms (like
+    ``fixed_aps``), named by the model's labels, and one network is calibrated with and
+    without it by changing the model alone.
     """
 
     scanner: Scanner | Mapping[str, Scanner] = dataclasses.field(default_factory=Scanner)
@@ -33,6 +41,7 @@ class CalibrationModel:
     fixed_scan: str | None = None
     correlation_threshold: float = 0.99
     fixed_aps: tuple = ()
+    ap_priors: Mapping[str, tuple] | tuple = ()
 
     def __post_init__(self):
         object.__setattr__(
@@ -40,6 +49,7 @@ class CalibrationModel:
             "fixed_aps",
             tuple(self.fixed_aps.split() if isinstance(self.fixed_aps, str) else self.fixed_aps),
         )
+        object.__setattr__(self, "ap_priors", _ap_priors(self.ap_priors))
         if self.datum not in DATUMS:
             raise ValueError(f"datum {self.datum!r} is not one of {DATUMS}")
         if self.datum == "fixed-scan" and self.fixed_scan is None:
@@ -48,6 +58,29 @@ class CalibrationModel:
             raise ValueError(
                 f"correlation_threshold must be in (0, 1], got {self.correlation_threshold}"
             )
+
+
+def _ap_priors(priors) -> tuple:
+    """``((label, value, sigma), ...)`` from a mapping label -> (value, sigma), checked."""
+    items = priors.items() if isinstance(priors, Mapping) else priors
+    out = []
+    for item in items:
+        try:
+            label, (value, sigma) = item[0], item[1:] if len(item) == 3 else item[1]
+            value, sigma = float(value), float(sigma)
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"ap_priors: {item!r} is not AP label -> (value, sigma) in SI units"
+            ) from None
+        if not (np.isfinite(value) and np.isfinite(sigma) and sigma > 0):
+            raise ValueError(
+                f"ap_priors: {label} = {value} +- {sigma}: the value must be finite and the sigma "
+                "positive and finite (SI units: m, rad, or 1 for scale terms)"
+            )
+        if any(label == o[0] for o in out):
+            raise ValueError(f"ap_priors: {label} is given twice")
+        out.append((str(label), value, sigma))
+    return tuple(out)
 
 
 @dataclasses.dataclass(frozen=True)

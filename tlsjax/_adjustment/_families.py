@@ -22,6 +22,7 @@ The solver and the quality pass loop over families and never ask which kind they
 
 from __future__ import annotations
 
+import dataclasses
 from typing import ClassVar
 
 import equinox as eqx
@@ -39,7 +40,7 @@ from .._model._geometry import (
     spherical_from_cartesian,
     wrap_angle,
 )
-from .._model._levelling import compensator_reading
+from .._model._levelling import orientation_reading
 from .._model._planes import PROJECTION_STEPS, plane_step_basis, whitened_condition
 from .._model._points import point_misclosure
 
@@ -537,6 +538,11 @@ class Problem(eqx.Module):
     ``layouts``: per family a :class:`Layout` or None, chosen on the host from the static
     structure of the network (:func:`grid_layout`); the engine moves such a family onto its
     grid (:func:`on_grid`) and records the grid shape in ``grids``.
+
+    Weighted constraints with observed values (Chow et al. 2013, eq. 7; SPEC section 6), each a
+    pseudo-observation with its weight 1/sigma (0: none): ``levelling`` (s, 2) the tilt readings
+    (omega_c, phi_c) of a compensator or tilt sensor, ``heading`` (s,) an observed kappa,
+    ``ap_prior`` (a,) the APs of a prior calibration. None: no such observations.
     """
 
     families: tuple
@@ -546,6 +552,10 @@ class Problem(eqx.Module):
     fixed: Bool[Array, " r"]
     layouts: tuple = ()
     grids: tuple = eqx.field(static=True, default=())
+    heading: Float[Array, " s"] | None = None
+    heading_weight: Float[Array, " s"] | None = None
+    ap_prior: Float[Array, " a"] | None = None
+    ap_prior_weight: Float[Array, " a"] | None = None
 
 
 class Params(eqx.Module):
@@ -568,13 +578,52 @@ class Options(eqx.Module):
     damping_max: Float[Array, ""]
 
 
+def orientation_observations(problem):
+    """The observed values (s, 3) and weights (s, 3) of :func:`orientation_reading`."""
+    s = problem.levelling.shape[0]
+    heading = jnp.zeros(s) if problem.heading is None else problem.heading
+    hw = jnp.zeros(s) if problem.heading_weight is None else problem.heading_weight
+    values = jnp.concatenate([problem.levelling, heading[:, None]], axis=1)
+    return values, jnp.concatenate([problem.levelling_weight, hw[:, None]], axis=1)
+
+
 def levelling_residual(problem, eops):
-    return (jax.vmap(compensator_reading)(eops) - problem.levelling) * problem.levelling_weight
+    """Whitened residuals (s, 3) of the scans' orientation pseudo-observations: tilt readings
+    and observed kappa (0 where not observed); angles wrapped to (-pi, pi]."""
+    values, weight = orientation_observations(problem)
+    return wrap_angle(jax.vmap(orientation_reading)(eops) - values) * weight
 
 
 def levelling_jacobian(problem, eops):
-    # (s, 2, 6): whitened compensator residuals w.r.t. the scan's pose.
-    return jax.vmap(jax.jacfwd(compensator_reading))(eops) * problem.levelling_weight[:, :, None]
+    # (s, 3, 6): whitened orientation residuals w.r.t. the scan's pose.
+    weight = orientation_observations(problem)[1]
+    return jax.vmap(jax.jacfwd(orientation_reading))(eops) * weight[:, :, None]
+
+
+def ap_prior_weight(problem, n_aps: int):
+    """Weights (a,) of the AP priors (0: none)."""
+    return jnp.zeros(n_aps) if problem.ap_prior_weight is None else problem.ap_prior_weight
+
+
+def ap_prior_residual(problem, aps):
+    """Whitened residuals (a,) of the AP priors, ``(a - a_prior) / sigma`` (a linear
+    pseudo-observation of each coefficient, SPEC section 6)."""
+    if problem.ap_prior is None:
+        return jnp.zeros_like(aps)
+    return (aps - problem.ap_prior) * problem.ap_prior_weight
+
+
+def pseudo_cost(problem, params):
+    """``v^T P v`` of the pseudo-observations of the scan poses and APs."""
+    return jnp.sum(levelling_residual(problem, params.eops) ** 2) + jnp.sum(
+        ap_prior_residual(problem, params.aps) ** 2
+    )
+
+
+def n_pseudo(problem, n_aps: int):
+    """Number of active pseudo-observations of the scan poses and APs."""
+    weight = orientation_observations(problem)[1]
+    return jnp.sum(weight > 0) + jnp.sum(ap_prior_weight(problem, n_aps) > 0)
 
 
 def cost_and_state(spec, problem, params, state: tuple | None = None, ap_jac: tuple | None = None):
@@ -582,7 +631,7 @@ def cost_and_state(spec, problem, params, state: tuple | None = None, ap_jac: tu
     states ``state`` (None: their initial states), the families' next states and the largest
     change of a state in a priori sigmas (:meth:`Family.cost_state`). ``ap_jac``: the constant
     AP blocks (``Family.ap_block``), if taken."""
-    total = jnp.sum(levelling_residual(problem, params.eops) ** 2)
+    total = pseudo_cost(problem, params)
     states, change = [], jnp.asarray(0.0)
     for fi, fam in enumerate(problem.families):
         aj = None if ap_jac is None else ap_jac[fi]
@@ -624,7 +673,7 @@ def count_observations(problem, params):
     """Active scalar observations and pseudo-observations (one condition per plane point) plus
     the hard constraints on the primitives (a plane's unit normal): what the degrees of freedom
     ``r = n - u + d`` count as n, with u the unknowns (four per plane)."""
-    n = jnp.sum(problem.levelling_weight > 0)
+    n = n_pseudo(problem, params.aps.shape[0])
     for fi, fam in enumerate(problem.families):
         active_prior = jnp.any(fam.prior_jacobian(params.prims[fi]) != 0, axis=-1)
         n = n + jnp.sum(fam.active_rows()) + jnp.sum(active_prior) + fam.hard_constraints()
@@ -709,15 +758,7 @@ def on_grid(problem: Problem) -> Problem:
             )
         )
         grids.append(lay.shape)
-    return Problem(
-        tuple(fams),
-        problem.scan_instrument,
-        problem.levelling,
-        problem.levelling_weight,
-        problem.fixed,
-        (),
-        tuple(grids),
-    )
+    return dataclasses.replace(problem, families=tuple(fams), layouts=(), grids=tuple(grids))
 
 
 def from_grid(problem: Problem, per_family: tuple) -> tuple:

@@ -53,7 +53,10 @@ class Network:
       sigmas (n, 3): a priori standard deviations [m, rad, rad], incidence already applied
       target_index, scan_index (n,): integer codes into ``targets`` / ``scans``
       instrument_of_scan (s,): integer code into ``instruments``
-      levelling (s, 2) values [rad] and levelling_sigma (s, 2) [rad]; ``inf`` = not levelled
+      levelling (s, 2) values [rad] and levelling_sigma (s, 2) [rad]; ``inf`` = not levelled:
+        the tilt readings (omega_c, phi_c) of a compensator or tilt sensor
+      heading (s,) observed kappa [rad] and heading_sigma (s,) [rad] (None or ``inf``: none);
+        with the tilt readings the weighted constraints of Chow et al. 2013, eq. (7)
       control_index (c,), control_xyz (c, 3) [m], control_sigma (c, 3) [m]
       scale_bars: tuple of (target_a, target_b) indices with scale_bar_length (b,) and
         scale_bar_sigma (b,) [m]
@@ -89,6 +92,20 @@ class Network:
     plane_scan_index: np.ndarray = dataclasses.field(
         default_factory=lambda: np.zeros(0, dtype=np.int32)
     )
+    heading: np.ndarray | None = None
+    heading_sigma: np.ndarray | None = None
+
+    @property
+    def heading_values(self) -> np.ndarray:
+        """Observed kappa per scan [rad] (0 where none)."""
+        return np.zeros(len(self.scans)) if self.heading is None else self.heading
+
+    @property
+    def heading_sigmas(self) -> np.ndarray:
+        """Sigma of the observed kappa per scan [rad] (``inf`` where none)."""
+        if self.heading_sigma is None:
+            return np.full(len(self.scans), np.inf)
+        return self.heading_sigma
 
     @property
     def n_observations(self) -> int:
@@ -324,6 +341,7 @@ def make_network(
     incidence=None,
     instruments: Sequence[str] | None = None,
     levelling: Mapping[str, Mapping[str, float]] | None = None,
+    orientation: Mapping[str, Mapping[str, float]] | None = None,
     control: Mapping[str, tuple] | None = None,
     scale_bars: Sequence[tuple] = (),
     drop_single_targets: bool = False,
@@ -338,7 +356,15 @@ def make_network(
     ``scans``/``targets`` name the scan and target of each row; ``observations`` is (n, 3) in
     metres and radians. ``sigmas`` (n, 3) overrides the group sigmas per observation (NaN entries
     fall back to them). The range sigma is scaled by ``sec(incidence)`` (SPEC section 5).
-    ``levelling`` maps scan -> {"omega", "phi", "sigma_omega", "sigma_phi"} [rad].
+    ``levelling`` maps scan -> {"omega", "phi", "sigma_omega", "sigma_phi"} [rad]: a dual-axis
+    compensator's readings (within a degree of the vertical).
+    ``orientation`` maps scan -> any of {"omega", "phi", "sigma_omega", "sigma_phi"} (a tilt
+    sensor's readings, of a tilted scan too: both angles with their sigmas) and {"kappa",
+    "sigma_kappa"} (a known heading) [rad]: the weighted constraints with observed values of
+    Chow et al. 2013, eq. (7) (SPEC section 6). The tilt readings are the object-space vertical
+    seen in the scanner frame (:func:`tlsjax._model._levelling.compensator_reading`, the Cardan
+    omega and phi when kappa = 0), kappa the Cardan angle itself. They are observations of a
+    scan, so they belong to the network (the scans CSV holds them).
     ``control`` maps target -> (xyz [m], sigma [m] scalar or 3-vector).
     ``scale_bars`` is a list of (target_a, target_b, length [m], sigma [m]).
     ``rows`` (optional) gives the file line of each row for error messages.
@@ -456,6 +482,12 @@ def make_network(
             )
 
     lev_entries = _levelling_entries(levelling, source)
+    tilt_entries, heading_entries = _orientation_entries(orientation, source)
+    for scan in set(lev_entries) & set(tilt_entries):
+        raise ValueError(
+            f"{source}: scan {scan} has levelling and orientation tilt readings; give one of them"
+        )
+    lev_entries.update(tilt_entries)
     control = _control_entries(control, source)
     bars = _scale_bar_entries(scale_bars, source)
 
@@ -530,6 +562,13 @@ def make_network(
         lev[s_code[s]] = values
         lev_sigma[s_code[s]] = sg
 
+    heading = np.zeros(len(scan_names))
+    heading_sigma = np.full(len(scan_names), np.inf)
+    for s, (value, sg) in heading_entries.items():
+        if s not in s_code:
+            raise ValueError(f"{source}: kappa given for scan {s}, which has no observations")
+        heading[s_code[s]], heading_sigma[s_code[s]] = value, sg
+
     c_idx, c_xyz, c_sig = [], [], []
     for t, (xyz, sg) in control.items():
         if t not in t_code:
@@ -571,6 +610,8 @@ def make_network(
         plane_sigmas=p_sig,
         plane_index=plane_index,
         plane_scan_index=plane_scan_index,
+        heading=heading if np.isfinite(heading_sigma).any() else None,
+        heading_sigma=heading_sigma if np.isfinite(heading_sigma).any() else None,
     )
 
 
@@ -633,6 +674,61 @@ def _levelling_entries(levelling, source: str) -> dict:
             )
         out[str(scan)] = (v[:2], v[2:])
     return out
+
+
+_ORIENTATION_KEYS = ("omega", "phi", "kappa", "sigma_omega", "sigma_phi", "sigma_kappa")
+
+
+def _orientation_entries(orientation, source: str) -> tuple[dict, dict]:
+    """(scan -> ((omega, phi), (sigma_omega, sigma_phi)), scan -> (kappa, sigma_kappa)) [rad],
+    checked: the tilt readings of a tilted scan lie within 90 deg of the vertical, each
+    observed angle has its sigma, omega and phi come together."""
+    if orientation is None:
+        return {}, {}
+    _check_type(orientation, "orientation", Mapping, "a mapping scan -> {omega, phi, kappa, ...}")
+    tilt, heading = {}, {}
+    for scan, d in orientation.items():
+        where = f"{source}: orientation of scan {scan}"
+        _check_type(
+            d, f"orientation[{scan!r}]", Mapping, f"a mapping with keys {_ORIENTATION_KEYS}"
+        )
+        unknown = sorted(set(map(str, d)) - set(_ORIENTATION_KEYS))
+        if unknown:
+            raise ValueError(
+                f"{where}: unknown key(s) {', '.join(unknown)}; accepted: {', '.join(_ORIENTATION_KEYS)} [rad]"
+            )
+        try:
+            v = {k: float(d[k]) for k in d}
+        except (TypeError, ValueError):
+            raise TypeError(f"{where}: values must be numbers [rad], got {dict(d)!r}") from None
+        if not all(np.isfinite(x) for x in v.values()):
+            raise ValueError(f"{where} is not finite: {dict(d)!r}")
+        for angle in ("omega", "phi", "kappa"):
+            if angle in v and f"sigma_{angle}" not in v:
+                raise ValueError(f"{where}: {angle} has no sigma_{angle} [rad]")
+            if f"sigma_{angle}" in v and not v[f"sigma_{angle}"] > 0:
+                raise ValueError(
+                    f"{where}: sigma_{angle} must be positive, got {v[f'sigma_{angle}']}"
+                )
+        tilt_keys = [k for k in ("sigma_omega", "sigma_phi") if k in v]
+        if len(tilt_keys) == 1:
+            raise ValueError(
+                f"{where}: a tilt reading needs both omega and phi with their sigmas (one sensor "
+                "axis alone would leave the rotation about the other one as a datum defect)"
+            )
+        if tilt_keys:
+            om, ph = v.get("omega", 0.0), v.get("phi", 0.0)
+            if max(abs(om), abs(ph)) >= np.pi / 2:
+                raise ValueError(
+                    f"{where}: omega = {_deg(om)}, phi = {_deg(ph)}; a tilt reading lies within 90 deg "
+                    "of the vertical: check the values and their unit (rad)"
+                )
+            tilt[str(scan)] = (np.array([om, ph]), np.array([v["sigma_omega"], v["sigma_phi"]]))
+        if "sigma_kappa" in v:
+            if "kappa" not in v:
+                raise ValueError(f"{where}: sigma_kappa without kappa [rad]")
+            heading[str(scan)] = (v["kappa"], v["sigma_kappa"])
+    return tilt, heading
 
 
 def _control_entries(control, source: str) -> dict:

@@ -23,7 +23,16 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from .._model._datum import move_eop, null_space_columns, s_transform_vector
-from ._families import Params, Problem, Spec, levelling_jacobian, levelling_residual
+from ._families import (
+    Params,
+    Problem,
+    Spec,
+    ap_prior_residual,
+    ap_prior_weight,
+    levelling_jacobian,
+    levelling_residual,
+    pseudo_cost,
+)
 from ._linalg import (
     cholesky_solve,
     constrained_spd_inverse,
@@ -86,7 +95,8 @@ def _sums_on_grid(shape, e, Jp, Js, Ja):
     and sums over axes. Returns (N_pp, b_p, N_ps pairs (n, s, p, 6), N_pa, N_ss, N_sa, N_aa,
     b_s, b_a)."""
     n, ns, c = shape
-    g = lambda J: J.reshape(n, ns, -1, J.shape[-1])  # slots and rows in one axis
+    # Slots and rows in one axis (written out: -1 cannot be inferred for 0 APs).
+    g = lambda J: J.reshape(n, ns, J.shape[0] * J.shape[1] // (n * ns), J.shape[-1])
     e, Jp, Js, Ja = e.reshape(n, ns, -1), g(Jp), g(Js), g(Ja)
     # Contractions as einsums (dot_general): measured 2x faster than broadcast-multiply-sum
     # for these shapes on the CPU.
@@ -168,11 +178,15 @@ def linearise_rows(
         nps = jnp.transpose(nps, (0, 2, 1, 3)).reshape(fam.n, fam.p, 6 * ns)
         Npz.append(jnp.concatenate([nps, npa], axis=-1))
         Nss, Nsa, Naa, bs, ba = Nss + nss, Nsa + nsa, Naa + naa, bs + bss, ba + baa
-    # Levelling pseudo-observations (compensator readings) act on the scan's rotation.
+    # Orientation pseudo-observations (tilt readings, observed kappa) act on the scan's
+    # rotation; AP priors on the APs (linear, weight w: w^2 on the diagonal).
     Jl = levelling_jacobian(problem, params.eops)
     lr = levelling_residual(problem, params.eops)
     Nss = Nss + outer(Jl, Jl)
     bs = bs - matvec_t(Jl, lr)
+    wa = ap_prior_weight(problem, na)
+    Naa = Naa + jnp.diag(wa**2)
+    ba = ba - wa * ap_prior_residual(problem, params.aps)
     diag = np.eye(ns, dtype=bool)[:, None, :, None]
     Nss_full = jnp.where(diag, Nss[:, :, None, :], 0.0).reshape(6 * ns, 6 * ns)
     Nsa_full = Nsa.reshape(6 * ns, na)
@@ -184,7 +198,7 @@ def linearise_rows(
 def linearised_cost(problem: Problem, params: Params, rows) -> Array:
     """``v^T P v`` at the linearisation point from its rows (for a family with frozen weights,
     the weights of that point: the reference cost of a step's acceptance)."""
-    total = jnp.sum(levelling_residual(problem, params.eops) ** 2)
+    total = pseudo_cost(problem, params)
     for fam, P, r in zip(problem.families, params.prims, rows):
         total = total + jnp.sum(r.e**2) + jnp.sum(fam.prior_residuals(P) ** 2)
     return total

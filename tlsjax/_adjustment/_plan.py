@@ -74,12 +74,21 @@ def _ap_blocks(net: Network, model: CalibrationModel):
 def _datum(net: Network, model: CalibrationModel, labels, fixed_aps):
     """Datum kind, the parameters it holds (reduced order), the fixed scan, the free motions."""
     n_s = len(net.scans)
-    motions = free_motions(bool(net.is_levelled.any()))
+    levelled = bool(net.is_levelled.any())
+    headed = bool(np.isfinite(net.heading_sigmas).any())
+    motions = free_motions(levelled, headed)
     datum = model.datum
     if datum == "auto":
         datum = "control" if len(net.control_index) else "inner"
     if datum == "control" and len(net.control_index) == 0:
         raise ValueError(f"{net.source}: datum 'control' needs control points")
+    if headed and not levelled and datum == "inner":
+        scan = net.scans[int(np.flatnonzero(np.isfinite(net.heading_sigmas))[0])]
+        raise ValueError(
+            f"{net.source}: scan {scan} has an observed kappa but no scan has tilt readings "
+            "(omega, phi): in a free network a heading fixes the rotation about the vertical only "
+            "when the vertical is observed; add the tilt readings or use datum 'fixed-scan'"
+        )
     fixed = np.zeros(6 * n_s + len(labels), dtype=bool)
     fixed_idx = None
     if datum == "fixed-scan":
@@ -191,13 +200,16 @@ def build_plan(net: Network, model: CalibrationModel, fixed_aps=None) -> Plan:
         families.append(_plane_family(net))
         rows.append(np.arange(len(net.plane_index)))
     spec = Spec(scanners, ap_names, ap_slices, len(net.scans), datum_columns, datum == "inner")
-    lw = np.where(np.isfinite(net.levelling_sigma), 1.0 / net.levelling_sigma, 0.0)
+    inv = lambda sigma: np.where(np.isfinite(sigma), 1.0 / sigma, 0.0)
     problem = Problem(
         tuple(families),
         jnp.asarray(net.instrument_of_scan),
         jnp.asarray(net.levelling),
-        jnp.asarray(lw),
+        jnp.asarray(inv(net.levelling_sigma)),
         jnp.asarray(fixed),
+        heading=jnp.asarray(net.heading_values),
+        heading_weight=jnp.asarray(inv(net.heading_sigmas)),
+        **_ap_prior_arrays(model, labels),
     )
     names = _parameter_names(net, fam_targets, labels)
     return Plan(
@@ -212,6 +224,19 @@ def build_plan(net: Network, model: CalibrationModel, fixed_aps=None) -> Plan:
         fixed_idx,
         plane_family,
     )
+
+
+def _ap_prior_arrays(model: CalibrationModel, labels) -> dict:
+    """The AP priors of the model (:class:`CalibrationModel` ``ap_priors``) as arrays in the
+    order of the AP labels: values [SI] and weights 1/sigma (0: no prior)."""
+    value, weight = np.zeros(len(labels)), np.zeros(len(labels))
+    for label, v, sigma in model.ap_priors:
+        if label not in labels:
+            raise ValueError(
+                f"AP prior {label!r} is not among the APs of the model: {' '.join(labels) or 'none'}"
+            )
+        value[labels.index(label)], weight[labels.index(label)] = v, 1.0 / sigma
+    return dict(ap_prior=jnp.asarray(value), ap_prior_weight=jnp.asarray(weight))
 
 
 def initial_params(net: Network, plan: Plan, targets=None, eops=None, planes=None) -> Params:

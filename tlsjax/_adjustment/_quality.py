@@ -30,11 +30,14 @@ from ._families import (
     Params,
     Problem,
     Spec,
+    ap_prior_weight,
     count_observations,
     from_grid,
     levelling_jacobian,
-    levelling_residual,
+    n_pseudo,
     on_grid,
+    orientation_observations,
+    pseudo_cost,
     settled_state,
 )
 from ._linalg import cholesky_inverse, forward_substitution
@@ -55,12 +58,14 @@ class Quality(eqx.Module):
     residuals: tuple  # per family (m, 3): observation residuals [m, rad, rad]
     redundancy: tuple  # per family (m, 3)
     redundancy_prior: tuple  # per family (n, q)
-    redundancy_levelling: Float[Array, "s 2"]
+    # Orientation pseudo-observations per scan: tilt readings (omega_c, phi_c) and kappa.
+    redundancy_levelling: Float[Array, "s 3"]
     misclosure: tuple  # per family (m, rows): whitened residual rows at the solution
     dependent: object
     pivots: object  # 1 - R^2 of every reduced parameter (rank test)
     K_over_N: object  # diag(K) / diag(N_zz): share of a parameter the primitives do not explain
     ap_influence: tuple = ()  # per family (m, rows, a): dx_AP / sigma_AP for a 1-sigma error
+    redundancy_ap_prior: object = None  # (a,): of the AP priors (0 where none)
 
 
 def _quad(Jl, Q, Jr):
@@ -163,15 +168,18 @@ def quality_from(spec, problem, grid, params, lin, full_covariance: bool = False
         _family_quality(spec, grid, params, fi, red, Qzz, lin.rows[fi])
         for fi in range(len(grid.families))
     ]
-    n_obs = jnp.sum(grid.levelling_weight > 0) + sum(f["n"] for f in fams)
-    vtpv = jnp.sum(levelling_residual(grid, params.eops) ** 2) + sum(f["vtpv"] for f in fams)
+    na = spec.n_aps
+    n_obs = n_pseudo(grid, na) + sum(f["n"] for f in fams)
+    vtpv = pseudo_cost(grid, params) + sum(f["vtpv"] for f in fams)
     n_unknowns = jnp.sum(~dep) + sum(P.size for P in params.prims)
     dof = n_obs - n_unknowns + Hz.shape[1]
 
-    Jl = levelling_jacobian(grid, params.eops)  # (s, 2, 6)
-    Tss = _scan_blocks(Qzz, ns)[0]
-    lw = grid.levelling_weight
+    Jl = levelling_jacobian(grid, params.eops)  # (s, 3, 6)
+    Tss, _, Taa = _scan_blocks(Qzz, ns)
+    lw = orientation_observations(grid)[1]
     redundancy_levelling = jnp.where(lw > 0, 1.0 - _quad(Jl, Tss, Jl), 0.0)
+    wa = ap_prior_weight(grid, na)
+    redundancy_ap_prior = jnp.where(wa > 0, 1.0 - wa**2 * jnp.diagonal(Taa), 0.0)
 
     Ninv = red.Npp_inv
     if spec.inner and Hz.shape[1]:
@@ -196,6 +204,7 @@ def quality_from(spec, problem, grid, params, lin, full_covariance: bool = False
         redundancy=back("redundancy"),
         redundancy_prior=tuple(f["redundancy_prior"] for f in fams),
         redundancy_levelling=redundancy_levelling,
+        redundancy_ap_prior=redundancy_ap_prior,
         misclosure=back("misclosure"),
         dependent=dep,
         pivots=red.pivots,

@@ -6,9 +6,13 @@ from __future__ import annotations
 import dataclasses
 import enum
 
+import jax
 import numpy as np
 
+from .._model._geometry import wrap_angle
+from .._model._levelling import orientation_reading
 from ._diagnose import confounded_partners, failure_diagnosis
+from ._families import orientation_observations
 from ._network import Network
 from ._plan import Plan
 
@@ -92,7 +96,7 @@ class CalibrationResult:
     target_sigmas: np.ndarray
     residuals: np.ndarray  # (n, 3) v = F + Delta - l, in network row order
     redundancy: np.ndarray  # (n, 3)
-    redundancy_levelling: np.ndarray  # (s, 2)
+    redundancy_levelling: np.ndarray  # (s, 2) of the tilt readings (omega_c, phi_c)
     redundancy_prior_sum: float
     parameter_names: tuple
     covariance: np.ndarray | None  # a posteriori, inner-constraint datum, all unknowns
@@ -109,6 +113,13 @@ class CalibrationResult:
     plane_residuals: np.ndarray | None = None  # (m, 3) Gauss-Helmert residuals v [m, rad, rad]
     plane_redundancy: np.ndarray | None = None  # (m, 3); the three of a point sum to <= 1
     plane_used: np.ndarray | None = None  # (m, 3)
+    # Weighted constraints with observed values (eq. 7, SPEC section 6): residuals ``v = f(x) -
+    # l`` [rad, SI] and redundancy numbers; NaN where there is no such observation. Per scan
+    # (s, 3): tilt readings (omega_c, phi_c) and kappa; per AP (a,): its prior.
+    orientation_residuals: np.ndarray | None = None
+    redundancy_orientation: np.ndarray | None = None
+    ap_prior_residuals: np.ndarray | None = None
+    redundancy_ap_prior: np.ndarray | None = None
     # What a person can act on when the adjustment fails (largest normalised misclosures,
     # sigma0 per scan and per primitive, suspicious plane matches); see _diagnose.
     diagnosis: dict = dataclasses.field(default_factory=dict)
@@ -156,6 +167,18 @@ class CalibrationResult:
         active = net.is_levelled
         if active.any():
             out["levelling"] = {"mean": float(lev[active].mean()), "sum": float(lev[active].sum())}
+        extra = 0.0
+        for key, r_ in (
+            (
+                "heading",
+                None if self.redundancy_orientation is None else self.redundancy_orientation[:, 2],
+            ),
+            ("ap_priors", self.redundancy_ap_prior),
+        ):
+            if r_ is not None and np.isfinite(r_).any():
+                a = r_[np.isfinite(r_)]
+                out[key] = {"mean": float(a.mean()), "sum": float(a.sum())}
+                extra += float(a.sum())
         per_scan = {}
         for j, s in enumerate(self.scans):
             a = np.concatenate(
@@ -166,7 +189,7 @@ class CalibrationResult:
             )
             per_scan[s] = {"mean": float(a.mean()) if a.size else float("nan")}
         out["per_scan"] = per_scan
-        total = float(r.sum() + rp.sum() + lev.sum() + self.redundancy_prior_sum)
+        total = float(r.sum() + rp.sum() + lev.sum() + self.redundancy_prior_sum + extra)
         out["total"] = {"mean": total / max(self.n_observations, 1), "sum": total}
         return out
 
@@ -218,7 +241,7 @@ def _max_correlations(plan: Plan, q, skip):
     parts, sigmas = [], []
     for D, X in zip(q.prim_cofactor, q.prim_cross):
         D, X = np.asarray(D), np.asarray(X)
-        parts.append(X[:, :, ap_idx].reshape(-1, na).T)  # (a, n p)
+        parts.append(X[:, :, ap_idx].reshape(X.shape[0] * X.shape[1], na).T)  # (a, n p)
         sigmas.append(np.sqrt(np.clip(np.diagonal(D, axis1=1, axis2=2), 0, None)).reshape(-1))
     parts.append(Qzz[ap_idx])
     sigmas.append(np.where(dep, 0.0, sz))
@@ -367,7 +390,8 @@ def assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
         target_sigmas=tsig,
         residuals=resid,
         redundancy=redund,
-        redundancy_levelling=np.asarray(q.redundancy_levelling),
+        redundancy_levelling=np.asarray(q.redundancy_levelling)[:, :2],
+        **_constraint_arrays(plan, q, state),
         redundancy_prior_sum=float(sum(np.asarray(r).sum() for r in q.redundancy_prior)),
         parameter_names=names,
         covariance=cov,
@@ -377,6 +401,30 @@ def assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
         ap_fixed=tuple(plan.ap_labels[i] for i in np.flatnonzero(ap_fixed)),
         diagnosis=diagnosis,
         **plane_out,
+    )
+
+
+def _constraint_arrays(plan: Plan, q, state) -> dict:
+    """Residuals and redundancy numbers of the weighted constraints with observed values
+    (orientation readings and AP priors), NaN where there is none."""
+
+    values, weight = (np.asarray(a) for a in orientation_observations(plan.problem))
+    eops = np.asarray(state.params.eops)
+    read = np.asarray(jax.vmap(orientation_reading)(eops))
+    observed = weight > 0
+    nan = lambda a, m: np.where(m, a, np.nan)
+    wa = np.zeros(plan.spec.n_aps)
+    prior = np.zeros(plan.spec.n_aps)
+    if plan.problem.ap_prior_weight is not None:
+        wa, prior = np.asarray(plan.problem.ap_prior_weight), np.asarray(plan.problem.ap_prior)
+    r_prior = q.redundancy_ap_prior
+    return dict(
+        orientation_residuals=nan(np.asarray(wrap_angle(read - values)), observed),
+        redundancy_orientation=nan(np.asarray(q.redundancy_levelling), observed),
+        ap_prior_residuals=nan(np.asarray(state.params.aps) - prior, wa > 0),
+        redundancy_ap_prior=nan(
+            np.zeros(plan.spec.n_aps) if r_prior is None else np.asarray(r_prior), wa > 0
+        ),
     )
 
 

@@ -17,12 +17,15 @@ import jax.numpy as jnp
 from ._geometry import rotation_matrix
 
 
-def free_motions(levelled: bool) -> tuple:
+def free_motions(levelled: bool, headed: bool = False) -> tuple:
     """Rigid motions (columns of tx, ty, tz, rx, ry, rz) that leave the observations of a free
     network invariant: all six, or with levelling (compensator) observations the translations
-    and the rotation about Z (SPEC section 6). They are also the pose parameters (Xs, Ys, Zs,
-    omega, phi, kappa) that a fixed scan must hold to define the datum."""
-    return (0, 1, 2, 5) if levelled else (0, 1, 2, 3, 4, 5)
+    and the rotation about Z (SPEC section 6), or with levelling and an observed kappa (a
+    heading) the translations alone. They are also the pose parameters (Xs, Ys, Zs, omega, phi,
+    kappa) that a fixed scan must hold to define the datum."""
+    if levelled:
+        return (0, 1, 2) if headed else (0, 1, 2, 5)
+    return (0, 1, 2, 3, 4, 5)
 
 
 def small_rotation(w):

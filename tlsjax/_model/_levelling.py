@@ -1,4 +1,5 @@
-"""Levelling pseudo-observations: readings of a dual-axis compensator (SPEC section 6)."""
+"""Orientation pseudo-observations of a scan (SPEC section 6; Chow et al. 2013, eq. 7): the
+readings of a dual-axis compensator or tilt sensor, and an observed kappa (a known heading)."""
 
 from __future__ import annotations
 
@@ -23,3 +24,13 @@ def compensator_reading(eop):
     omega = jnp.arcsin(gy)
     phi = jnp.arcsin(jnp.clip(-g[0] / jnp.sqrt(1.0 - gy * gy), -1.0, 1.0))
     return jnp.stack([omega, phi])
+
+
+def orientation_reading(eop):
+    """What the orientation pseudo-observations of one scan observe (3,): the tilt readings
+    ``(omega_c, phi_c)`` of :func:`compensator_reading` (the Cardan omega and phi when kappa = 0)
+    and the Cardan kappa itself (eq. 7: ``kappa_j = kappa_obs +- s``, linear in the unknown).
+
+    A heading is not invariant under a rotation of object space about Z: a network with an
+    observed kappa has no such datum defect (:func:`tlsjax._model._datum.free_motions`)."""
+    return jnp.concatenate([compensator_reading(eop), eop[5:]])

@@ -24,6 +24,7 @@ from .._adjustment._network import (
 )
 from .._model._aps import get_ap, resolve_aps
 from .._model._geometry import TWO_PI, rotation_matrix, spherical_from_cartesian
+from .._model._levelling import compensator_reading
 from .._model._points import observe_points
 from .._model._scanner import Scanner
 from .._units import ARCSEC, DEG
@@ -125,6 +126,34 @@ def simulated_levelling(eops, rng: np.random.Generator, sigma: float, noise: boo
     return lev
 
 
+def simulated_orientation(
+    eops,
+    rng: np.random.Generator,
+    noise: bool,
+    sigma_tilt: float | None,
+    sigma_heading: float | None,
+    levelled: dict,
+) -> dict:
+    """Weighted constraints with observed values (the ``orientation`` mapping of
+    :func:`make_network`; Chow et al. 2013, eq. 7): with ``sigma_tilt``, the tilt sensor's
+    readings of every scan not in ``levelled`` (the tilted ones: the object-space vertical in
+    the scanner frame, :func:`tlsjax._model._levelling.compensator_reading`, plus noise); with
+    ``sigma_heading``, an observed kappa of every scan (the true kappa plus noise) [rad]."""
+    out = {}
+    for j, e in enumerate(np.asarray(eops)):
+        scan, d = f"S{j + 1}", {}
+        if sigma_tilt is not None and scan not in levelled:
+            tilt = np.asarray(compensator_reading(jnp.asarray(e)))
+            tilt = tilt + (rng.standard_normal(2) * sigma_tilt if noise else 0.0)
+            d.update(omega=tilt[0], phi=tilt[1], sigma_omega=sigma_tilt, sigma_phi=sigma_tilt)
+        if sigma_heading is not None:
+            k = e[5] + (rng.standard_normal() * sigma_heading if noise else 0.0)
+            d.update(kappa=float(np.arctan2(np.sin(k), np.cos(k))), sigma_kappa=sigma_heading)
+        if d:
+            out[scan] = {k: float(v) for k, v in d.items()}
+    return out
+
+
 def room_targets(room: Room, rng: np.random.Generator):
     """Targets spread evenly over the six faces, with the faces' inward normals."""
     L, W, H, m = room.length, room.width, room.height, room.margin
@@ -177,12 +206,18 @@ def simulate(
     scale_bars: int = 0,
     unit_length: float = 1.2,
     two_face: bool = False,
+    sigma_tilt: float | None = None,
+    sigma_heading: float | None = None,
 ) -> Simulation:
     """Simulate the Chow et al. 2013 calibration room (SPEC section 8).
 
     ``aps`` are the terms that are present in the data (with ``true_aps`` values, default per
     :func:`default_true_value`). Levelled scans get compensator observations when
-    ``levelling``. ``scale_bars`` > 0 adds that many scale bars between pairs of floor targets.
+    ``levelling``. ``sigma_tilt`` [rad]: the tilted scans carry a tilt sensor's readings
+    (omega, phi; the paper's eq. 7) with this noise; ``sigma_heading`` [rad]: every scan
+    carries an observed kappa (a known heading) with this noise (their noise is drawn from a
+    generator of its own, so the other observations of a seed stay the same).
+    ``scale_bars`` > 0 adds that many scale bars between pairs of floor targets.
     Every target is visible from every scan (the paper's design; no field-of-view limit).
 
     ``two_face``: the NIST two-face design (Muralikrishnan et al. 2015; Wang et al. 2017) of a
@@ -245,6 +280,9 @@ def simulate(
     obs[:, 1] = np.mod(obs[:, 1], TWO_PI)
 
     lev = simulated_levelling(eops, rng, sigma_levelling, noise) if levelling else {}
+    orientation = simulated_orientation(
+        eops, np.random.default_rng([seed, 7]), noise, sigma_tilt, sigma_heading, lev
+    )
     bars = []
     if scale_bars:
         floor = np.flatnonzero(normals[:, 2] > 0.5)
@@ -261,6 +299,7 @@ def simulate(
         sigma_el=sigma_angle,
         incidence=incidence,
         levelling=lev,
+        orientation=orientation,
         scale_bars=bars,
         source="<simulated room>",
     )
