@@ -99,12 +99,14 @@ def test_gauss_helmert_redundancy_identities(noisy):
     # The condition measures distance along the normal: the range carries almost all of it.
     assert planes["hz"]["mean"] < 0.3 * planes["range"]["mean"]
     assert planes["el"]["mean"] < 0.3 * planes["range"]["mean"]
-    # Observations: 3 per plane point, 2 per levelled scan and the unit-normal constraint of
-    # each plane (a pseudo-observation); the dof count conditions, not observations:
-    # m conditions + 2 per levelled scan + k constraints - unknowns + 4 datum defects.
+    # Observations as the papers count them: 3 per plane point and 2 per levelled scan; the
+    # dof count conditions and the hard unit-normal constraints (Gauss-Helmert):
+    # m conditions + 2 per levelled scan - unknowns (4 per plane) + k constraints + 4 datum
+    # defects.
     m, k, lev = len(net.plane_observations), len(net.planes), 2 * int(net.is_levelled.sum())
-    assert res.n_observations == 3 * m + lev + k
-    assert res.dof == m + lev + k - res.n_unknowns + 4
+    assert res.n_observations == 3 * m + lev
+    assert res.n_conditions == m + lev and res.n_constraints == k
+    assert res.dof == m + lev - res.n_unknowns + k + 4
 
 
 def test_noisy_plane_calibration_matches_its_sigmas(noisy):

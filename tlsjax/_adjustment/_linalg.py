@@ -135,36 +135,34 @@ def estimable_cholesky_damped(A, damping, fixed, tol, check):
     pivots of the checked columns being their ``1 - R^2`` against all others."""
     n = A.shape[0]
     eye = jnp.eye(n, dtype=A.dtype)
+    # Which columns to hold is a decision, not a differentiable quantity: it is taken on the
+    # value of A (a while loop, which reverse mode could not transpose), and the factors
+    # returned come from the differentiable in-order factorisation with those columns held.
+    A0 = jax.lax.stop_gradient(A)
 
     def factor(held):
-        L, dep, piv = rank_revealing_cholesky(A, held, tol)
-        Li = forward_substitution(L, eye)
-        q = jnp.sum(Li * Li, axis=0)  # diag(A^-1) over the independent columns
-        r2 = jnp.where(dep, 0.0, 1.0 / jnp.where(q > 0, q, 1.0))
-        return L, dep, jnp.where(check & ~dep, r2, piv), r2
+        L, dep, _ = rank_revealing_cholesky(A0, held, tol)
+        q = jnp.sum(forward_substitution(L, eye) ** 2, axis=0)  # diag(A^-1), independent cols
+        return dep, jnp.where(dep, 0.0, 1.0 / jnp.where(q > 0, q, 1.0))
 
-    def weakest(carry):
-        held, _, _, _, r2, _ = carry
+    def weakest(held, r2):
         free = check & ~held
         j = jnp.argmin(jnp.where(free, r2, jnp.inf))
-        return free[j] & (r2[j] <= tol), j
+        return j, free[j] & (r2[j] <= tol)
 
     def body(carry):
-        held, *_, rounds = carry
-        _, j = weakest(carry)
-        held = held.at[j].set(True)
-        return (held, *factor(held), rounds + 1)
+        held, r2, rounds = carry
+        held = held.at[weakest(held, r2)[0]].set(True)
+        return (held, factor(held)[1], rounds + 1)
 
     def cond(carry):
-        return weakest(carry)[0] & (carry[-1] < n)
+        held, r2, rounds = carry
+        return weakest(held, r2)[1] & (rounds < n)
 
     held0 = jnp.asarray(fixed)
-    held, L, dep, piv, _, _ = jax.lax.while_loop(
-        cond, body, (held0, *factor(held0), jnp.asarray(0))
-    )
-    # The damped factor with the same columns held (the rank is judged on the undamped matrix).
-    _, _, _, Ld = rank_revealing_cholesky_damped(A, damping, dep, tol)
-    return L, dep, piv, Ld
+    held, r2, _ = jax.lax.while_loop(cond, body, (held0, factor(held0)[1], jnp.asarray(0)))
+    L, dep, piv, Ld = rank_revealing_cholesky_damped(A, damping, held, tol)
+    return L, dep, jnp.where(check & ~dep, r2, piv), Ld
 
 
 def forward_substitution(L, B):
