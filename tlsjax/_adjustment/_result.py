@@ -120,6 +120,8 @@ class CalibrationResult:
     redundancy_orientation: np.ndarray | None = None
     ap_prior_residuals: np.ndarray | None = None
     redundancy_ap_prior: np.ndarray | None = None
+    ap_prior_values: np.ndarray | None = None  # (a,) the priors [SI], NaN where none
+    ap_prior_sigmas: np.ndarray | None = None  # (a,) their sigmas [SI], NaN where none
     # What a person can act on when the adjustment fails (largest normalised misclosures,
     # sigma0 per scan and per primitive, suspicious plane matches); see _diagnose.
     diagnosis: dict = dataclasses.field(default_factory=dict)
@@ -191,6 +193,51 @@ class CalibrationResult:
         out["per_scan"] = per_scan
         total = float(r.sum() + rp.sum() + lev.sum() + self.redundancy_prior_sum + extra)
         out["total"] = {"mean": total / max(self.n_observations, 1), "sum": total}
+        return out
+
+    def weighted_constraints(self, critical_value: float = 3.29) -> list[dict]:
+        """The weighted constraints with observed values (tilt readings, observed kappa, AP
+        priors; eq. 7, SPEC section 6), one dict each: ``kind`` ("omega", "phi", "kappa" or
+        "ap"), ``name`` (scan or AP), ``observed``, ``sigma`` (a priori), ``residual`` (``v =
+        estimate - observed``), ``redundancy`` r, the w-test ``v / (sigma sqrt(r))`` (None where
+        r is 0: the constraint is not controlled) and whether ``|w|`` exceeds
+        ``critical_value``. SI units (m, rad, or 1)."""
+        out = []
+
+        def add(kind, name, observed, sigma, v, r):
+            w = float(v / (sigma * np.sqrt(r))) if r > 1e-12 else None
+            out.append(
+                dict(
+                    kind=kind,
+                    name=name,
+                    observed=float(observed),
+                    sigma=float(sigma),
+                    residual=float(v),
+                    redundancy=float(r),
+                    w=w,
+                    rejected=w is not None and abs(w) > critical_value,
+                )
+            )
+
+        net, v, r = self.network, self.orientation_residuals, self.redundancy_orientation
+        if v is not None:
+            obs = np.concatenate([net.levelling, net.heading_values[:, None]], axis=1)
+            sig = np.concatenate([net.levelling_sigma, net.heading_sigmas[:, None]], axis=1)
+            for j, scan in enumerate(self.scans):
+                for c, kind in enumerate(("omega", "phi", "kappa")):
+                    if np.isfinite(v[j, c]):
+                        add(kind, scan, obs[j, c], sig[j, c], v[j, c], r[j, c])
+        if self.ap_prior_residuals is not None:
+            for i, name in enumerate(self.ap_names):
+                if np.isfinite(self.ap_prior_residuals[i]):
+                    add(
+                        "ap",
+                        name,
+                        self.ap_prior_values[i],
+                        self.ap_prior_sigmas[i],
+                        self.ap_prior_residuals[i],
+                        self.redundancy_ap_prior[i],
+                    )
         return out
 
     def ap(self, name: str) -> dict:
@@ -425,6 +472,8 @@ def _constraint_arrays(plan: Plan, q, state) -> dict:
         redundancy_ap_prior=nan(
             np.zeros(plan.spec.n_aps) if r_prior is None else np.asarray(r_prior), wa > 0
         ),
+        ap_prior_values=nan(prior, wa > 0),
+        ap_prior_sigmas=nan(1.0 / np.where(wa > 0, wa, 1.0), wa > 0),
     )
 
 

@@ -23,7 +23,26 @@ def add_calibrate_parser(sub):
         help="plane observations: a plane CSV or the .npz of `tlsjax extract-planes`; "
         "alone (plane-based) or with a target CSV (combined network)",
     )
-    c.add_argument("--scans", help="scans CSV with levelling observations")
+    c.add_argument(
+        "--scans",
+        help="scans CSV with the observed orientation angles: tilt readings (omega, phi) of "
+        "levelled and tilted scans, headings (kappa), each with its sigma",
+    )
+    c.add_argument(
+        "--ap-prior",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE+-SIGMA",
+        help='an AP prior from an earlier calibration, e.g. "B6=40arcsec+-5arcsec", '
+        '"A0=-0.6mm+-0.05mm" (units m mm rad deg gon arcsec ppm; repeatable): a weighted '
+        "constraint AP = value +- sigma (Chow et al. 2013, eq. 7)",
+    )
+    c.add_argument(
+        "--ap-priors",
+        metavar="FILE",
+        help="AP priors from a CSV (columns ap, value, sigma, unit) or from a result JSON of "
+        "tlsjax calibrate --json (every AP with a value and a sigma)",
+    )
     c.add_argument(
         "--aps",
         default="physical",
@@ -139,6 +158,19 @@ def add_calibrate_parser(sub):
     return c
 
 
+def _ap_priors(args) -> dict:
+    """The AP priors of ``--ap-priors FILE`` and ``--ap-prior`` (SI units)."""
+    from .._io._priors import parse_ap_prior, read_ap_priors
+
+    priors = read_ap_priors(args.ap_priors) if args.ap_priors else {}
+    for text in args.ap_prior:
+        name, value, sigma = parse_ap_prior(text)
+        if name in priors:
+            raise ValueError(f"--ap-prior {text!r}: {name} has a prior already")
+        priors[name] = (value, sigma)
+    return priors
+
+
 def _calibrate(args) -> int:
     from .._adjustment._calibrate import calibrate
     from .._adjustment._config import CalibrationModel, SolverOptions
@@ -180,6 +212,7 @@ def _calibrate(args) -> int:
         datum=args.datum,
         fixed_scan=args.fixed_scan,
         correlation_threshold=args.correlation_threshold,
+        ap_priors=_ap_priors(args),
     )
     solver = SolverOptions(max_iterations=args.max_iterations)
     t0 = time.perf_counter()

@@ -6,6 +6,7 @@ import argparse
 import os
 import time
 
+from .._units import ARCSEC
 from ._calibrate import check_outputs, report, write_outputs
 from ._common import EXIT_FAILED, EXIT_OK, scanner_args
 
@@ -53,6 +54,17 @@ def add_simulate_parser(sub):
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--levelled", action="store_true", help="levelled scans only (default: tilted)")
     s.add_argument("--no-noise", action="store_true", help="noiseless observations")
+    s.add_argument(
+        "--sigma-tilt-arcsec",
+        type=float,
+        help="tilted scans carry a tilt sensor's readings (omega, phi) with this sigma [\"] "
+        "(eq. 7 of Chow et al. 2013; written to the scans CSV)",
+    )
+    s.add_argument(
+        "--sigma-heading-arcsec",
+        type=float,
+        help='every scan carries an observed kappa (a known heading) with this sigma ["]',
+    )
     s.add_argument("--scale-bars", type=int, default=0, help=argparse.SUPPRESS)
     s.add_argument("--length-unit", default="m", choices=("m", "mm"))
     s.add_argument("--angle-unit", default="deg", choices=("rad", "deg", "gon", "arcsec"))
@@ -118,6 +130,10 @@ def _simulate(args) -> int:
         seed=args.seed,
         noise=not args.no_noise,
         unit_length=args.unit_length,
+        sigma_tilt=None if args.sigma_tilt_arcsec is None else args.sigma_tilt_arcsec * ARCSEC,
+        sigma_heading=(
+            None if args.sigma_heading_arcsec is None else args.sigma_heading_arcsec * ARCSEC
+        ),
     )
     _write_simulation(sim, args.out, scans_path, args.truth, args.length_unit, args.angle_unit)
     net = sim.network

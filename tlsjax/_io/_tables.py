@@ -31,11 +31,13 @@ QUANTITIES: dict[str, str] = {
     "phi": "angle",
     "sigma_omega": "angle",
     "sigma_phi": "angle",
+    "kappa": "angle",
+    "sigma_kappa": "angle",
 }
 
 _OBS_NUMERIC = ("range", "hz", "el", "sigma_range", "sigma_hz", "sigma_el", "incidence")
 _OBS_TEXT = ("scan", "target", "plane", "instrument")
-_SCAN_NUMERIC = ("omega", "phi", "sigma_omega", "sigma_phi")
+_SCAN_NUMERIC = ("omega", "phi", "sigma_omega", "sigma_phi", "kappa", "sigma_kappa")
 _SCAN_TEXT = ("scan",)
 _TWO_PI = 2.0 * math.pi
 
@@ -316,12 +318,16 @@ def read_observations(path) -> ObservationTable:
 
 
 def read_scans(path) -> dict[str, dict[str, float]]:
-    """Read the optional scans CSV: levelling observations of the levelled scans, in radians.
+    """Read the optional scans CSV: the observed orientation angles of the scans (Chow et al.
+    2013, eq. 7; the ``orientation`` mapping of :func:`~tlsjax.make_network`), in radians.
 
     Columns ``scan`` and any of ``omega_<u>``, ``phi_<u>`` (default 0), ``sigma_omega_<u>``,
-    ``sigma_phi_<u>``. A scan is levelled when both its sigma cells are filled; scans with both
-    empty are left out of the result. Levelling angles in a file without sigma columns are
-    refused (they could not be weighted, and dropping them would go unnoticed).
+    ``sigma_phi_<u>`` (the tilt readings of a compensator or tilt sensor: levelled scans, and
+    tilted ones with a tilt sensor) and ``kappa_<u>``, ``sigma_kappa_<u>`` (a known heading).
+    A scan has tilt readings when both its tilt sigma cells are filled, a heading when its
+    kappa and sigma_kappa cells are; scans with neither are left out of the result. Angles in a
+    file without their sigma columns are refused (they could not be weighted, and dropping them
+    would go unnoticed).
     """
     _check_path(path, "path")
     source = os.fspath(path)
@@ -331,7 +337,12 @@ def read_scans(path) -> dict[str, dict[str, float]]:
     if "scan" not in seen:
         raise loc.error("missing required column", header_line, "scan")
     # A lone sigma column could only describe half a levelling observation.
-    for a, b in (("sigma_omega", "sigma_phi"), ("sigma_phi", "sigma_omega")):
+    for a, b in (
+        ("sigma_omega", "sigma_phi"),
+        ("sigma_phi", "sigma_omega"),
+        ("kappa", "sigma_kappa"),
+        ("sigma_kappa", "kappa"),
+    ):
         if a in seen and b not in seen:
             raise loc.error(
                 f"column '{b}_<unit>' is required with '{seen[a]}'", header_line, seen[a]
@@ -368,20 +379,32 @@ def read_scans(path) -> dict[str, dict[str, float]]:
                 line,
                 seen[angles[0]],
             )
-        if len(empty) == 2:
-            continue
-        if empty:
+        if len(empty) == 1:
             raise loc.error(
                 f"scan '{scan}' has one levelling sigma but not the other (both or neither)",
                 line,
                 seen[empty[0]],
             )
-        result[scan] = {
-            "omega": 0.0 if math.isnan(values["omega"]) else values["omega"],
-            "phi": 0.0 if math.isnan(values["phi"]) else values["phi"],
-            "sigma_omega": values["sigma_omega"],
-            "sigma_phi": values["sigma_phi"],
-        }
+        out = {}
+        if not empty:
+            out = {
+                "omega": 0.0 if math.isnan(values["omega"]) else values["omega"],
+                "phi": 0.0 if math.isnan(values["phi"]) else values["phi"],
+                "sigma_omega": values["sigma_omega"],
+                "sigma_phi": values["sigma_phi"],
+            }
+        heading = [q for q in ("kappa", "sigma_kappa") if not math.isnan(values[q])]
+        if len(heading) == 1:
+            other = "sigma_kappa" if heading[0] == "kappa" else "kappa"
+            raise loc.error(
+                f"scan '{scan}' has {heading[0]} but no {other} (both or neither)",
+                line,
+                seen[other],
+            )
+        if heading:
+            out.update(kappa=values["kappa"], sigma_kappa=values["sigma_kappa"])
+        if out:
+            result[scan] = out
     return result
 
 
@@ -444,9 +467,11 @@ def write_observations(path, table: ObservationTable, *, length_unit="m", angle_
 
 
 def write_scans(path, levelling: dict, *, angle_unit="arcsec") -> None:
-    """Write the scans CSV (levelling observations) that :func:`read_scans` reads back.
+    """Write the scans CSV (orientation observations) that :func:`read_scans` reads back.
 
-    ``levelling`` maps scan -> {"omega", "phi", "sigma_omega", "sigma_phi"} in radians.
+    ``levelling`` maps scan -> any of {"omega", "phi", "sigma_omega", "sigma_phi", "kappa",
+    "sigma_kappa"} in radians (a missing angle is an empty cell); the kappa columns are written
+    when some scan has a heading.
     """
     if angle_unit not in UNITS or UNITS[angle_unit][0] != "angle":
         raise ValueError(
@@ -455,9 +480,12 @@ def write_scans(path, levelling: dict, *, angle_unit="arcsec") -> None:
     f = UNITS[angle_unit][1]
     with open(path, "w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh, delimiter=",", lineterminator="\n")
-        writer.writerow(["scan"] + [f"{q}_{angle_unit}" for q in _SCAN_NUMERIC])
+        cols = [
+            q for q in _SCAN_NUMERIC if "kappa" not in q or any(q in d for d in levelling.values())
+        ]
+        writer.writerow(["scan"] + [f"{q}_{angle_unit}" for q in cols])
         for scan, d in levelling.items():
-            writer.writerow([scan] + [_format(float(d[q]) / f) for q in _SCAN_NUMERIC])
+            writer.writerow([scan] + [_format(float(d.get(q, math.nan)) / f) for q in cols])
 
 
 def table_from_network(net) -> ObservationTable:
@@ -480,17 +508,23 @@ def table_from_network(net) -> ObservationTable:
 
 
 def levelling_of_network(net) -> dict:
-    """Levelling observations of a network as the mapping :func:`make_network` takes."""
-    return {
-        s: {
-            "omega": float(net.levelling[j, 0]),
-            "phi": float(net.levelling[j, 1]),
-            "sigma_omega": float(net.levelling_sigma[j, 0]),
-            "sigma_phi": float(net.levelling_sigma[j, 1]),
-        }
-        for j, s in enumerate(net.scans)
-        if net.is_levelled[j]
-    }
+    """Orientation observations of a network (tilt readings and observed kappa) as the
+    ``orientation`` mapping :func:`make_network` takes (and :func:`write_scans` writes)."""
+    out = {}
+    for j, s in enumerate(net.scans):
+        d = {}
+        if net.is_levelled[j]:
+            d.update(
+                omega=float(net.levelling[j, 0]),
+                phi=float(net.levelling[j, 1]),
+                sigma_omega=float(net.levelling_sigma[j, 0]),
+                sigma_phi=float(net.levelling_sigma[j, 1]),
+            )
+        if np.isfinite(net.heading_sigmas[j]):
+            d.update(kappa=float(net.heading_values[j]), sigma_kappa=float(net.heading_sigmas[j]))
+        if d:
+            out[s] = d
+    return out
 
 
 def _check_path(value, name: str) -> None:
@@ -557,14 +591,16 @@ def read_network(
                 f"{table.source}: a plane file; a combined network takes one target file and one plane file"
             )
         table, plane_table = None, table
-    levelling = read_scans(scans_path) if scans_path is not None else None
+    # The scans CSV holds the observed orientation angles of eq. (7): tilt readings of levelled
+    # and tilted scans, headings.
+    orientation = read_scans(scans_path) if scans_path is not None else None
     if table is None:
         return make_network(
             (),
             (),
             np.zeros((0, 3)),
             planes=plane_table,
-            levelling=levelling,
+            orientation=orientation,
             source=plane_table.source,
             **kwargs,
         )
@@ -575,7 +611,7 @@ def read_network(
         sigmas=table.sigmas,
         incidence=None if table.incidence is None else np.nan_to_num(table.incidence, nan=0.0),
         instruments=table.instruments,
-        levelling=levelling,
+        orientation=orientation,
         drop_single_targets=drop_single_targets,
         source=table.source,
         rows=table.rows,

@@ -107,6 +107,8 @@ def _result_dict(res, alpha: float) -> dict:
         "dof": _num(res.dof),
         "n_observations": int(res.n_observations),
         "n_unknowns": int(res.n_unknowns),
+        "n_conditions": int(res.n_conditions),
+        "n_constraints": int(res.n_constraints),
         "global_test": global_test(res.sigma0, res.dof, alpha),
         "aps": aps,
         "ap_covariance_names": list(res.ap_names),
@@ -124,6 +126,7 @@ def _result_dict(res, alpha: float) -> dict:
             for n, w, c in res.weakly_determined
         ],
         "rank_deficient": list(res.rank_deficient),
+        "weighted_constraints": res.weighted_constraints(),
         "estimates": "valid",
         **_planes_dict(res),
     }

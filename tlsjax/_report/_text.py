@@ -58,8 +58,9 @@ def summary(res, alpha: float = 0.05, *, after_vce: bool = False) -> str:
         + (
             f"degrees of freedom r = n - u + d = {res.dof:.0f}"
             if not getattr(res, "planes", ())
-            else f"degrees of freedom r = conditions + constraints - u + d = {res.dof:.0f} (Gauss-Helmert, "
-            f"{len(res.planes)} planes, {int(res.plane_used.any(axis=1).sum())} plane points)"
+            else f"conditions c = {res.n_conditions}, constraints h = {res.n_constraints}, degrees of "
+            f"freedom r = c - u + h + d = {res.dof:.0f} (Gauss-Helmert, {len(res.planes)} planes, "
+            f"{int(res.plane_used.any(axis=1).sum())} plane points; h: unit normals)"
         ),
     ]
     if after_vce and gt["statistic"] is not None:
@@ -74,7 +75,9 @@ def summary(res, alpha: float = 0.05, *, after_vce: bool = False) -> str:
             f"{'accepted' if gt['accepted'] else 'REJECTED'} (p = {gt['p_value']:.3f})"
         )
     groups = ", ".join(
-        f"{g} {red[g]['mean']:.3f}" for g in ("range", "hz", "el", "levelling") if g in red
+        f"{g} {red[g]['mean']:.3f}"
+        for g in ("range", "hz", "el", "levelling", "heading", "ap_priors")
+        if g in red
     )
     if groups:
         out.append(f"mean redundancy numbers: {groups}")
@@ -83,6 +86,21 @@ def summary(res, alpha: float = 0.05, *, after_vce: bool = False) -> str:
         out.append(
             f"mean redundancy numbers of plane observations: range {pl['range']['mean']:.3f}, hz {pl['hz']['mean']:.3f}, "
             f"el {pl['el']['mean']:.3f}; all {pl['all']['mean']:.3f} (at most 1/3: one condition per point)"
+        )
+    constraints = res.weighted_constraints() if hasattr(res, "weighted_constraints") else []
+    if constraints:
+        worst = max(constraints, key=lambda c: -1.0 if c["w"] is None else abs(c["w"]))
+        rejected = [
+            f"{c['kind']} {c['name']} (w = {c['w']:.2f})" for c in constraints if c["rejected"]
+        ]
+        out.append(
+            f"weighted constraints (eq. 7): {len(constraints)}; largest |w| "
+            + (
+                "n/a"
+                if worst["w"] is None
+                else f"{abs(worst['w']):.2f} ({worst['kind']} {worst['name']})"
+            )
+            + ("; REJECTED: " + ", ".join(rejected) if rejected else "")
         )
     for n, w, c in res.weakly_determined:
         out.append(f"warning: {n} is weakly determined: |corr| = {c:.4f} with {w}")
