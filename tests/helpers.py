@@ -138,7 +138,7 @@ def _compensator(eop):
     return jnp.stack([jnp.arcsin(g[1]), jnp.arcsin(-g[0] / jnp.sqrt(1 - g[1] ** 2))])
 
 
-def dense_gauss_helmert(net, names, x0, pseudo=(), iterations=40, tol=1e-10):
+def dense_gauss_helmert(net, names, x0, pseudo=(), iterations=40, tol=1e-10, datum=None):
     """The textbook rigorous Gauss-Helmert adjustment of a (small) plane network, dense.
 
     Unknowns ``x = (planes (k, 4), eops (s, 6), APs)``; observations ``L``: the three of every
@@ -154,7 +154,9 @@ def dense_gauss_helmert(net, names, x0, pseudo=(), iterations=40, tol=1e-10):
 
     Returns a dict: ``x``, ``Q`` (bordered inverse, inner-constraint cofactor), ``v`` and ``r``
     (residuals and redundancy numbers ``diag(Q_vv P)`` of all observations, points first),
-    ``vtpv``, ``dof = c - u + h + d``, ``iterations``.
+    ``vtpv``, ``dof = c - u + h + d``, ``iterations``. ``datum``: the rigid motions (columns of
+    tx, ty, tz, rx, ry, rz) of the inner constraints (default: all six, or without rx and ry
+    when a scan is levelled).
     """
     pl, sc = jnp.asarray(net.plane_index), jnp.asarray(net.plane_scan_index)
     n_pl, n_s, n_a = len(net.planes), len(net.scans), len(names)
@@ -188,7 +190,7 @@ def dense_gauss_helmert(net, names, x0, pseudo=(), iterations=40, tol=1e-10):
         return jnp.sum(unpack(x)[0][:, :3] ** 2, axis=1) - 1.0
 
     levelled = lw.all(axis=1).any()
-    cols = [0, 1, 2, 5] if levelled else list(range(6))
+    cols = list(datum) if datum is not None else [0, 1, 2, 5] if levelled else list(range(6))
 
     def datum(x):
         # Rigid motion of object space: translation t changes d by n . t, rotation w turns n.

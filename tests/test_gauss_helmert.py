@@ -12,45 +12,11 @@ import numpy as np
 from helpers import dense_gauss_helmert
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from networks import DEG, HypothesisDrawer, _near, _room, _scans, examples
+from networks import HypothesisDrawer, examples, oblique_case
 
 import tlsjax as tj
 
-APS = ("A0", "B6", "B7", "C0")
-
-
-def _oblique_plane(dr, stations, room, k):
-    """An infinite plane crossing the room near a station, its normal 20 to 70 deg from the
-    vertical, the k-th of them turned by a further 120 deg in azimuth (no two alike)."""
-    tilt = dr.uniform(20.0, 70.0) * DEG
-    az = dr.uniform(0.0, 2 * np.pi / 3) + k * 2 * np.pi / 3
-    n = np.array([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), np.cos(tilt)])
-    return tj.DesignPlane(tuple(n), tuple(_near(dr, stations, room, n)))
-
-
-def oblique_case(dr):
-    """Two or three stations, three scans (levelled with compensator readings, or tilted), the
-    room's faces and two to three planes of any orientation crossing the room."""
-    room = _room(dr)
-    room = (min(room[0], 12.0), min(room[1], 9.0), room[2])
-    levelling = dr.choice((True, False))
-    n_st = dr.choice((2, 3))
-    scans = _scans(dr, room, n_st, 3, levelling)
-    stations = [np.asarray(s[:3]) for s in scans]
-    design = tj.NetworkDesign(
-        room=room,
-        scans=scans,
-        faces_as_planes=True,
-        planes=tuple(_oblique_plane(dr, stations, room, k) for k in range(dr.integer(2, 3))),
-        points_per_plane=6,
-        architecture="hybrid",
-        aps=APS,
-        levelling=levelling,
-        elevation_limits=(-80.0 * DEG, 80.0 * DEG),
-        max_incidence=80.0 * DEG,
-        sigma_scale=dr.choice((1.0, 1e-3, 1e3)),
-    )
-    return design, dr.integer(0, 2**16)
+APS = ("A0", "B6", "B7", "C0")  # the APs of networks.oblique_case
 
 
 def _oracle_start(sim):
