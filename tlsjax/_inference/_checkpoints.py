@@ -14,6 +14,7 @@ frame. The same is done without correction. RMS values are reported in mm and ar
 from __future__ import annotations
 
 import dataclasses
+import os
 import types
 from collections.abc import Mapping
 
@@ -294,6 +295,8 @@ def _network_of(obs, architecture, levelling, notes):
             obs.primitives,
             obs.observations,
             sigmas=obs.sigmas,
+            incidence=None if obs.incidence is None else np.nan_to_num(obs.incidence, nan=0.0),
+            instruments=obs.instruments,
             levelling=levelling,
             drop_single_targets=True,
             source=obs.source,
@@ -312,7 +315,7 @@ def _network_of(obs, architecture, levelling, notes):
 
 def _place(net, calibration, solver):
     """Target coordinates of ``net`` adjusted with the APs held at zero, on the raw and on the
-    corrected observations ``l - Delta(l)``: {case: (result or None, xyz (t, 3))}."""
+    corrected observations ``l - Delta(l)``: {"without": result, "with": result}."""
     from .._adjustment._calibrate import calibrate
     from .._adjustment._config import CalibrationModel
 
@@ -329,11 +332,10 @@ def _place(net, calibration, solver):
     model = CalibrationModel(scanner, fixed_aps=names)
     l = np.asarray(net.observations, dtype=np.float64)
     delta = np.asarray(ap_corrections(values, names, l, scanner))
-    out = {}
-    for case, obs in (("without", l), ("with", l - delta)):
-        res = calibrate(net.with_observations(obs), model, solver)
-        out[case] = res
-    return out
+    return {
+        case: calibrate(net.with_observations(obs), model, solver)
+        for case, obs in (("without", l), ("with", l - delta))
+    }
 
 
 def _fit_onto_reference(xyz, ref, scale):
@@ -378,9 +380,11 @@ def check_targets(
     :func:`~tlsjax.read_observations` / :func:`~tlsjax.read_target_list`), from the calibration
     scans or, better, independent ones; ``calibration``: a :class:`~tlsjax.Calibration` (AP
     values, architecture, unit lengths); ``reference``: target name -> (X, Y, Z) [m] in any
-    frame, e.g. a total-station survey (:func:`~tlsjax.read_reference`) or the targets of
-    another calibration (held-out scans: cross-validation). ``transform``: "rigid" or
-    "similarity" (= "7-parameter"). ``exclude``: target names left out of the fit.
+    frame, e.g. a total-station survey read by :func:`~tlsjax.read_reference` (a point list, or
+    a result JSON with targets: another calibration's, for the cross-validation of held-out
+    scans). ``transform``: "rigid" or "similarity" (= "7-parameter"). ``exclude``:
+    target names left out of the fit. ``levelling``: scan -> levelling observations (as
+    :func:`~tlsjax.make_network` takes them) for a table; a Network carries its own.
 
     Two comparisons: (1) the targets placed by adjusting all scans together with the APs held
     at zero, once on the raw and once on the corrected observations ``l - Delta(l)`` (SPEC
@@ -389,6 +393,10 @@ def check_targets(
     """
     scale = _transform_scale(transform)
     notes: list[str] = []
+    if isinstance(reference, (str, os.PathLike)):
+        raise TypeError(
+            "reference: a mapping name -> (X, Y, Z) [m]; read a file with tj.read_reference"
+        )
     ref = {str(k): np.asarray(v, dtype=np.float64).reshape(3) for k, v in dict(reference).items()}
     exclude = tuple(exclude)
     unknown = [n for n in exclude if n not in ref]
