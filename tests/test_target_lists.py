@@ -295,3 +295,18 @@ def test_import_targets_then_calibrate_equals_the_polar_file(tmp_path, capsys):
     # A file recorded for one architecture is refused for the other, with the fix named.
     assert main(["calibrate", str(out), "--architecture", "hybrid"]) == 2
     assert "give --architecture panoramic" in capsys.readouterr().err
+
+
+def test_import_targets_refusals_are_one_line_before_writing(tmp_path, capsys):
+    names = [f"T{i}" for i in range(6)]
+    pts = _points(6, 6)
+    amb = _write(tmp_path / "S1.txt", names, pts / np.median(np.linalg.norm(pts, axis=1)) * 1e3)
+    out = tmp_path / "obs.csv"
+    argv = ["import-targets", str(amb), "--out", str(out), "--architecture", "hybrid"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "S1.txt: the length unit is ambiguous" in err and "--length-unit" in err
+    assert err.count("\n") == 1 and not out.exists()
+    assert main(argv + ["--length-unit", "mm"]) == 0
+    assert "units: mm (given)" in capsys.readouterr().out
+    assert tj.read_observations(out).architecture == "hybrid"

@@ -296,7 +296,7 @@ def _numeric_column(rows, j, decimal_comma) -> bool:
     return all(_number(r[j], decimal_comma) is not None for r in rows)
 
 
-def _roles_without_header(rows, source, decimal_comma):
+def _roles_without_header(rows, decimal_comma):
     n = len(rows[0])
     num = [_numeric_column(rows, j, decimal_comma) for j in range(n)]
     if num[0] and num[1] and num[2] and not num[-1] and n >= 4:
@@ -310,7 +310,7 @@ def _roles_without_header(rows, source, decimal_comma):
     name_col = roles.index("name")
     if num[name_col]:
         values = [_number(r[name_col], decimal_comma) for r in rows]
-        if n == 3 or not all(float(v).is_integer() for v in values):
+        if not all(float(v).is_integer() for v in values):
             raise _NoLayout(
                 f"without a header column {name_col + 1} would be the names, but it holds "
                 "decimal numbers (points need names to be matched across scans: add a header)"
@@ -427,7 +427,7 @@ def _columns_of(lines: _Lines, sep, roles_given):
         if missing:
             raise _NoLayout(f"no {' or '.join(missing)} column in the header (name it, e.g. Name)")
     else:
-        roles, ignored = _roles_without_header(rows, lines.source, dc)
+        roles, ignored = _roles_without_header(rows, dc)
     for r in ("x", "y", "z"):
         if not _numeric_column(rows, roles.index(r), dc):
             raise _NoLayout(f"the {r} column is not numeric")
