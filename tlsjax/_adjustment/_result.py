@@ -357,7 +357,10 @@ def _observation_arrays(net: Network, plan: Plan, q, state, s0sq):
         redund[rows] = np.asarray(q.redundancy[fi])
         used[rows] = np.asarray(plan.problem.families[fi].weight) > 0
         txyz[tg.reshape(-1)] = np.asarray(state.params.prims[fi]).reshape(-1, 3)
-        tcov[tg.reshape(-1)] = np.asarray(q.prim_cofactor[fi]).reshape(-1, 3, 3) * s0sq
+        # Each point's 3 x 3 block on the diagonal of its primitive's (a scale bar: two points).
+        C = np.asarray(q.prim_cofactor[fi])
+        blocks = [C[:, 3 * k : 3 * k + 3, 3 * k : 3 * k + 3] for k in range(tg.shape[1])]
+        tcov[tg.reshape(-1)] = np.stack(blocks, axis=1).reshape(-1, 3, 3) * s0sq
     tsig = np.sqrt(np.clip(np.diagonal(tcov, axis1=1, axis2=2), 0, None))
     planes = {}
     fp = plan.plane_family
