@@ -113,13 +113,17 @@ class Adjustment:
         weights=None,
         plane_weights=None,
         levelling_weights=None,
+        heading_weights=None,
+        ap_prior_weights=None,
         fixed_aps=None,
         control=None,
     ):
         """The plan's data with other weights (1/sigma, 0 = removed), in network row order:
         ``weights`` (n, 3) of the target rows, ``plane_weights`` (m, 3) of the plane rows,
-        ``levelling_weights`` (s, 2); ``fixed_aps``: AP labels held at zero; ``control``: {target
-        index: (xyz, sigma)} pseudo-observations added to (or replacing) the control points."""
+        ``levelling_weights`` (s, 2) of the tilt readings, ``heading_weights`` (s,) of the
+        observed kappas, ``ap_prior_weights`` (a,) of the AP priors; ``fixed_aps``: AP labels
+        held at zero; ``control``: {target index: (xyz, sigma)} pseudo-observations added to (or
+        replacing) the control points."""
         plan = self.plan
         fams = list(plan.problem.families)
         for fi, rows in enumerate(plan.family_rows):
@@ -129,8 +133,13 @@ class Adjustment:
         if control:
             fams = self._with_control(fams, control)
         changes = {"families": tuple(fams)}
-        if levelling_weights is not None:
-            changes["levelling_weight"] = jnp.asarray(levelling_weights, dtype=jnp.float64)
+        for key, w in (
+            ("levelling_weight", levelling_weights),
+            ("heading_weight", heading_weights),
+            ("ap_prior_weight", ap_prior_weights),
+        ):
+            if w is not None:
+                changes[key] = jnp.asarray(w, dtype=jnp.float64)
         if fixed_aps is not None:
             changes["fixed"] = build_plan(
                 self.network, self.model, fixed_aps=fixed_aps
