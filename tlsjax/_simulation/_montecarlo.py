@@ -16,8 +16,8 @@ chunk size or on the number of devices):
   :func:`tlsjax._model._points.distorted_observations`), ``F`` the error-free observation of
   the truth (for a plane row, of the true point on the plane), ``e ~ N(0, Sigma_l)`` with the
   network's sigmas;
-* levelling readings, control-point coordinates and scale-bar lengths: truth plus noise of
-  their sigmas (they are observations too);
+* levelling readings, observed kappas, AP priors, control-point coordinates and scale-bar
+  lengths: truth plus noise of their sigmas (they are observations too);
 * optionally the true APs, drawn ``N(true, sigma^2)`` (``MonteCarloOptions.ap_sigma``).
 
 Each realisation starts from the truth (the standard Monte Carlo choice: the estimator's
@@ -297,6 +297,8 @@ def _realisation(design: _Design, index, seed_key, options):
     )
     tmap = design.truth_map
     truth = jnp.where(tmap >= 0, true_aps[np.maximum(tmap, 0)], 0.0) if len(tmap) else true_aps[:0]
+    key = jax.random.fold_in(jax.random.fold_in(seed_key, index), 1)
+    problem = _drawn_constraints(problem, design.start.eops, truth, key)
     params0 = Params(design.start.prims, design.start.eops, truth)
     state, s, code = estimate(adj.plan.spec, problem, params0, options)
     s0sq = s.vtpv / s.dof
@@ -312,6 +314,24 @@ def _realisation(design: _Design, index, seed_key, options):
         "iterations": state.iteration,
         "result": code,
     }
+
+
+def _drawn_constraints(problem, eops, true_aps, key):
+    """The observed kappas and AP priors of one realisation (weighted constraints with observed
+    values, SPEC section 6): the truth plus noise of their sigmas (the network's headings, the
+    model's priors), so that they are observations like the others."""
+    if problem.heading_weight is None or problem.ap_prior_weight is None:
+        return problem
+    k_h, k_a = jax.random.split(key)
+    sigma = lambda w: jnp.where(w > 0, 1.0 / jnp.where(w > 0, w, 1.0), 0.0)
+    hw, aw = problem.heading_weight, problem.ap_prior_weight
+    heading = eops[:, 5] + jax.random.normal(k_h, hw.shape) * sigma(hw)
+    prior = true_aps + jax.random.normal(k_a, aw.shape) * sigma(aw)
+    return dataclasses.replace(
+        problem,
+        heading=jnp.where(hw > 0, heading, problem.heading),
+        ap_prior=jnp.where(aw > 0, prior, problem.ap_prior),
+    )
 
 
 # Compiled chunk functions per (simulation, model, AP draw sigmas, chunk, devices): the seed and
