@@ -147,7 +147,7 @@ def test_one_copy_of_normal_equations_reduction_and_datum():
     # the reduced system and the datum's null space each live in one module.
     assert _files_matching(r'"npr,npq->rq"') == ["_adjustment/_normal.py"]
     assert _files_matching(r"outer\(J\w*, J\w*\)") == ["_adjustment/_normal.py"]
-    assert _files_matching(r"rank_revealing_cholesky\w*\(|linalg\.cholesky\(") == [
+    assert _files_matching(r"(rank_revealing|estimable)_cholesky\w*\(|linalg\.cholesky\(") == [
         "_adjustment/_linalg.py",
         "_adjustment/_normal.py",
     ]

@@ -491,9 +491,9 @@ def test_scan_errors(tmp_path, text, line, column, message):
 
 def test_scan_unknown_column(tmp_path):
     path = write(
-        tmp_path, "scan,kappa_deg,sigma_omega_arcsec,sigma_phi_arcsec\nS1,0,1,1\n", "scans.csv"
+        tmp_path, "scan,heading_deg,sigma_omega_arcsec,sigma_phi_arcsec\nS1,0,1,1\n", "scans.csv"
     )
-    with pytest.raises(ValueError, match=where(path, 1) + ".*unknown column.*'kappa_deg'"):
+    with pytest.raises(ValueError, match=where(path, 1) + ".*unknown column.*'heading_deg'"):
         read_scans(path)
     path = write(tmp_path, "", "empty.csv")
     with pytest.raises(ValueError, match=where(path, 1) + ".*empty file"):
