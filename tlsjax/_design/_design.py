@@ -201,7 +201,7 @@ class DesignNetwork:
             e = clouds.eops[j]
             x = (rotation_matrix(*e[3:], xp=np) @ (X - e[:3]).T).T
             sph = spherical_from_cartesian(x, xp=np)
-            for k in np.unique(ids):
+            for k in np.unique(ids[ids >= 0]):  # -1: a sphere target, not a plane
                 rows = np.sort(rng.permutation(np.flatnonzero(ids == k))[:max_points])
                 si += [j] * len(rows)
                 pi += [int(k)] * len(rows)
