@@ -169,11 +169,19 @@ def coverage(P, c, R):
         e1 = np.cross(los, [1.0, 0.0, 0.0])
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(los, e1)
-    a, b = u @ e1, u @ e2
+    return disc_coverage(u @ e1, u @ e2)
+
+
+def disc_coverage(a, b) -> float:
+    """Share of the unit disc covered by points (a, b): filled cells of 32 equal-area cells (4
+    rings, 8 sectors) over the share that as many uniformly spread points fill on average,
+    ``1 - exp(-n / 32)``; in [0, 1]."""
+    if len(a) == 0:
+        return 0.0
     ring = np.minimum((4 * (a * a + b * b)).astype(np.int64), 3)
     sector = np.minimum(((np.arctan2(b, a) + np.pi) / (2 * np.pi) * 8).astype(np.int64), 7)
     filled = len(np.unique(ring * 8 + sector)) / 32.0
-    return float(min(1.0, filled / (1.0 - np.exp(-len(P) / 32.0))))
+    return float(min(1.0, filled / (1.0 - np.exp(-len(a) / 32.0))))
 
 
 def _shell(P, c, R, tol):

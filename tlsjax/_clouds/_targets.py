@@ -419,7 +419,9 @@ def _extract_scan(scan: ScanChunks, options, architecture, rng, bar):
         else:
             from . import _contrast
 
-            recs += _contrast.scan_planar_targets(scan, vox, normalise, options, rng, bar)
+            recs = _dedupe(
+                recs + _contrast.scan_planar_targets(scan, vox, normalise, options, rng, bar)
+            )
     for rec in recs:
         if rec["reason"] == "" and _face_boundary(rec, architecture):
             rec["reason"] = "points in both faces of the panoramic scanner (face boundary)"
