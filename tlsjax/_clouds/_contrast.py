@@ -131,6 +131,13 @@ def _plane_frame(P, c0, size):
     return keep, n, d, rms, p0, np.stack([e1, np.cross(n, e1)])
 
 
+def _target_intensity(normalise, intensity, centre):
+    """A target's intensities scaled by one factor, the scan's normaliser at the target's range:
+    the normaliser varies with range, and a slope of it across an oblique target would bias
+    the centre (by 2 mm at 67 deg incidence in a test room, against 0.3 mm with one factor)."""
+    return normalise(intensity, np.full(len(intensity), np.linalg.norm(centre)))
+
+
 def _checker_model(y, uv, xp=jnp):
     """Intensity of the blurred 2 x 2 checkerboard y = (u0, v0, angle, dark, bright, log
     blur) at in-plane points uv (m, 2)."""
@@ -177,7 +184,8 @@ def _quadric_start(uv, inten, size):
 
 
 def _window(uv, centre, radius):
-    return np.sum((uv - centre) ** 2, axis=1) <= radius**2
+    with np.errstate(over="ignore", invalid="ignore"):  # a diverged start: an empty window
+        return np.sum((uv - centre) ** 2, axis=1) <= radius**2
 
 
 def _levels(inten):
@@ -291,13 +299,8 @@ def fit_circle(uv, inten, area, options, sigma_pos):
     scale = np.pi * r_w**2 / area[win].sum()  # the window's area over the points' share
     r_eff = float(np.sqrt(W * scale / np.pi))
     d = uv[win] - c
-    lam = np.linalg.eigvalsh((wa[:, None, None] * d[:, :, None] * d[:, None, :]).sum(0) / W)
     rr = np.linalg.norm(d, axis=1)
-    inner = w[win][rr < 0.7 * r_eff]
-    ring = w[win][(rr > 1.3 * r_eff + 0.01 * s) & (rr < r_w)]
-    misfit = max(1.0 - (inner.mean() if len(inner) else 0.0), ring.mean() if len(ring) else 1.0)
-    if lam[1] <= 0 or lam[0] / lam[1] < 0.6 or abs(np.sqrt(lam.sum() * 2) / r_eff - 1) > 0.35:
-        misfit = max(misfit, 1.0)
+    misfit = _disc_misfit(d, w[win], wa, r_eff, r_w, s)
     # Noise: intensity noise on the unclipped weights, point positions on all of them.
     res = np.concatenate(
         [inten[win][rr < 0.7 * r_eff] - bright, inten[win][rr > 1.3 * r_eff] - dark]
@@ -307,6 +310,27 @@ def fit_circle(uv, inten, area, options, sigma_pos):
     g = (area[win] * live)[:, None] * d / W
     C = sig_i**2 * g.T @ g + np.eye(2) * np.sum((wa / W) ** 2 * sigma_pos[win] ** 2)
     return c, C, (dark, bright), float(misfit), r_eff, w, win
+
+
+def _disc_misfit(d, w, wa, r_eff, r_w, size):
+    """How far the bright blob around the centroid is from a white disc on a dark ground, as a
+    share of the contrast: the larger of the dark share inside 0.7 r, the bright share of the
+    ring from 1.3 r to the window's edge, and the 4-fold harmonic ``|sum w r^4 exp(4 i phi)| /
+    sum w r^4`` of the bright mass (0 for a disc, 0.43 for a square: a checkerboard's white
+    square has a disc's area and isotropic second moments); 1 when the ring is not seen all
+    round (a blob at a plate's edge) or the second moments are not a disc's (r^2 / 4)."""
+    rr = np.linalg.norm(d, axis=1)
+    inner = w[rr < 0.7 * r_eff]
+    in_ring = (rr > 1.3 * r_eff + 0.01 * size) & (rr < r_w)
+    phi = np.arctan2(d[:, 1], d[:, 0])
+    sectors = np.unique(((phi[in_ring] + np.pi) / (2 * np.pi) * 8).astype(np.int64) % 8)
+    r4 = wa * rr**4
+    m4 = abs(np.sum(r4 * np.exp(4j * phi))) / max(r4.sum(), 1e-300)
+    lam = np.linalg.eigvalsh((wa[:, None, None] * d[:, :, None] * d[:, None, :]).sum(0) / wa.sum())
+    disc = lam[1] > 0 and lam[0] / lam[1] >= 0.6 and abs(np.sqrt(lam.sum() * 2) / r_eff - 1) <= 0.35
+    if len(sectors) < 8 or not disc or not len(inner):
+        return 1.0
+    return float(max(1.0 - inner.mean(), w[in_ring].mean(), m4))
 
 
 def _offsets(P, n, d, los_cos, weights, white):
@@ -326,7 +350,7 @@ def _fit_candidate(P, I_raw, normalise, c0, frame, options, kinds, checker_fit):
     keep, n, d, rms, p0, E = frame
     Pk = P[keep]
     rho = np.linalg.norm(Pk, axis=1)
-    inten = normalise(I_raw[keep], rho)
+    inten = _target_intensity(normalise, I_raw[keep], p0)
     uv = (Pk - p0) @ E.T
     cosb = abs(float(n @ p0) / np.linalg.norm(p0))
     cos_alpha = np.hypot(Pk[:, 0], Pk[:, 1]) / rho
@@ -454,7 +478,9 @@ def scan_planar_targets(scan, vox, normalise, options, rng, bar):
             rho = np.linalg.norm(Pk, axis=1)
             tanb = np.tan(np.arccos(np.clip(np.abs(Pk @ n) / rho, 0.0, 1.0)))
             sigma_pos = np.hypot(rho * options.sigma_angle, options.sigma_range * tanb)
-            items.append(((Pk - p0) @ E.T, normalise(I_raw[keep], rho), sigma_pos))
+            items.append(
+                ((Pk - p0) @ E.T, _target_intensity(normalise, I_raw[keep], p0), sigma_pos)
+            )
             where.append(q)
         for q, fit in zip(where, fit_checkerboards(items, options)):
             checker[q] = fit

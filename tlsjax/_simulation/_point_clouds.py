@@ -182,6 +182,57 @@ class PlanarTarget:
         return Board(tuple(c - 0.5 * (u + v)), tuple(u), tuple(v))
 
 
+def place_targets(
+    room: Room | None = None,
+    *,
+    spheres: int = 8,
+    checkerboards: int = 8,
+    circles: int = 0,
+    radius: float = 0.0725,
+    size: float = 0.15,
+    seed: int = 0,
+    clearance: float = 0.6,
+) -> dict:
+    """A random field of targets in ``room``: ``spheres`` free-standing spheres of ``radius``
+    (0.5 to 2.5 m high, at least ``clearance`` from the walls, the stations and each other) and
+    planar targets of ``size`` on the room's faces (facing into the room, 2 mm off the face,
+    turned at random in their plane), as keyword arguments of :class:`CloudDesign`
+    (``spheres=``, ``planar_targets=``)."""
+    room = room or Room()
+    rng = np.random.default_rng(seed)
+    L, W, H = room.length, room.width, room.height
+    st = np.asarray(room.stations, dtype=np.float64)
+    sph = []
+    for _ in range(10000):
+        if len(sph) == spheres:
+            break
+        c = rng.uniform(
+            [clearance, clearance, 0.5], [L - clearance, W - clearance, min(2.5, H - 0.3)]
+        )
+        if np.min(np.linalg.norm(st - c, axis=1)) < 1.5 or any(
+            np.linalg.norm(c - np.asarray(t.centre)) < clearance for t in sph
+        ):
+            continue
+        sph.append(SphereTarget(tuple(c), radius))
+    faces = [(0, 0.0, 1), (0, L, -1), (1, 0.0, 1), (1, W, -1), (2, 0.0, 1), (2, H, -1)]
+    size3 = np.array([L, W, H])
+    planar = []
+    kinds = ["checkerboard"] * checkerboards + ["circle"] * circles
+    for kind in kinds:
+        for _ in range(10000):
+            ax, val, sign = faces[rng.integers(6)]
+            c = rng.uniform(room.margin, size3 - room.margin)
+            c[ax] = val + sign * 0.002
+            if all(np.linalg.norm(c - np.asarray(t.centre)) > 4 * size for t in planar):
+                break
+        n = np.zeros(3)
+        n[ax] = sign
+        planar.append(
+            PlanarTarget(tuple(c), tuple(n), kind, size, rotation=rng.uniform(0, np.pi / 2))
+        )
+    return {"spheres": tuple(sph), "planar_targets": tuple(planar)}
+
+
 @dataclasses.dataclass(frozen=True)
 class CloudDesign:
     """Settings of a point-cloud simulation (SPEC section 8).
