@@ -26,6 +26,13 @@ from ._clouds._extract import ExtractionConfig as ExtractionConfig
 from ._clouds._extract import extract_planes as extract_planes
 from ._clouds._match import MatchingConfig as MatchingConfig
 from ._clouds._match import match_planes as match_planes
+from ._clouds._target_match import TargetMatching as TargetMatching
+from ._clouds._target_match import TargetMatchingOptions as TargetMatchingOptions
+from ._clouds._target_match import match_targets as match_targets
+from ._clouds._targets import ExtractedTargets as ExtractedTargets
+from ._clouds._targets import TargetExtractionOptions as TargetExtractionOptions
+from ._clouds._targets import extract_targets as extract_targets
+from ._clouds._targets import extract_targets_from_files as extract_targets_from_files
 from ._design._criteria import DesignCriterion as DesignCriterion
 from ._design._criteria import design_criterion as design_criterion
 from ._design._criteria import predicted_cofactor as predicted_cofactor
@@ -71,6 +78,8 @@ from ._io._tables import read_observations as read_observations
 from ._io._tables import read_planes as read_planes
 from ._io._tables import read_scans as read_scans
 from ._io._tables import write_observations as write_observations
+from ._io._target_files import read_target_list as read_target_list
+from ._io._target_files import write_target_table as write_target_table
 from ._model._aps import PRESETS as PRESETS
 from ._model._aps import register_ap as register_ap
 from ._model._aps import registered_aps as registered_aps
@@ -84,6 +93,7 @@ from ._report._plots import plot_ap_correlations as plot_ap_correlations
 from ._report._plots import plot_monte_carlo as plot_monte_carlo
 from ._report._plots import plot_residuals as plot_residuals
 from ._report._plots import plot_sensitivity as plot_sensitivity
+from ._report._target_plots import plot_targets as plot_targets
 from ._report._text import ap_table as ap_table
 from ._simulation._design import DesignPlane as DesignPlane
 from ._simulation._design import DesignSimulation as DesignSimulation
@@ -95,7 +105,10 @@ from ._simulation._montecarlo import monte_carlo as monte_carlo
 from ._simulation._montecarlo import monte_carlo_network as monte_carlo_network
 from ._simulation._point_clouds import Board as Board
 from ._simulation._point_clouds import CloudDesign as CloudDesign
+from ._simulation._point_clouds import PlanarTarget as PlanarTarget
 from ._simulation._point_clouds import PointClouds as PointClouds
+from ._simulation._point_clouds import SphereTarget as SphereTarget
+from ._simulation._point_clouds import place_targets as place_targets
 from ._simulation._point_clouds import simulate_point_clouds as simulate_point_clouds
 from ._simulation._room import Room as Room
 from ._simulation._room import Simulation as Simulation

@@ -8,9 +8,9 @@ checkerboard (touching at its centre), the dark plate around a disc, the white d
 the two white squares of a checkerboard on a dark ground: each has an RMS radius between 0.12
 and 0.75 of the pattern's size and its centroid at (or, for one square alone, near) the
 target's centre. Walls, floors and ceilings are far larger; clutter is rarely planar and of
-the right size, and what is left is judged by the fit. Candidates closer than 0.9 of the size
-are merged (the two squares of one checkerboard lie 0.71 of the size apart; two plates
-cannot lie closer than their size).
+the right size, and what is left is judged by the fit. The midpoint of two square-sized
+components closer than 0.9 of the size is a candidate too (the two squares of one
+checkerboard, 0.71 of the size apart, that touch only at the centre).
 
 **Fit** (the points near a candidate, second pass): the plane of the plate and its surround
 by iteratively trimmed least squares (``_extract._refine``), the points' in-plane coordinates
@@ -20,7 +20,7 @@ by iteratively trimmed least squares (``_extract._refine``), the points' in-plan
   pattern of ``_model/_targets.py``, ``I = dark + (bright - dark) W(u', v'; blur)`` in the
   pattern's turned and shifted frame, 6 unknowns (centre, angle, two levels, blur), to the
   points within 0.4 of the size of the centre (inside the four squares), started from the
-  saddle of a quadric fit of the intensity at three angles (optimistix Gauss-Newton, batched);
+  saddle of a quadric fit of the intensity at three angles (``_lsq``, batched);
 - circle: the intensity-weighted centroid ``c = sum w_i a_i x_i / sum w_i a_i`` of the points
   within 0.45 of the size, with ``w_i`` the intensity scaled from the dark to the bright level
   (two-class split, Otsu 1979) and clipped to [0, 1], and ``a_i ~ rho_i^2 cos(alpha_i) /
@@ -52,6 +52,9 @@ from ._voxels import crop
 
 _NEIGHBOURS = 12
 _BLOCK = 200_000
+#: Levenberg-Marquardt steps of a checkerboard fit (from a quadric saddle start it converges
+#: in about 6-10).
+_STEPS = 16
 
 
 def _components(P, label, link):
@@ -97,17 +100,17 @@ def planar_candidates(vox, normalise, options):
         & (rms >= 0.12 * s)
         & (rms <= 0.75 * s)
         & (lam[:, 0] <= 0.1 * lam.sum(axis=1))
-        & (lam[:, 2] <= 9.0 * np.maximum(lam[:, 1], 1e-30))
+        & (lam[:, 2] <= 25.0 * np.maximum(lam[:, 1], 1e-30))  # two squares on a diagonal: 4-10
     )
-    cands = []
-    for q in c[ok][np.argsort(-n[ok])]:
-        near = [k for k, (p, _) in enumerate(cands) if np.linalg.norm(p - q) < 0.9 * s]
-        if near:
-            p, w = cands[near[0]]
-            cands[near[0]] = ((p * w + q) / (w + 1), w + 1)
-        else:
-            cands.append((q, 1))
-    return np.array([p for p, _ in cands]).reshape(-1, 3)
+    cands = list(c[ok][np.argsort(-n[ok])])
+    # A checkerboard's two squares may be two components (touching only at the centre): their
+    # midpoint is a candidate too. The fits decide; duplicates are dropped after them.
+    single = c[ok][rms[ok] < 0.3 * s]
+    for a in range(len(single)):
+        for b in range(a + 1, len(single)):
+            if np.linalg.norm(single[a] - single[b]) < 0.9 * s:
+                cands.append(0.5 * (single[a] + single[b]))
+    return np.array(cands).reshape(-1, 3)
 
 
 def _plane_frame(P, c0, size):
@@ -207,8 +210,8 @@ def fit_checkerboards(items, options):
     candidate (centre (2,), covariance (2, 2), levels (dark, bright), pattern rms over
     contrast, blur, converged, points used), or None.
 
-    Three starts per candidate, each fitted twice on a window re-centred on its estimate
-    with equal weights; the best is refitted with the weights of
+    Three starts per candidate at angles 30 deg apart, fitted with equal weights; the best is
+    fitted again on a window centred on its estimate, then with the weights of
     :func:`_effective_weights`, whose covariance is the one reported."""
     s = options.pattern_size
     starts, owner = [], []
@@ -225,21 +228,23 @@ def fit_checkerboards(items, options):
     if not starts:
         return out
     y = np.asarray(starts)
-    for _ in range(2):  # refit on a window centred on the last estimate
-        UV, inten, sw, _, used = _pack(items, owner, y[:, :2], 0.4 * s)
-        y, r, N, ok = fit_batch(_checker_residual, y, (UV, inten, sw))
+    UV, inten, sw, _, used = _pack(items, owner, y[:, :2], 0.4 * s)
+    y, r, _, ok = fit_batch(_checker_residual, y, (UV, inten, sw), max_steps=_STEPS)
     cost = np.where(ok, np.sum(r**2, axis=1) / np.maximum(used, 1), np.inf)
     best = {}
     for i, q in enumerate(owner):
         if q not in best or cost[i] < cost[best[q]]:
             best[q] = i
     qs = sorted(best)
-    rows = [best[q] for q in qs]
-    UV, inten, sw, sig, used = _pack(items, qs, y[rows, :2], 0.4 * s)
+    y = y[[best[q] for q in qs]]
+    # The best start again on a window centred on its estimate, then with the weights of
+    # _effective_weights (the covariance reported).
+    UV, inten, sw, sig, used = _pack(items, qs, y[:, :2], 0.4 * s)
+    y, r, _, ok = fit_batch(_checker_residual, y, (UV, inten, sw), max_steps=_STEPS)
     for k in range(len(qs)):
         m = used[k]
-        sw[k, :m], _ = _effective_weights(y[rows[k]], UV[k, :m], inten[k, :m], sig[k, :m])
-    y2, r2, N2, ok2 = fit_batch(_checker_residual, y[rows], (UV, inten, sw))
+        sw[k, :m], _ = _effective_weights(y[k], UV[k, :m], inten[k, :m], sig[k, :m])
+    y2, r2, N2, ok2 = fit_batch(_checker_residual, y, (UV, inten, sw), max_steps=_STEPS)
     cov, _ = covariance(r2, N2, used, 6)
     for k, q in enumerate(qs):
         m = used[k]
@@ -252,7 +257,7 @@ def fit_checkerboards(items, options):
             (dark, bright),
             rms / contrast if contrast > 0 else np.inf,
             float(np.exp(np.clip(y2[k, 5], -12.0, 0.0))),
-            bool(ok2[k]) and bool(ok[rows[k]]),
+            bool(ok2[k]) and bool(ok[k]),
             int(m),
         )
     return out
@@ -339,7 +344,7 @@ def _offsets(P, n, d, los_cos, weights, white):
     dist = -(P @ n - d) / los_cos
     W = weights.sum()
     centroid = float(weights @ dist / W) if W > 0 else np.nan
-    dk, br = white < 0.2, white > 0.8
+    dk, br = white < 0.1, white > 0.9
     bias = float(dist[dk].mean() - dist[br].mean()) if dk.any() and br.any() else np.nan
     return centroid, bias
 
@@ -453,6 +458,21 @@ def _best(recs):
     return min(recs, key=lambda r: np.nan_to_num(r["pattern_rms"], nan=np.inf))
 
 
+def _not_planar(kind, c0, frame, options):
+    """The record of a candidate whose points are not a plane: rejected without a fit."""
+    return {
+        "kind": kind,
+        "size": options.pattern_size,
+        "centre": np.asarray(c0, dtype=np.float64),
+        "covariance": np.full((3, 3), np.nan),
+        "n_points": int(frame[0].sum()),
+        "rms": frame[3],
+        "incidence": np.nan,
+        "coverage": np.nan,
+        "reason": f"plane RMS {frame[3] * 1e3:.2f} mm > {options.max_rms * 1e3:.2f} mm (not planar)",
+    }
+
+
 def scan_planar_targets(scan, vox, normalise, options, rng, bar):
     """Planar target records of one scan (accepted or not)."""
     starts = planar_candidates(vox, normalise, options)
@@ -465,8 +485,13 @@ def scan_planar_targets(scan, vox, normalise, options, rng, bar):
         k for k, on in (("checkerboard", options.checkerboards), ("circle", options.circles)) if on
     ]
     frames = []
+    out = []
     for (P, _), c0 in zip(crops, starts):
-        frames.append(_plane_frame(P, c0, options.pattern_size) if len(P) >= 3 else None)
+        fr = _plane_frame(P, c0, options.pattern_size) if len(P) >= 3 else None
+        if fr is not None and fr[3] > options.max_rms:  # not planar (a sphere, clutter)
+            out.append(_not_planar(kinds[0], c0, fr, options))
+            fr = None
+        frames.append(fr)
     checker = [None] * len(starts)
     if "checkerboard" in kinds:
         items, where = [], []
@@ -484,7 +509,6 @@ def scan_planar_targets(scan, vox, normalise, options, rng, bar):
             where.append(q)
         for q, fit in zip(where, fit_checkerboards(items, options)):
             checker[q] = fit
-    out = []
     for q, ((P, I_raw), c0) in enumerate(zip(crops, starts)):
         if frames[q] is None or I_raw is None:
             continue

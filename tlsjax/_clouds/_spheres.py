@@ -14,7 +14,7 @@ would need seeds everywhere (cost ~ points x iterations) for the same answer.
 
 **Fit.** The points near a candidate (second pass) within ``max(0.3 R, 1 cm)`` of its shell
 and on the scanner's side of the centre enter an iteratively trimmed, weighted least-squares
-fit of the centre (optimistix Levenberg-Marquardt, batched over the scan's candidates) of the
+fit of the centre (Levenberg-Marquardt of ``_lsq``, batched over the scan's candidates) of the
 radial residuals ``r_i = |x_i - c| - R``, with the radius known (3 unknowns) and again free
 (4 unknowns: the radius misfit). A scanner sees at most the near hemisphere, and its range noise
 lies along the line of sight: with the range sigma ``sigma_rho sec(beta)`` of SPEC section 5

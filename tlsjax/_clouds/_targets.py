@@ -207,6 +207,26 @@ class ExtractedTargets:
     def __len__(self) -> int:
         return len(self.scan_index)
 
+    @classmethod
+    def from_centres(
+        cls, scans, scan_index, centres, *, kind=None, size=None, covariance=None,
+        architecture: str = "hybrid",
+    ) -> ExtractedTargets:  # fmt: skip
+        """Detections made elsewhere (e.g. a vendor's target export): scanner-space
+        ``centres`` (k, 3) [m] of scans ``scans[scan_index[i]]``, all accepted; ``kind`` (k,)
+        (default "sphere") and nominal ``size`` (k,) [m] (default 0) keep kinds apart in
+        :func:`~tlsjax.match_targets`; ``covariance`` (k, 3, 3) (default 1 mm^2 I)."""
+        X = np.asarray(centres, dtype=np.float64).reshape(-1, 3)
+        k = len(X)
+        recs = [[] for _ in scans]
+        kind = ["sphere"] * k if kind is None else list(kind)
+        size = np.zeros(k) if size is None else np.asarray(size, dtype=np.float64)
+        C = np.tile(np.eye(3) * 1e-6, (k, 1, 1)) if covariance is None else np.asarray(covariance)
+        for i, j in enumerate(np.asarray(scan_index, dtype=np.int64)):
+            recs[j].append({"kind": kind[i], "size": size[i], "centre": X[i], "covariance": C[i],
+                            "n_points": 0, "reason": ""})  # fmt: skip
+        return _assemble(scans, architecture, [None] * len(scans), recs, [], [])
+
     @property
     def sigmas(self) -> np.ndarray:
         """(k, 3) standard deviations of the observations [m, rad, rad]."""
@@ -292,7 +312,7 @@ def centre_observations(centres, covariances, architecture: str):
         return np.zeros((0, 3)), np.zeros((0, 3, 3))
     obs = observations_from_points(X, architecture)
     pad = (-len(X)) % 64  # one compiled size per 64 targets
-    J = np.asarray(_spherical_jacobians(np.concatenate([X, np.ones((pad, 3))])))[: len(X)]
+    J = np.array(_spherical_jacobians(np.concatenate([X, np.ones((pad, 3))])))[: len(X)]
     if architecture == "panoramic":
         face2 = obs[:, 2] > np.pi / 2
         J[face2, 1:, :] *= np.array([1.0, -1.0])[:, None]
