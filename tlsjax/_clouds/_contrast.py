@@ -42,7 +42,6 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
-from scipy.spatial import cKDTree
 
 from .._model._targets import checkerboard_white
 from ._extract import _refine
@@ -50,28 +49,20 @@ from ._lsq import FIT_POINTS, covariance, fit_batch
 from ._spheres import disc_coverage
 from ._voxels import crop
 
-_NEIGHBOURS = 12
-_BLOCK = 200_000
 #: Levenberg-Marquardt steps of a checkerboard fit (from a quadric saddle start it converges
 #: in about 6-10).
 _STEPS = 16
 
 
-def _components(P, label, link):
-    """Connected components of voxels (m, 3) that share ``label`` and lie within ``link``."""
-    m = len(P)
-    tree = cKDTree(P)
-    rows, cols = [], []
-    for a in range(0, m, _BLOCK):
-        b = min(m, a + _BLOCK)
-        d, idx = tree.query(P[a:b], k=min(_NEIGHBOURS, m), workers=-1)
-        i = np.repeat(np.arange(a, b), idx.shape[1])
-        j = idx.ravel()
-        ok = (d.ravel() <= link) & (label[i] == label[j]) & (i != j)
-        rows.append(i[ok])
-        cols.append(j[ok])
-    i, j = np.concatenate(rows), np.concatenate(cols)
-    graph = coo_matrix((np.ones(len(i)), (i, j)), shape=(m, m))
+def _components(vox, label, link):
+    """Connected components of voxel centroids that share ``label`` and lie within ``link``
+    of one of their 12 nearest neighbours."""
+    d, idx = vox.neighbours
+    m = len(idx)
+    i = np.repeat(np.arange(m), idx.shape[1])
+    j = idx.ravel().astype(np.int64)
+    ok = (d.ravel() <= link) & (label[i] == label[j]) & (i != j)
+    graph = coo_matrix((np.ones(int(ok.sum())), (i[ok], j[ok])), shape=(m, m))
     return connected_components(graph, directed=False)[1]
 
 
@@ -81,7 +72,7 @@ def planar_candidates(vox, normalise, options):
     if len(P) < 4:
         return np.zeros((0, 3))
     dark = normalise(vox.intensity, np.linalg.norm(P, axis=1)) < options.dark_threshold
-    comp = _components(P, dark, 2.0 * vox.size)
+    comp = _components(vox, dark, 2.0 * vox.size)
     n = np.bincount(comp).astype(np.float64)
     big = n >= 4
     c = np.stack([np.bincount(comp, weights=P[:, k]) for k in range(3)], 1) / n[:, None]
@@ -243,14 +234,16 @@ def fit_checkerboards(items, options):
     y, r, _, ok = fit_batch(_checker_residual, y, (UV, inten, sw), max_steps=_STEPS)
     for k in range(len(qs)):
         m = used[k]
-        sw[k, :m], _ = _effective_weights(y[k], UV[k, :m], inten[k, :m], sig[k, :m])
+        if m:  # an estimate that wandered off has an empty window: no weights, no fit
+            sw[k, :m], _ = _effective_weights(y[k], UV[k, :m], inten[k, :m], sig[k, :m])
     y2, r2, N2, ok2 = fit_batch(_checker_residual, y, (UV, inten, sw), max_steps=_STEPS)
     cov, _ = covariance(r2, N2, used, 6)
     for k, q in enumerate(qs):
         m = used[k]
         dark, bright = sorted(y2[k, 3:5])
         contrast = bright - dark
-        rms = float(np.sqrt(np.mean((inten[k, :m] - _checker_model(y2[k], UV[k, :m], np)) ** 2)))
+        res = inten[k, :m] - _checker_model(y2[k], UV[k, :m], np)
+        rms = float(np.sqrt(np.mean(res**2))) if m else np.inf
         out[q] = (
             y2[k, :2],
             cov[k, :2, :2],
@@ -335,7 +328,8 @@ def _disc_misfit(d, w, wa, r_eff, r_w, size):
     disc = lam[1] > 0 and lam[0] / lam[1] >= 0.6 and abs(np.sqrt(lam.sum() * 2) / r_eff - 1) <= 0.35
     if len(sectors) < 8 or not disc or not len(inner):
         return 1.0
-    return float(max(1.0 - inner.mean(), w[in_ring].mean(), m4))
+    ring = w[in_ring].mean() if in_ring.any() else 1.0
+    return float(max(1.0 - inner.mean(), ring, m4))
 
 
 def _offsets(P, n, d, los_cos, weights, white):
@@ -458,18 +452,18 @@ def _best(recs):
     return min(recs, key=lambda r: np.nan_to_num(r["pattern_rms"], nan=np.inf))
 
 
-def _not_planar(kind, c0, frame, options):
-    """The record of a candidate whose points are not a plane: rejected without a fit."""
+def _unfitted(kind, c0, frame, options, reason):
+    """The record of a candidate rejected before any fit."""
     return {
         "kind": kind,
         "size": options.pattern_size,
         "centre": np.asarray(c0, dtype=np.float64),
         "covariance": np.full((3, 3), np.nan),
-        "n_points": int(frame[0].sum()),
-        "rms": frame[3],
+        "n_points": 0 if frame is None else int(frame[0].sum()),
+        "rms": np.nan if frame is None else frame[3],
         "incidence": np.nan,
         "coverage": np.nan,
-        "reason": f"plane RMS {frame[3] * 1e3:.2f} mm > {options.max_rms * 1e3:.2f} mm (not planar)",
+        "reason": reason,
     }
 
 
@@ -488,8 +482,21 @@ def scan_planar_targets(scan, vox, normalise, options, rng, bar):
     out = []
     for (P, _), c0 in zip(crops, starts):
         fr = _plane_frame(P, c0, options.pattern_size) if len(P) >= 3 else None
-        if fr is not None and fr[3] > options.max_rms:  # not planar (a sphere, clutter)
-            out.append(_not_planar(kinds[0], c0, fr, options))
+        inside = (
+            0
+            if fr is None
+            else int(np.sum(np.linalg.norm(P[fr[0]] - c0, axis=1) < 0.4 * options.pattern_size))
+        )
+        if inside < options.min_points:  # a speck, or a target too far for this scan's grid
+            out.append(
+                _unfitted(
+                    kinds[0], c0, fr, options, f"too few points ({inside} < {options.min_points})"
+                )
+            )
+            fr = None
+        elif fr[3] > options.max_rms:  # not planar (a sphere, clutter)
+            reason = f"plane RMS {fr[3] * 1e3:.2f} mm > {options.max_rms * 1e3:.2f} mm (not planar)"
+            out.append(_unfitted(kinds[0], c0, fr, options, reason))
             fr = None
         frames.append(fr)
     checker = [None] * len(starts)

@@ -366,7 +366,7 @@ def _face_boundary(rec, architecture):
 
 def _scan_spheres(scan, vox, options, rng, bar):
     """Sphere records of one scan (accepted or not)."""
-    normal, kappa, offset = _spheres.local_surfaces(vox.centroid)
+    normal, kappa, offset = _spheres.local_surfaces(vox)
     radii = np.asarray(options.spheres)
     starts, which, _ = _spheres.sphere_candidates(
         normal, kappa, offset, vox.centroid, radii, options.min_votes

@@ -17,10 +17,13 @@ several over a room) and a white target and a white wall both sit near 1.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+#: Nearest neighbours of a voxel centroid used for its local surface and connectivity.
+NEIGHBOURS = 12
 _BITS = 21
 _OFFSET = 1 << (_BITS - 1)
 _MASK = (1 << _BITS) - 1
@@ -61,6 +64,20 @@ class VoxelCloud:
     has_intensity: bool
     intensity_sample: np.ndarray
     range_sample: np.ndarray
+
+    @functools.cached_property
+    def neighbours(self):
+        """Distances (m, k) and indices (m, k) of each centroid's k = 12 nearest centroids
+        (itself first), computed once for the sphere and the planar target candidates."""
+        k = min(NEIGHBOURS, len(self.centroid))
+        tree = cKDTree(self.centroid)
+        d = np.empty((len(self.centroid), k), dtype=np.float32)
+        i = np.empty((len(self.centroid), k), dtype=np.int32 if len(d) < 2**31 else np.int64)
+        for a in range(0, len(d), 200_000):
+            d[a : a + 200_000], i[a : a + 200_000] = tree.query(
+                self.centroid[a : a + 200_000], k=k, workers=-1
+            )
+        return d, i
 
 
 class _Sampler:
