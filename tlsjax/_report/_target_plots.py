@@ -23,7 +23,8 @@ def plot_targets(targets, scan, path) -> None:
     fig, ax = plt.subplots(figsize=(14, 5.5))
     lo, hi = np.nanpercentile(value, [1, 99]) if len(value) else (0.0, 1.0)
     ax.scatter(
-        np.degrees(theta), np.degrees(alpha), c=value, s=0.3, cmap="gray", vmin=lo, vmax=hi,
+        np.degrees(theta), np.degrees(alpha), c=value, s=float(np.clip(4e4 / max(len(value), 1), 0.2, 4.0)),
+        cmap="gray", vmin=lo, vmax=hi,
         rasterized=True, linewidths=0,
     )  # fmt: skip
     rows = np.flatnonzero(targets.scan_index == j)
@@ -37,7 +38,7 @@ def plot_targets(targets, scan, path) -> None:
             ax.annotate(str(targets.names[i]) or "?", (t, a), xytext=(4, 4),
                         textcoords="offset points", color="lime", fontsize=7)  # fmt: skip
         else:
-            ax.plot(t, a, "x", color="red", ms=5, mew=1)
+            ax.plot(t, a, "x", color="red", ms=4, mew=0.8)
     n_acc = int(targets.accepted[rows].sum())
     ax.set_title(
         f"scan {targets.scans[j]}: {n_acc} targets accepted (green), "
