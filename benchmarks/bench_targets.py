@@ -9,12 +9,16 @@ Scan: one levelled scan from the first station of the simulated Chow room (14 x 
 hybrid scanner, APs A0 B6 B7 C0 at SPEC section 8's values, 0.5 mm / 20" noise) with a random
 field of targets (``tj.place_targets``: 10 spheres of 72.5 mm, 10 checkerboards and 4 circles
 of 15 cm, seed 0), on one angular grid whose step gives ``--points`` points (0.067 deg for
-10 million: 7.8 mm at 10 m), rendered chunk by chunk with the simulator's own ray cast and
-written as a binary PLY (float64 x, y, z in the scanner frame, float32 intensity; 280 MB).
+10 million: 12 mm at 10 m), rendered chunk by chunk with the simulator's own ray cast and
+written as E57 (pye57: single-precision x, y, z in the scanner frame and intensity; a
+``--scan`` ending in .ply writes a binary PLY instead, which is memory-mapped when read, so that
+the pages read count in the process's resident memory).
 
 Timed (``tj.extract_targets_from_files`` with spheres, checkerboards and circles, streamed in
 chunks of 2^20 points): a first call (includes compiling the fits) and a second call in the
-same process; the peak resident memory of that process (VmHWM of /proc/self/status). Beside
+same process, wall and CPU seconds (the CPU figure is the one to compare on a shared machine);
+the peak resident memory of that process (VmHWM of /proc/self/status, JAX's own 0.3 GB
+included). Beside
 it, in its own process, the peak memory of reading the same scan whole with
 ``tj.read_point_clouds`` (what a non-streamed extraction would start from). The accepted
 centres are compared with the simulation's truth (noise-free observation of each centre with
@@ -70,7 +74,6 @@ def child_data(args):
         TWO_PI,
         cartesian_from_spherical,
         rotation_matrix,
-        spherical_from_cartesian,
     )
     from tlsjax._simulation import _point_clouds as spc
     from tlsjax._simulation._room import default_true_value, room_scans
@@ -85,40 +88,39 @@ def child_data(args):
     scanner = spc.Scanner(architecture="hybrid", aps=names, unit_length=design.unit_length)
     coeffs = jnp.asarray([values[n] for n in names])
     rng = np.random.default_rng(0)
-    dtype = np.dtype([("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("intensity", "<f4")])
     t0 = time.perf_counter()
     n_total = 0
-    body = args.scan + ".body"
-    with open(body, "wb") as fh:
-        for a in range(0, len(grid), 1 << 20):
-            h = spc.render_rays(design, scene, eop, grid[a : a + (1 << 20)])
-            m = len(h["X"])
-            inc = h["incidence"]
-            e = rng.standard_normal((m, 3)) * np.stack(
-                [design.sigma_range / np.cos(inc), np.full(m, design.sigma_angle), np.full(m, design.sigma_angle)], 1
-            )  # fmt: skip
-            e[:, 0] += design.dark_range_bias * (1.0 - h["white"])
-            obs = spc._observe_in_chunks(
-                h["X"], np.broadcast_to(eop, (m, 6)), e, np.zeros(m, bool), coeffs, scanner, names
-            )
-            rho = np.linalg.norm(h["X"] - eop[:3], axis=1)
-            inten = h["refl"] * (0.25 + 0.75 * np.cos(inc)) * np.exp(-rho / 40.0)
-            inten += rng.standard_normal(m) * design.intensity_noise
-            rec = np.empty(m, dtype)
-            x = cartesian_from_spherical(obs, xp=np)
-            rec["x"], rec["y"], rec["z"], rec["intensity"] = x[:, 0], x[:, 1], x[:, 2], inten
-            rec.tofile(fh)
-            n_total += m
-    head = (
-        "ply\nformat binary_little_endian 1.0\n"
-        f"element vertex {n_total}\nproperty double x\nproperty double y\nproperty double z\n"
-        "property float intensity\nend_header\n"
-    )
-    with open(args.scan, "wb") as out, open(body, "rb") as fh:
-        out.write(head.encode())
-        while chunk := fh.read(1 << 26):
-            out.write(chunk)
-    os.remove(body)
+    parts = []
+    for a in range(0, len(grid), 1 << 20):
+        h = spc.render_rays(design, scene, eop, grid[a : a + (1 << 20)])
+        m, inc = len(h["X"]), h["incidence"]
+        obs = spc._observe_scan(design, eop, h, rng, coeffs, scanner, names)
+        rho = np.linalg.norm(h["X"] - eop[:3], axis=1)
+        inten = h["refl"] * (0.25 + 0.75 * np.cos(inc)) * np.exp(-rho / 40.0)
+        inten += rng.standard_normal(m) * design.intensity_noise
+        parts.append((cartesian_from_spherical(obs, xp=np), inten.astype(np.float32)))
+    x = np.concatenate([p for p, _ in parts])
+    inten = np.concatenate([i for _, i in parts])
+    del parts
+    n_total = len(x)
+    if args.scan.endswith(".e57"):
+        import pye57
+
+        w = pye57.E57(args.scan, mode="w")
+        w.write_scan_raw(
+            {
+                "cartesianX": x[:, 0],
+                "cartesianY": x[:, 1],
+                "cartesianZ": x[:, 2],
+                "intensity": inten,
+            },
+            name="bench",
+        )
+        w.close()
+    else:
+        import tlsjax as tj
+
+        tj.write_ply(args.scan, x, attributes={"intensity": inten})
     # Truth: the fixed point of every target centre (no noise), as the extraction should see it.
     c = (scene.centres - eop[:3]) @ R.T
     truth = spc._observe_in_chunks(
@@ -126,7 +128,6 @@ def child_data(args):
         coeffs, scanner, names,
     )  # fmt: skip
     truth[:, 1] = np.mod(truth[:, 1], TWO_PI)
-    del spherical_from_cartesian
     json.dump(
         {
             "points": n_total,
@@ -145,11 +146,12 @@ def child_extract(args):
 
     truth = json.load(open(args.scan + ".json"))["targets"]
     options = tj.TargetExtractionOptions(spheres=(0.0725,), checkerboards=True, circles=True)
-    times, found = [], None
+    times, cpu, found = [], [], None
     for _ in range(2):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         found = tj.extract_targets_from_files([args.scan], options)
         times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
     err = {}
     T = {n: cartesian_from_spherical(np.array(v[1]), xp=np) for n, v in truth.items()}
     for i in np.flatnonzero(found.accepted):
@@ -162,6 +164,8 @@ def child_extract(args):
             {
                 "first_call_s": times[0],
                 "second_call_s": times[1],
+                "first_call_cpu_s": cpu[0],
+                "second_call_cpu_s": cpu[1],
                 "peak_mb": _vmhwm_mb(),
                 "candidates": len(found),
                 "accepted": {k: len(v) for k, v in err.items()},
@@ -213,7 +217,7 @@ def _run_child(kind, args):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--points", type=float, default=10e6)
-    ap.add_argument("--scan", default="/tmp/tlsjax_bench_targets.ply")
+    ap.add_argument("--scan", default="/tmp/tlsjax_bench_targets.e57", help=".e57 or .ply")
     ap.add_argument("--out", default=str(HERE / "results" / "targets.json"))
     ap.add_argument("--keep", action="store_true", help="keep (and reuse) the scan file")
     ap.add_argument("--child", choices=("data", "extract", "load"))

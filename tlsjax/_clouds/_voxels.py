@@ -119,7 +119,7 @@ def voxelise(scan, size: float, *, chunk: int, bar=None) -> VoxelCloud:
             sampler.add(inten, np.linalg.norm(pts, axis=1))
         parts.append(_reduce(voxel_keys(pts, size), np.ones(len(pts)), pts, iv))
         held += len(parts[-1][0])
-        if len(parts) > 1 and held > 4 * chunk:  # merge so that memory follows the voxels
+        if len(parts) > 1 and held > chunk:  # merge so that memory follows the voxels
             parts = [_reduce(*(np.concatenate(p) for p in zip(*parts)))]
             held = len(parts[0][0])
     if n == 0:

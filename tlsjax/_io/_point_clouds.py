@@ -354,6 +354,20 @@ def _raw_scans(path, source, kind, stem):
     return read_ply(source, stem)
 
 
+def checked_source(path) -> tuple[str, str, str]:
+    """(path as text, format, stem) of a point-cloud file that exists and is not empty; a
+    folder, an empty file or an unknown extension is a one-line ValueError."""
+    source = os.fspath(path)
+    kind = point_cloud_format(source)
+    if os.path.isdir(source):
+        raise ValueError(f"{source}: is a folder, not a point-cloud file")
+    if not os.path.isfile(source):
+        raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), source)
+    if os.path.getsize(source) == 0:
+        raise ValueError(f"{source}: the file is empty")
+    return source, kind, os.path.splitext(os.path.basename(source))[0]
+
+
 def read_point_clouds(
     path, *, architecture: str = "hybrid", poses=None
 ) -> tuple[PointCloudScan, ...]:
@@ -369,15 +383,7 @@ def read_point_clouds(
     """
     if architecture not in ARCHITECTURES:
         raise ValueError(f"scanner architecture {architecture!r} is not one of {ARCHITECTURES}")
-    source = os.fspath(path)
-    kind = point_cloud_format(source)
-    if os.path.isdir(source):
-        raise ValueError(f"{source}: is a folder, not a point-cloud file")
-    if not os.path.isfile(source):
-        raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), source)
-    if os.path.getsize(source) == 0:
-        raise ValueError(f"{source}: the file is empty")
-    stem = os.path.splitext(os.path.basename(source))[0]
+    source, kind, stem = checked_source(path)
     poses = poses or {}
     try:
         raws = _raw_scans(path, source, kind, stem)

@@ -18,17 +18,15 @@ the fourth column when every line has one; PLY ``intensity``, ``scalar_intensity
 from __future__ import annotations
 
 import dataclasses
-import errno
 import io
 import itertools
-import os
 import warnings
 from collections.abc import Callable, Iterator
 
 import numpy as np
 
 from .._model._geometry import cartesian_from_spherical
-from ._point_clouds import point_cloud_format, to_scanner
+from ._point_clouds import checked_source, to_scanner
 
 #: Points per chunk of the streamed passes.
 CHUNK_POINTS = 1 << 20
@@ -320,15 +318,7 @@ def _whole_file_scans(source):
 def open_scans(path, *, poses=None) -> list[ScanChunks]:
     """The scans of a point-cloud file as :class:`ScanChunks` (by extension, as
     :func:`~tlsjax.read_point_clouds`); ``poses`` (scan name -> pose) replace the file's."""
-    source = os.fspath(path)
-    kind = point_cloud_format(source)
-    if os.path.isdir(source):
-        raise ValueError(f"{source}: is a folder, not a point-cloud file")
-    if not os.path.isfile(source):
-        raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), source)
-    if os.path.getsize(source) == 0:
-        raise ValueError(f"{source}: the file is empty")
-    stem = os.path.splitext(os.path.basename(source))[0]
+    source, kind, stem = checked_source(path)
     try:
         scans = {
             "e57": _e57_scans,

@@ -749,6 +749,32 @@ def _paint_plates(design: CloudDesign, scene: _Scene, hits: dict, station) -> No
     hits["white"] = white
 
 
+def _observe_scan(design, eop, hits, rng, coeffs, scanner, names):
+    """Observations ``l = F + Delta(l; AP) + e`` of one scan's hit points (module docstring):
+    range noise ``sigma_range sec(beta)`` plus the dark share's range bias, angular noise."""
+    X = hits["X"]
+    m = len(X)
+    R = rotation_matrix(*eop[3:], xp=np)
+    hyb = spherical_from_cartesian((X - eop[:3]) @ R.T, xp=np)
+    face2 = hyb[:, 1] >= np.pi if design.architecture == "panoramic" else np.zeros(m, dtype=bool)
+    sig = np.stack(
+        [
+            design.sigma_range / np.cos(hits["incidence"]),
+            np.full(m, design.sigma_angle),
+            np.full(m, design.sigma_angle),
+        ],
+        axis=1,
+    )
+    e = rng.standard_normal(sig.shape) * sig if design.noise else np.zeros_like(sig)
+    e[:, 0] += design.dark_range_bias * (1.0 - hits["white"])
+    E = np.broadcast_to(eop, (m, 6))
+    obs = _observe_in_chunks(X, E, e, face2, coeffs, scanner, names)
+    # Full-turn wrap only (a face-2 direction near 0 pushed below zero is near 2 pi, not pi).
+    obs[:, 1] = np.mod(obs[:, 1], TWO_PI)
+    obs[:, 1] = np.where(obs[:, 1] >= TWO_PI, 0.0, obs[:, 1])
+    return obs
+
+
 def simulate_point_clouds(design: CloudDesign | None = None, *, seed: int = 0) -> PointClouds:
     """Simulate the scans of the calibration room as point clouds (SPEC section 8).
 
@@ -766,40 +792,16 @@ def simulate_point_clouds(design: CloudDesign | None = None, *, seed: int = 0) -
     scene = _scene(design)
     eops = room_scans(design.room, design.tilted)
 
-    hits = []
-    for eop in eops:
-        h = render_rays(design, scene, eop, scan_grid(design, scene, eop))
-        h["eop"] = np.broadcast_to(eop, (len(h["X"]), 6))
-        h["rho"] = np.linalg.norm(h["X"] - eop[:3], axis=1)
-        hits.append(h)
-    X = np.concatenate([h["X"] for h in hits])
-    E = np.concatenate([h["eop"] for h in hits])
-    inc = np.concatenate([h["incidence"] for h in hits])
-    si = np.concatenate([np.full(len(h["X"]), j) for j, h in enumerate(hits)])
-
-    R_all = np.stack([rotation_matrix(*e[3:], xp=np) for e in eops])
-    x = np.einsum("mij,mj->mi", R_all[si], X - E[:, :3])
-    hyb = spherical_from_cartesian(x, xp=np)
-    face2 = (
-        hyb[:, 1] >= np.pi if design.architecture == "panoramic" else np.zeros(len(X), dtype=bool)
-    )
-    sig = np.stack(
-        [
-            design.sigma_range / np.cos(inc),
-            np.full(len(X), design.sigma_angle),
-            np.full(len(X), design.sigma_angle),
-        ],
-        axis=1,
-    )
-    e = rng.standard_normal(sig.shape) * sig if design.noise else np.zeros_like(sig)
-    white = np.concatenate([h["white"] for h in hits])
-    e[:, 0] += design.dark_range_bias * (1.0 - white)
-
     coeffs = jnp.asarray([values[n] for n in names], dtype=jnp.float64)
-    obs = _observe_in_chunks(X, E, e, face2, coeffs, scanner, names)
-    # Full-turn wrap only (a face-2 direction near 0 pushed below zero is near 2 pi, not pi).
-    obs[:, 1] = np.mod(obs[:, 1], TWO_PI)
-    obs[:, 1] = np.where(obs[:, 1] >= TWO_PI, 0.0, obs[:, 1])
+    hits = [render_rays(design, scene, eop, scan_grid(design, scene, eop)) for eop in eops]
+    # One scan at a time, so that memory follows the largest scan; the noise is drawn in the
+    # same order as for all points at once.
+    for eop, h in zip(eops, hits):
+        h["obs"] = _observe_scan(design, eop, h, rng, coeffs, scanner, names)
+    obs = np.concatenate([h["obs"] for h in hits])
+    inc = np.concatenate([h["incidence"] for h in hits])
+    X = np.concatenate([h["X"] for h in hits])
+    rho = np.concatenate([np.linalg.norm(h["X"] - e[:3], axis=1) for e, h in zip(eops, hits)])
 
     lev = (
         simulated_levelling(eops, rng, design.sigma_levelling, design.noise)
@@ -808,7 +810,6 @@ def simulate_point_clouds(design: CloudDesign | None = None, *, seed: int = 0) -
     )
     # Intensity from its own stream, so that the geometry of a seed does not depend on it.
     rng_i = np.random.default_rng([seed, 33])
-    rho = np.concatenate([h["rho"] for h in hits])
     refl = np.concatenate([h["refl"] for h in hits])
     intensity = refl * (0.25 + 0.75 * np.cos(inc)) * np.exp(-rho / 40.0)
     if design.noise:
