@@ -23,7 +23,7 @@ from ._extract import add_extract_parser
 from ._montecarlo import add_montecarlo_parser
 from ._report import add_report_parser
 from ._simulate import add_demo_parser, add_simulate_parser
-from ._targets import add_targets_parser
+from ._extract_targets import add_targets_parser
 
 
 def _enable_compilation_cache():
