@@ -43,7 +43,11 @@ def add_targets_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--architecture", choices=("hybrid", "panoramic"), default="hybrid",
                    help="panoramic: observations in the two-face form (SPEC section 1)")  # fmt: skip
     p.add_argument("--poses", help="scan poses CSV replacing the files' (LAS needs one)")
-    p.add_argument("--target-list", help="CSV target, x_m, y_m, z_m [, kind]: name targets by it")
+    p.add_argument(
+        "--target-list",
+        help="name the targets by this list of approximate coordinates in any one frame (a "
+        "survey: any point list `check-targets --reference` reads, or a result JSON's targets)",
+    )
     p.add_argument("--table", help="per-target table CSV (default: <out>_table.csv)")
     p.add_argument("--plots", help="folder for one PNG per scan of what was found")
     p.add_argument("--min-points", type=int, default=TargetExtractionOptions.min_points)
@@ -118,7 +122,8 @@ def cli_targets(args) -> int:
     from .._io._json import check_output_dir, check_output_file
     from .._io._plane_files import read_poses
     from .._io._tables import write_observations
-    from .._io._target_files import read_target_list, write_target_table
+    from .._io._target_files import write_target_table
+    from .._io._target_lists import read_reference
     from .._report._target_plots import plot_all_targets
 
     options, matching = _options(args)
@@ -126,7 +131,7 @@ def cli_targets(args) -> int:
     check_output_file(args.out, "--out ")
     check_output_file(table_path, "--table ")
     check_output_dir(args.plots, "--plots ")
-    target_list = read_target_list(args.target_list) if args.target_list else None
+    target_list = read_reference(args.target_list) if args.target_list else None
     poses = read_poses(args.poses) if args.poses else None
     progress = not args.no_progress and sys.stderr.isatty()
     found = extract_targets_from_files(

@@ -277,7 +277,7 @@ def match_targets(
     """Name the accepted detections of :func:`~tlsjax.extract_targets` consistently across
     scans (module docstring). ``target_list``: optional mapping name -> (x, y, z) [m] (or
     name -> (x, y, z, kind) with kind "sphere", "checkerboard", "circle"), e.g. from
-    :func:`~tlsjax.read_target_list`. Returns the targets with ``names`` filled in and
+    :func:`~tlsjax.read_reference`. Returns the targets with ``names`` filled in and
     ``matching`` (:class:`TargetMatching`)."""
     options = options or TargetMatchingOptions()
     rng = np.random.default_rng(options.seed)

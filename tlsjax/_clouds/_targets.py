@@ -294,6 +294,7 @@ class ExtractedTargets:
             incidence=None,
             instruments=None,
             rows=np.arange(2, len(idx) + 2, dtype=np.int64),
+            architecture=self.architecture,
         )
 
 

@@ -1,14 +1,10 @@
-"""Files of the target extraction: the per-target table (CSV) and a user's target list.
+"""The per-target table of the target extraction (CSV).
 
 The per-target table has one row per detection, accepted or rejected, with the unit in every
 numeric column's name (SPEC section 11's convention): ``scan, target, kind, accepted, reason,
 size_mm, range_m, hz_deg, el_deg, sigma_range_mm, sigma_hz_arcsec, sigma_el_arcsec, x_m, y_m,
 z_m, n_points, rms_mm, incidence_deg, coverage, radius_fit_mm, radius_sigma_mm,
 plane_offset_mm, contrast_bias_mm, pattern_rms, contrast`` (empty where a value does not apply).
-
-A target list names targets with approximate coordinates in any one frame (a total station
-survey, a previous registration): columns ``target`` and ``x``, ``y``, ``z`` with a length
-unit suffix (``x_m`` or ``x_mm``), optionally ``kind`` (sphere, checkerboard, circle).
 """
 
 from __future__ import annotations
@@ -18,7 +14,6 @@ import csv
 import numpy as np
 
 from .._units import ARCSEC, DEG
-from ._tables import open_text, parse_unit_column
 
 _TABLE = (
     ("scan", None, None),
@@ -63,52 +58,3 @@ def write_target_table(path, targets) -> None:
         w.writerow([c for c, _, _ in _TABLE])
         for row in targets.table():
             w.writerow([_cell(row[key or c], f) for c, key, f in _TABLE])
-
-
-def read_target_list(path) -> dict:
-    """A target list (module docstring) as ``{name: (x, y, z[, kind])}`` in metres; errors name
-    the file, line and column."""
-    source = str(path)
-    with open_text(path, "target list") as fh:
-        rows = list(csv.reader(fh))
-    rows = [(k + 1, r) for k, r in enumerate(rows) if r and any(c.strip() for c in r)]
-    if not rows:
-        raise ValueError(f"{source}: the target list is empty")
-    head = [c.strip() for c in rows[0][1]]
-    cols = {}
-    for i, h in enumerate(head):
-        if h.lower() in ("target", "name", "kind"):
-            cols[h.lower().replace("name", "target")] = (i, None)
-            continue
-        try:
-            q, unit, factor = parse_unit_column(h)
-        except ValueError as err:
-            raise ValueError(f"{source}, line {rows[0][0]}: {err}") from None
-        if q in ("x", "y", "z"):
-            if unit not in ("m", "mm"):
-                raise ValueError(f"{source}, line {rows[0][0]}: column {h!r} needs a length unit")
-            cols[q] = (i, factor)
-    missing = [c for c in ("target", "x", "y", "z") if c not in cols]
-    if missing:
-        raise ValueError(
-            f"{source}, line {rows[0][0]}: the target list needs columns target, x_m, y_m, z_m "
-            f"(missing: {', '.join(missing)})"
-        )
-    out = {}
-    for line, r in rows[1:]:
-        try:
-            name = r[cols["target"][0]].strip()
-            xyz = [float(r[cols[c][0]]) * cols[c][1] for c in "xyz"]
-        except (IndexError, ValueError):
-            raise ValueError(
-                f"{source}, line {line}: not a target and three numbers: {r}"
-            ) from None
-        if not name or not np.all(np.isfinite(xyz)):
-            raise ValueError(f"{source}, line {line}: empty name or non-finite coordinate")
-        if name in out:
-            raise ValueError(f"{source}, line {line}: target {name!r} is listed twice")
-        kind = r[cols["kind"][0]].strip() if "kind" in cols and cols["kind"][0] < len(r) else ""
-        out[name] = (*xyz, kind) if kind else tuple(xyz)
-    if len(out) < 3:
-        raise ValueError(f"{source}: a target list needs at least 3 targets, got {len(out)}")
-    return out
