@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
-from scipy.sparse import coo_matrix
+from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
 from .._model._targets import checkerboard_white
@@ -56,13 +56,16 @@ _STEPS = 16
 
 def _components(vox, label, link):
     """Connected components of voxel centroids that share ``label`` and lie within ``link``
-    of one of their 12 nearest neighbours."""
+    of one of their 12 nearest neighbours. The graph is built in CSR form straight from the
+    neighbour table (int32 columns, int8 data): a million voxels, not a million times 12 pairs
+    of int64 rows and columns."""
     d, idx = vox.neighbours
     m = len(idx)
-    i = np.repeat(np.arange(m), idx.shape[1])
-    j = idx.ravel().astype(np.int64)
-    ok = (d.ravel() <= link) & (label[i] == label[j]) & (i != j)
-    graph = coo_matrix((np.ones(int(ok.sum())), (i[ok], j[ok])), shape=(m, m))
+    ok = (d <= link) & (label[idx] == label[:, None])
+    ok[:, 0] = False  # the voxel itself
+    indptr = np.concatenate([[0], np.cumsum(ok.sum(axis=1))])
+    cols = idx[ok]
+    graph = csr_matrix((np.ones(len(cols), dtype=np.int8), cols, indptr), shape=(m, m))
     return connected_components(graph, directed=False)[1]
 
 
