@@ -262,6 +262,14 @@ def _message(code, rank_def, not_est, state, diagnosis):
     return msg
 
 
+def _point_blocks(cof):
+    """The 3x3 diagonal blocks of per-primitive cofactors (n, 3k, 3k), one per point, in the
+    order of the primitives' points (a scale bar carries k = 2 points)."""
+    k = cof.shape[-1] // 3
+    idx = np.arange(k)
+    return cof.reshape(-1, k, 3, k, 3)[:, idx, :, idx, :].transpose(1, 0, 2, 3).reshape(-1, 3, 3)
+
+
 def _observation_arrays(net: Network, plan: Plan, q, state, s0sq):
     """Residuals, redundancy numbers and used masks in network row order; target and plane
     estimates with a posteriori sigmas (datum blocks of the cofactor matrix)."""
@@ -279,7 +287,7 @@ def _observation_arrays(net: Network, plan: Plan, q, state, s0sq):
         redund[rows] = np.asarray(q.redundancy[fi])
         used[rows] = np.asarray(plan.problem.families[fi].weight) > 0
         txyz[tg.reshape(-1)] = np.asarray(state.params.prims[fi]).reshape(-1, 3)
-        tcov[tg.reshape(-1)] = np.asarray(q.prim_cofactor[fi]).reshape(-1, 3, 3) * s0sq
+        tcov[tg.reshape(-1)] = _point_blocks(np.asarray(q.prim_cofactor[fi])) * s0sq
     tsig = np.sqrt(np.clip(np.diagonal(tcov, axis1=1, axis2=2), 0, None))
     planes = {}
     fp = plan.plane_family
