@@ -9,8 +9,8 @@ import pytest
 from helpers import dense_oracle, dense_residuals, perturbed_start
 
 import tlsjax as tj
+from tlsjax._inference._pipeline import Reweighter
 from tlsjax._inference._statistics import minimal_detectable_bias, w_tests
-from tlsjax._inference._testing import _Reweighter
 
 APS = ("A0", "B6", "B7", "C0")
 ROW, COL = 11, 1  # the masked observation
@@ -25,7 +25,7 @@ def small():
     sim = tj.simulate(tj.Room(n_targets=12), seed=7, aps=" ".join(APS), tilted=True)
     model = tj.CalibrationModel(tj.Scanner(aps=APS))
     net = sim.network
-    rw = _Reweighter(net, model, tj.SolverOptions())
+    rw = Reweighter(net, model, tj.SolverOptions())
     w = 1.0 / net.sigmas
     lw = np.where(np.isfinite(net.levelling_sigma), 1.0 / net.levelling_sigma, 0.0)
     full, _, _ = rw.run(w, lw, {})

@@ -8,9 +8,10 @@ import pytest
 
 import tlsjax as tj
 from tlsjax._adjustment._calibrate import _run
+from tlsjax._inference._pipeline import Reweighter, _undetermined_targets
 from tlsjax._inference._statistics import critical_value
 from tlsjax._inference._testing import TestingOptions as Opts
-from tlsjax._inference._testing import _Reweighter, _undetermined_targets, calibrate_and_test
+from tlsjax._inference._testing import calibrate_and_test
 from tlsjax._stats import non_centrality
 
 APS = ("A0", "B6", "B7", "C0")
@@ -116,15 +117,14 @@ def test_snooping_finds_blunders_without_false_removals(seed):
 
 def test_target_removal_and_undetermined_target(sim):
     net = sim.network
-    rw = _Reweighter(net, MODEL, tj.SolverOptions(full_covariance=False))
+    rw = Reweighter(net, MODEL, tj.SolverOptions(full_covariance=False))
     w = 1.0 / net.sigmas
     lw = np.where(np.isfinite(net.levelling_sigma), 1.0 / net.levelling_sigma, 0.0)
     full, _, _ = rw.run(w, lw, {})
     mask = np.ones_like(w, dtype=bool)
     rows = np.flatnonzero(net.target_index == 0)
     mask[rows[:-1]] = False  # target 0 is left in one scan only
-    pinned = {}
-    extra = _undetermined_targets(net, full, mask, pinned, 1, np.zeros_like(w))
+    extra, mask, pinned = _undetermined_targets(net, full, mask, {}, 1)
     assert len(extra) == 3 and 0 in pinned and not mask[rows].any()
     res, _, _ = rw.run(np.where(mask, w, 0.0), lw, pinned)
     assert res.ok, res.message

@@ -9,7 +9,7 @@ import pytest
 import scipy.stats
 
 import tlsjax as tj
-from tlsjax._inference import _testing
+from tlsjax._inference import _steps
 from tlsjax._inference._statistics import (
     group_variance_test,
     implausible_factor,
@@ -141,7 +141,7 @@ def test_safeguards_stop_with_their_codes(sim, monkeypatch):
         _scaled(net, 2.0), MODEL, testing=Opts(snooping=False, vce_max_iterations=1)
     )
     assert r.vce_result == VCEResult.MAX_ITERATIONS and not r.ok and r.calibration.ok
-    monkeypatch.setattr(_testing, "VCE_FACTOR_LIMIT", 100.0)
+    monkeypatch.setattr(_steps, "VCE_FACTOR_LIMIT", 100.0)
     r = calibrate_and_test(
         _scaled(net, 1 / 40), MODEL, testing=Opts(snooping=False, screening=False)
     )
@@ -154,14 +154,14 @@ def test_oscillating_factors_are_damped_and_reported(sim, monkeypatch):
     """A fake VCE step that alternates between s^2 = 4 and 1/4: the damping halves every
     change of direction, so the factors stay between 1/4 and 4 and the stop says why."""
     calls = {"n": 0}
-    real = _testing._Session.group_factors
+    real = _steps.group_statistics
 
-    def alternating(self):
-        s2, r_g, n_g = real(self)
+    def alternating(ctx, state):
+        s2, r_g, n_g = real(ctx, state)
         calls["n"] += 1
         return np.where(np.arange(4) < 3, 4.0 if calls["n"] % 2 else 0.25, s2), r_g, n_g
 
-    monkeypatch.setattr(_testing._Session, "group_factors", alternating)
+    monkeypatch.setattr(_steps, "group_statistics", alternating)
     r = calibrate_and_test(
         sim.network, MODEL, testing=Opts(snooping=False, screening=False, vce_max_iterations=8)
     )

@@ -51,9 +51,9 @@ from ._inference._sensitivity import Sensitivity as Sensitivity
 from ._inference._sensitivity import ap_sensitivity as ap_sensitivity
 from ._inference._statistics import ap_t_tests as ap_t_tests
 from ._inference._statistics import global_test as global_test
-from ._inference._testing import TestedCalibration as TestedCalibration
-from ._inference._testing import TestingOptions as TestingOptions
-from ._inference._testing import VCEResult as VCEResult
+from ._inference._tested import TestedCalibration as TestedCalibration
+from ._inference._tested import TestingOptions as TestingOptions
+from ._inference._tested import VCEResult as VCEResult
 from ._inference._testing import calibrate_and_test as calibrate_and_test
 from ._io._correct import Calibration as Calibration
 from ._io._correct import correct_points as correct_points
