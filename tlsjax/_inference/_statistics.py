@@ -24,6 +24,7 @@ import dataclasses
 
 import numpy as np
 
+from .._adjustment._quality import MIN_TESTABLE_REDUNDANCY
 from .._stats import MAD_TO_SIGMA, chi2_cdf, chi2_quantile, normal_critical_value, t_critical_value
 
 
@@ -89,26 +90,16 @@ def w_tests(
     sigmas: np.ndarray,
     redundancy: np.ndarray,
     *,
-    min_redundancy: float = 1e-6,
+    min_redundancy: float = MIN_TESTABLE_REDUNDANCY,
 ) -> np.ndarray:
-    """Baarda's ``w_i = v_i / (sigma_i sqrt(r_i))`` (Baarda 1968); NaN where ``r_i`` is below
-    ``min_redundancy`` (an observation with no redundancy cannot be tested)."""
+    """Baarda's ``w_i = v_i / (sigma_i sqrt(r_i))`` (Baarda 1968); NaN where ``r_i`` is at most
+    ``min_redundancy`` (an observation with no redundancy cannot be tested; the minimal
+    detectable bias is infinite there, :func:`tlsjax._adjustment._quality.minimal_detectable_bias`)."""
     r = np.asarray(redundancy, dtype=float)
     ok = r > min_redundancy
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(
             ok, np.asarray(residuals) / (np.asarray(sigmas) * np.sqrt(np.where(ok, r, 1.0))), np.nan
-        )
-
-
-def minimal_detectable_bias(
-    sigmas: np.ndarray, redundancy: np.ndarray, delta0: float = 4.13
-) -> np.ndarray:
-    """Internal reliability ``MDB_i = delta0 sigma_i / sqrt(r_i)`` [units of sigma]; inf where r_i = 0."""
-    r = np.asarray(redundancy, dtype=float)
-    with np.errstate(divide="ignore"):
-        return np.where(
-            r > 0, delta0 * np.asarray(sigmas) / np.sqrt(np.where(r > 0, r, 1.0)), np.inf
         )
 
 

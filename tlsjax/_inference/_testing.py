@@ -21,13 +21,13 @@ import numpy as np
 
 from .._adjustment._config import CalibrationModel, SolverOptions
 from .._adjustment._network import Network, check_calibration_arguments
+from .._adjustment._quality import minimal_detectable_bias
 from .._stats import non_centrality
 from ._pipeline import TestingContext, TestingState, group_statistics, run_pipeline, sigmas
 from ._statistics import (
     ap_t_tests,
     external_reliability,
     implausible_factor,
-    minimal_detectable_bias,
     snooping_critical_value,
     w_tests,
 )

@@ -34,7 +34,7 @@ from .._adjustment._network import (
     make_plane_network,
 )
 from .._model._aps import resolve_aps
-from .._model._geometry import TWO_PI, rotation_matrix, spherical_from_cartesian
+from .._model._geometry import TWO_PI, rotation_matrix, second_face, spherical_from_cartesian
 from .._model._points import observe_points
 from .._model._scanner import Scanner
 from .._units import DEG
@@ -397,9 +397,7 @@ def simulate_point_clouds(design: CloudDesign | None = None, *, seed: int = 0) -
     R_all = np.stack([rotation_matrix(*e[3:], xp=np) for e in eops])
     x = np.einsum("mij,mj->mi", R_all[si], X - E[:, :3])
     hyb = spherical_from_cartesian(x, xp=np)
-    face2 = (
-        hyb[:, 1] >= np.pi if design.architecture == "panoramic" else np.zeros(len(X), dtype=bool)
-    )
+    face2 = second_face(hyb[:, 1], design.architecture)
     sig = np.stack(
         [
             design.sigma_range / np.cos(inc),
