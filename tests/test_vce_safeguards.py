@@ -1,5 +1,10 @@
 """Issue 13: the default statistics cannot hide a blunder, and VCE converges or stops with a
-result code and its reason (scaled sigmas, noise-free data), never a NaN."""
+result code and its reason (scaled sigmas, noise-free data), never a NaN.
+
+Private imports: the VCE step's safeguards are exercised through its module (a fake variance
+estimate, a lower factor limit); the statistics' pure functions and the strict JSON writer
+directly.
+"""
 
 import dataclasses
 import json
@@ -9,14 +14,14 @@ import pytest
 import scipy.stats
 
 import tlsjax as tj
+from tlsjax import TestingOptions as Opts
+from tlsjax import VCEResult, calibrate_and_test
 from tlsjax._inference import _steps
 from tlsjax._inference._statistics import (
     group_variance_test,
     implausible_factor,
     suspected_units,
 )
-from tlsjax._inference._testing import TestingOptions as Opts
-from tlsjax._inference._testing import VCEResult, calibrate_and_test
 from tlsjax._io._json import dumps_strict
 
 APS = "A0 B6 B7 C0"
