@@ -69,10 +69,18 @@ class Reweighter:
         self.params0 = self.adjustment.initial
 
     def run(
-        self, weight, levelling_weight, pinned: Mapping, params0=None, plane_weight=None
+        self,
+        weight,
+        levelling_weight,
+        pinned: Mapping,
+        params0=None,
+        plane_weight=None,
+        fixed_aps=None,
     ) -> Adjusted:
         """``weight`` (n, 3) = 1/sigma or 0 (removed); ``pinned`` maps target -> xyz;
-        ``plane_weight`` (m, 3) of the plane rows (None: the network's)."""
+        ``plane_weight`` (m, 3) of the plane rows (None: the network's); ``fixed_aps``: AP
+        labels held at zero (None: the model's), e.g. candidate terms of an analysed wider
+        model that are not (yet) in the model: one compiled adjustment serves both."""
         adj = self.adjustment
         control = {t: (xyz, PIN_SIGMA) for t, xyz in pinned.items()}
         problem = adj.problem(
@@ -80,6 +88,7 @@ class Reweighter:
             levelling_weights=levelling_weight,
             control=control,
             plane_weights=plane_weight,
+            fixed_aps=fixed_aps,
         )
         state, q = adj.run(problem, params0)
         plan = dataclasses.replace(self.plan, problem=problem)

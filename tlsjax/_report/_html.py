@@ -345,7 +345,7 @@ def _section_reliability(doc) -> str:
         for g, v in rel.get("groups", {}).items()
     ]
     out = (
-        f"<h2>Reliability (&delta;0 = {rel.get('delta0', DELTA0)})</h2>"
+        f"<h2>Reliability (&delta;0 = {rel.get('delta0', DELTA0):.2f})</h2>"
         "<p>Internal: minimal detectable bias MDB = &delta;0 &sigma; / &radic;r. External: "
         "Baarda's factor &radic;((1 - r)/r) &delta;0, the effect of an undetected MDB-sized error "
         "on the unknowns in units of their sigma.</p>" + _table(head, rows)
