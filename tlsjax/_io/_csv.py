@@ -101,8 +101,15 @@ def open_text(path, what: str = "CSV file"):
         raise ValueError(f"{source}: cannot be read ({err.strerror or err})") from None
 
 
+#: First characters of a comment line before the header: tlsjax writes
+#: ``# tlsjax target observations: architecture=panoramic`` there
+#: (:func:`tlsjax._io._tables.recorded_architecture`).
+COMMENT = "#"
+
+
 def read_rows(path, loc: Located):
-    """Header (list of (line, names)) and data rows as (line, fields), blank lines skipped."""
+    """Header (list of (line, names)) and data rows as (line, fields), blank lines and comment
+    lines before the header (``#``) skipped."""
     with open_text(path) as fh:
         reader = csv.reader(fh, delimiter=",", strict=True)
         records = []
@@ -111,6 +118,8 @@ def read_rows(path, loc: Located):
             for fields in reader:
                 start, last = last + 1, reader.line_num
                 if not fields or all(not f.strip() for f in fields):
+                    continue
+                if not records and fields[0].lstrip().startswith(COMMENT):
                     continue
                 records.append((start, fields))
         except csv.Error as err:
