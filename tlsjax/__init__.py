@@ -1,4 +1,24 @@
-"""tlsjax: terrestrial laser scanner self-calibration in JAX."""
+"""tlsjax: terrestrial laser scanner self-calibration in JAX.
+
+This module only re-exports the public API. The implementation sits in private subpackages,
+one per layer. Imports run one way, down this list: a module imports only from the layers
+below its own (and from modules of its own subpackage, without circles); nothing imports this
+module except the command line.
+
+1. ``_units``, ``_stats``, ``_jit``, ``_optional``, ``_version``: units and display factors,
+   quantiles and the constants derived from them (scipy.stats), the compiler settings, the
+   optional libraries, the version. They import nothing of tlsjax.
+2. ``_model``: the mathematics of one observation (geometry, the AP registry, the scanner, the
+   point and plane models, levelling, the datum).
+3. ``_adjustment``: one adjustment of a network (data and boundary checks, index plan,
+   normal equations, solver, quality, result, approximate values, implicit differentiation).
+4. ``_simulation`` (networks with a known truth, Monte Carlo) and ``_clouds`` (planes from
+   point clouds): on layers 1-3.
+5. ``_inference`` (tests, VCE, snooping, selection, compatibility), ``_design`` (network
+   design) and ``_io`` (files): on layers 1-4.
+6. ``_report``: text, JSON, plots and the HTML report.
+7. this module (the public API), then ``_cli`` (the command line), which may use everything.
+"""
 
 import jax as _jax
 
@@ -21,9 +41,9 @@ from ._adjustment._network import make_plane_network as make_plane_network
 from ._adjustment._result import RESULT_MESSAGES as RESULT_MESSAGES
 from ._adjustment._result import CalibrationResult as CalibrationResult
 from ._adjustment._result import ResultCode as ResultCode
-from ._clouds._extract import ExtractedPlanes as ExtractedPlanes
 from ._clouds._extract import ExtractionConfig as ExtractionConfig
 from ._clouds._extract import extract_planes as extract_planes
+from ._clouds._extracted import ExtractedPlanes as ExtractedPlanes
 from ._clouds._match import MatchingConfig as MatchingConfig
 from ._clouds._match import match_planes as match_planes
 from ._clouds._target_match import TargetMatching as TargetMatching
@@ -60,9 +80,9 @@ from ._inference._sensitivity import Sensitivity as Sensitivity
 from ._inference._sensitivity import ap_sensitivity as ap_sensitivity
 from ._inference._statistics import ap_t_tests as ap_t_tests
 from ._inference._statistics import global_test as global_test
-from ._inference._testing import TestedCalibration as TestedCalibration
-from ._inference._testing import TestingOptions as TestingOptions
-from ._inference._testing import VCEResult as VCEResult
+from ._inference._tested import TestedCalibration as TestedCalibration
+from ._inference._tested import TestingOptions as TestingOptions
+from ._inference._tested import VCEResult as VCEResult
 from ._inference._testing import calibrate_and_test as calibrate_and_test
 from ._io._correct import Calibration as Calibration
 from ._io._correct import correct_points as correct_points
@@ -117,10 +137,4 @@ from ._simulation._room import Room as Room
 from ._simulation._room import Simulation as Simulation
 from ._simulation._room import simulate as simulate
 from ._simulation._truth import SimulationTruth as SimulationTruth
-
-try:
-    from importlib.metadata import version as _version
-
-    __version__ = _version("tlsjax")
-except Exception:  # pragma: no cover - running from a source tree without metadata
-    __version__ = "0.1.0"
+from ._version import __version__ as __version__

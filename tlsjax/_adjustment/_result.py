@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 
+import jax.numpy as jnp
 import numpy as np
 
 from ._diagnose import confounded_partners, failure_diagnosis
@@ -40,6 +41,18 @@ _MESSAGES = {
 #: Code -> message, for users who keep codes as plain integers.
 RESULT_MESSAGES = {int(c): c.message for c in ResultCode}
 SUCCESS, MAX_ITERATIONS, NOT_ESTIMABLE, RANK_DEFICIENT, NONFINITE = (int(c) for c in ResultCode)
+
+
+def result_code_of(*, finite, rank_deficient, converged, not_estimable):
+    """The :class:`ResultCode` of an adjustment from what it found, in the one order of
+    precedence (the first that applies): non-finite values, a rank defect of the scan poses,
+    no convergence, APs not estimable; success otherwise. Traceable (``jnp.where`` on booleans
+    or traced booleans), so the host-side assembly of a result and the compiled batch of a
+    Monte Carlo (:func:`._calibrate.result_code`) share it; an int32 code."""
+    code = jnp.where(not_estimable, NOT_ESTIMABLE, SUCCESS)
+    code = jnp.where(converged, code, MAX_ITERATIONS)
+    code = jnp.where(rank_deficient, RANK_DEFICIENT, code)
+    return jnp.where(finite, code, NONFINITE).astype(jnp.int32)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -237,16 +250,13 @@ def _max_correlations(plan: Plan, q, skip):
 
 
 def _result_code(state, q, rank_def, not_est):
-    finite = bool(state.finite) and np.isfinite(float(q.vtpv))
-    if not finite:
-        return ResultCode.NONFINITE
-    if rank_def:
-        return ResultCode.RANK_DEFICIENT
-    if not bool(state.converged):
-        return ResultCode.MAX_ITERATIONS
-    if not_est:
-        return ResultCode.NOT_ESTIMABLE
-    return ResultCode.SUCCESS
+    code = result_code_of(
+        finite=bool(state.finite) and bool(np.isfinite(float(q.vtpv))),
+        rank_deficient=bool(rank_def),
+        converged=bool(state.converged),
+        not_estimable=bool(not_est),
+    )
+    return ResultCode(int(code))
 
 
 def _message(code, rank_def, not_est, state, diagnosis):
@@ -305,7 +315,11 @@ def _observation_arrays(net: Network, plan: Plan, q, state, s0sq):
 
 def assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
     """The arrays of one adjustment (state, quality) as a :class:`CalibrationResult` with
-    names, units, result code and message."""
+    names, units, result code and message.
+
+    Long because a result holds some forty named fields, set here in one place; the computations
+    are the helpers of this module.
+    """
     spec = plan.spec
     ns = spec.n_scans
     dof = float(q.dof)

@@ -42,7 +42,7 @@ from .._adjustment._families import Params
 from .._adjustment._implicit import NetworkInputs
 from .._adjustment._network import ObservationTable, make_network, make_plane_network
 from .._model._aps import ap_corrections
-from .._model._geometry import TWO_PI, rotation_matrix, spherical_from_cartesian
+from .._model._geometry import TWO_PI, rotation_matrix, second_face, spherical_from_cartesian
 from .._model._levelling import compensator_reading
 from .._model._points import distorted_observations
 from .._model._scanner import Scanner
@@ -115,7 +115,7 @@ def _observe(X, eop, aps, noise, scanner: Scanner):
     x = rotation_matrix(eop[3], eop[4], eop[5]) @ (X - eop[:3])
     face2 = None
     if scanner.architecture == "panoramic":
-        face2 = spherical_from_cartesian(jax.lax.stop_gradient(x))[1] >= np.pi
+        face2 = second_face(spherical_from_cartesian(jax.lax.stop_gradient(x))[1])
     base = spherical_from_cartesian(x, face2) + noise
     return distorted_observations(base, lambda l: ap_corrections(aps, scanner.aps, l, scanner))
 

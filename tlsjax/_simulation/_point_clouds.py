@@ -45,7 +45,7 @@ from .._adjustment._network import (
     make_plane_network,
 )
 from .._model._aps import resolve_aps
-from .._model._geometry import TWO_PI, rotation_matrix, spherical_from_cartesian
+from .._model._geometry import TWO_PI, rotation_matrix, second_face, spherical_from_cartesian
 from .._model._points import observe_points
 from .._model._scanner import Scanner
 from .._model._targets import (
@@ -377,7 +377,7 @@ class PointClouds:
         X, E = np.asarray(X), np.asarray(E)
         R = np.stack([rotation_matrix(*e[3:], xp=np) for e in E])
         hyb = spherical_from_cartesian(np.einsum("mij,mj->mi", R, X - E[:, :3]), xp=np)
-        face2 = (hyb[:, 1] >= np.pi) & (self.scanner.architecture == "panoramic")
+        face2 = second_face(hyb[:, 1], self.scanner.architecture)
         names = self.scanner.aps
         coeffs = jnp.asarray([self.true_aps[n] for n in names], dtype=jnp.float64)
         obs = _observe_in_chunks(X, E, np.zeros_like(X), face2, coeffs, self.scanner, names)
@@ -756,7 +756,7 @@ def _observe_scan(design, eop, hits, rng, coeffs, scanner, names):
     m = len(X)
     R = rotation_matrix(*eop[3:], xp=np)
     hyb = spherical_from_cartesian((X - eop[:3]) @ R.T, xp=np)
-    face2 = hyb[:, 1] >= np.pi if design.architecture == "panoramic" else np.zeros(m, dtype=bool)
+    face2 = second_face(hyb[:, 1], design.architecture)
     sig = np.stack(
         [
             design.sigma_range / np.cos(hits["incidence"]),
