@@ -5,6 +5,9 @@ eliminated by Schur complement with the unit normal as a hard constraint, inner 
 the planes) is compared with the dense rigorous Gauss-Helmert adjustment of
 ``helpers.dense_gauss_helmert`` (conditions written out by hand, full A and B, the unit-normal
 constraints and the datum as hard constraints in a bordered system).
+
+Private imports: the plane family, the solver and the quality pass are compared with the dense
+oracle directly.
 """
 
 import types

@@ -12,6 +12,8 @@ from ._common import EXIT_FAILED, EXIT_OK, scanner_args
 
 
 def add_calibrate_parser(sub):
+    """The options of ``tlsjax calibrate``, declared one after another (long because there are many
+    of them; there is no logic here)."""
     c = sub.add_parser("calibrate", help="self-calibrate from target and/or plane observations")
     c.add_argument(
         "observations",
@@ -180,6 +182,8 @@ def _ap_priors(args) -> dict:
 
 
 def _calibrate(args) -> int:
+    """Run ``tlsjax calibrate``: read, adjust (or adjust and test), print and write. A little over
+    60 lines: one sequence of steps of the command, each a call."""
     from .._adjustment._calibrate import calibrate
     from .._adjustment._config import CalibrationModel, SolverOptions
     from .._io._json import check_output_file

@@ -156,6 +156,8 @@ def _undetermined(res) -> set:
 
 
 def _result_dict(res, alpha: float) -> dict:
+    """The result JSON of SPEC section 11, field by field (long because the contract has many
+    fields; there is no logic beyond the conversions)."""
     aps = {}
     for i, name in enumerate(res.ap_names):
         base = name.split("[")[0]
