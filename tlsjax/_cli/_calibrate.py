@@ -104,7 +104,8 @@ def add_calibrate_parser(sub):
         help="with VCE, remove gross errors before it (robust group scales, family-wise level "
         "--screen-alpha); default on: VCE on data with blunders inflates the factors until the "
         "blunders look normal. With planes: screen the plane points (IGG-III reweighting, "
-        "family-wise removal, then the a priori weights)",
+        "family-wise removal, then the a priori weights); with planes and --snoop: the robust "
+        "screening of calibrate_and_test, then snooping, plane points and targets alike",
     )
     c.add_argument(
         "--screen-alpha",
@@ -213,11 +214,6 @@ def _calibrate(args) -> int:
             "--vce is for target networks; with planes the weights are held fixed (SPEC section "
             "5): run without it (plane points are screened for outliers by --screen, the default)"
         )
-    if net.has_planes and net.has_targets and args.snoop:
-        raise ValueError(
-            "--snoop of a combined network is not supported: the plane points are screened "
-            "(--screen); snoop the targets in a target-only calibration"
-        )
     if net.dropped:
         print(
             f"dropped {len(net.dropped)} target(s) seen in one scan only: {', '.join(net.dropped)}"
@@ -240,7 +236,7 @@ def _calibrate(args) -> int:
     extra, mask, tested, mdb = {}, None, None, None
     if args.select:
         model, scanner = _select(args, net, model, scanner, extra)
-    if net.has_planes and (args.screen or args.snoop):
+    if net.has_planes and args.screen and not args.snoop:
         res = _screen(net, model, solver, extra)
     elif args.vce or args.snoop:
         tested = _test(args, net, model, solver)

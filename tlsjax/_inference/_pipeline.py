@@ -35,8 +35,9 @@ from .._adjustment._config import CalibrationModel, SolverOptions
 from .._adjustment._network import Network
 from .._adjustment._result import CalibrationResult, assemble
 from .._model._levelling import compensator_reading
+from .._model._planes import observation_residuals
 from .._units import display_group
-from ._statistics import variance_factor
+from ._statistics import condition_w_tests, variance_factor
 from ._tested import GROUPS, Removal, TestingOptions, VCEResult
 
 #: Pseudo-observation sigma [m] that holds a target which lost all its testable observations
@@ -51,11 +52,13 @@ ROUNDING_SIGMA = (1e-9, 1e-11, 1e-11, 1e-11)
 class Adjusted(NamedTuple):
     """One adjustment of the pipeline: the :class:`tlsjax.CalibrationResult`, the solver's
     final state (its ``params`` warm-start the next adjustment) and the AP influence (n, 3, a)
-    of every target observation (external reliability)."""
+    of every target observation and (m, 1, a) of every plane point's condition (external
+    reliability)."""
 
     result: CalibrationResult
     solution: object
     influence: np.ndarray
+    plane_influence: np.ndarray | None = None
 
 
 class Reweighter:
@@ -96,14 +99,19 @@ class Reweighter:
         infl = np.zeros((self.net.observations.shape[0], 3, plan.spec.n_aps))
         for fi, rows in enumerate(plan.family_rows[: len(plan.family_targets)]):
             infl[rows] = np.asarray(q.ap_influence[fi])
-        return Adjusted(res, state, infl)
+        fp, plane_infl = plan.plane_family, None
+        if fp is not None:
+            plane_infl = np.zeros((self.net.plane_observations.shape[0], 1, plan.spec.n_aps))
+            plane_infl[plan.family_rows[fp]] = np.asarray(q.ap_influence[fp])
+        return Adjusted(res, state, infl, plane_infl)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class TestingContext:
     """What stays fixed during one run of the pipeline: the network, the testing options, the
-    analysed adjustment and the a priori sigmas of the observations (n, 3) and of the
-    levelling readings (s, 2; inf where a scan is not levelled)."""
+    analysed adjustment and the a priori sigmas of the observations (n, 3), of the levelling
+    readings (s, 2; inf where a scan is not levelled) and of the plane points (m, 3; held
+    fixed: no variance component, SPEC section 5)."""
 
     network: Network
     options: TestingOptions
@@ -111,6 +119,13 @@ class TestingContext:
     base_sigma: np.ndarray
     levelling_sigma: np.ndarray
     levelling_active: np.ndarray
+    plane_sigma: np.ndarray
+
+    @property
+    def vce(self) -> bool:
+        """Variance components are estimated: asked for, and the network has target
+        observations (a plane network keeps its weights, SPEC section 5)."""
+        return bool(self.options.vce and self.network.observations.shape[0])
 
     @classmethod
     def make(cls, net: Network, model, solver: SolverOptions, options: TestingOptions):
@@ -122,6 +137,7 @@ class TestingContext:
             np.asarray(net.sigmas, dtype=float),
             lev,
             np.isfinite(lev),
+            np.asarray(net.plane_sigmas, dtype=float).reshape(-1, 3),
         )
 
 
@@ -132,8 +148,8 @@ class TestingState:
     ``factor`` (4,): variance factors of range, hz, el and levelling (the sigmas in use are
     ``sqrt(factor)`` times the a priori ones); ``estimated`` (4,) and ``notes``: which factors
     VCE estimated and why the others were held. ``mask`` (n, 3): True where an observation is
-    used; ``plane_mask`` (m,): the same for plane points (for the snooping of plane points;
-    all True today). ``pinned``: target index -> xyz of the targets held at their last
+    used; ``plane_mask`` (m,): the same for plane points (one condition each, tested and
+    removed as a whole). ``pinned``: target index -> xyz of the targets held at their last
     estimate. ``removals``, ``history``, ``warnings``, ``a_priori_tests``: what the run reports.
     ``adjusted``: the latest :class:`Adjusted` (None before the first); ``last_ok``: the last
     successful one with its variance factors; ``params``: the estimates that warm-start the
@@ -174,7 +190,7 @@ class TestingState:
             mask=np.ones((net.observations.shape[0], 3), dtype=bool),
             plane_mask=np.ones(net.plane_observations.shape[0], dtype=bool),
             critical_value=critical_value,
-            vce_result=VCEResult.CONVERGED if ctx.options.vce else VCEResult.OFF,
+            vce_result=VCEResult.CONVERGED if ctx.vce else VCEResult.OFF,
         )
 
     @property
@@ -226,7 +242,10 @@ def adjust(ctx: TestingContext, state: TestingState) -> TestingState:
     update)."""
     w = np.where(state.mask, 1.0 / sigmas(ctx, state), 0.0)
     lw = np.where(ctx.levelling_active, 1.0 / levelling_sigmas(ctx, state), 0.0)
-    adjusted = ctx.reweighter.run(w, lw, state.pinned, state.params)
+    pw = None
+    if ctx.network.has_planes:
+        pw = np.where(state.plane_mask[:, None], 1.0 / ctx.plane_sigma, 0.0)
+    adjusted = ctx.reweighter.run(w, lw, state.pinned, state.params, plane_weight=pw)
     changes = dict(adjusted=adjusted, n_adjustments=state.n_adjustments + 1)
     if adjusted.result.ok:
         changes.update(params=adjusted.solution.params, last_ok=(adjusted, state.factor.copy()))
@@ -352,3 +371,73 @@ def _undetermined_targets(net: Network, res: CalibrationResult, mask, pinned: Ma
                     mask[i, c] = False
         pinned[int(t)] = res.target_xyz[t].copy()
     return tuple(out), mask, pinned
+
+
+# --- Plane points (one Gauss-Helmert condition each) -----------------------------------------
+
+
+#: Fewest points a plane keeps in a scan through the removals.
+MIN_PAIR_POINTS = 3
+
+
+def plane_w(ctx: TestingContext, state: TestingState) -> np.ndarray:
+    """The w-test of every plane point's condition at the latest adjustment (m,)
+    (:func:`._statistics.condition_w_tests`); NaN where removed or untestable."""
+    res = state.result
+    if res.plane_residuals is None:
+        return np.zeros(0)
+    w = condition_w_tests(res.plane_residuals, ctx.plane_sigma, res.plane_redundancy)
+    return np.where(state.plane_mask, w, np.nan)
+
+
+def remove_plane_point(ctx: TestingContext, state: TestingState, k: int, w: float, reason: str):
+    """Weight 0 for plane point ``k`` (its condition: the point's three observations), reported
+    like a target observation's removal (group ``plane``, the range residual). Returns (state,
+    False) with a warning, nothing removed, where the point is one of the last
+    :data:`MIN_PAIR_POINTS` of its plane in its scan (the scan's pose and the plane would lose
+    what determines them)."""
+    net, res = ctx.network, state.result
+    pair = (net.plane_index == net.plane_index[k]) & (
+        net.plane_scan_index == net.plane_scan_index[k]
+    )
+    scan, plane = net.scans[net.plane_scan_index[k]], net.planes[net.plane_index[k]]
+    if int((pair & state.plane_mask).sum()) <= MIN_PAIR_POINTS:
+        text = (
+            f"plane point {k} (scan {scan}, plane {plane}, w = {w:.2f}) not removed: plane "
+            f"{plane} keeps only {MIN_PAIR_POINTS} points in scan {scan}; check that plane"
+        )
+        return add_warning(state, text), False
+    step = state.removal_step + 1
+    val, unit = display_group(0, res.plane_residuals[k, 0])
+    removal = Removal(step, int(k), scan, plane, "plane", float(val), unit, float(w), reason)
+    mask = state.plane_mask.copy()
+    mask[k] = False
+    state = dataclasses.replace(
+        state, removal_step=step, plane_mask=mask, removals=state.removals + (removal,)
+    )
+    return state, True
+
+
+def removed_plane_residuals(ctx: TestingContext, state: TestingState) -> np.ndarray | None:
+    """The plane residuals (m, 3) of the latest adjustment with those of the removed points
+    filled in: the Gauss-Helmert residuals each would have at the final unknowns with its a
+    priori sigmas (:func:`tlsjax._model._planes.observation_residuals`), so that a removed point
+    is reported (and plotted) with its misfit, not at the 0 of its zero weight."""
+    res = state.result
+    if res.plane_residuals is None or state.plane_mask.all():
+        return res.plane_residuals
+    net, plan = ctx.network, ctx.reweighter.plan
+    params, spec = state.adjusted.solution.params, plan.spec
+    k = np.flatnonzero(~state.plane_mask)
+    si = net.plane_scan_index[k]
+    sl = (spec.scanners, spec.ap_names, spec.ap_slices)
+    v = jax.vmap(lambda P, E, l, w, i: observation_residuals(P, E, params.aps, l, w, *sl, i))(
+        params.prims[plan.plane_family][net.plane_index[k]],
+        params.eops[si],
+        jnp.asarray(net.plane_observations[k]),
+        jnp.asarray(1.0 / ctx.plane_sigma[k]),
+        jnp.asarray(net.instrument_of_scan[si]),
+    )
+    out = np.array(res.plane_residuals, dtype=float)
+    out[k] = np.asarray(v)
+    return out

@@ -103,6 +103,29 @@ def w_tests(
         )
 
 
+def condition_w_tests(
+    residuals: np.ndarray,
+    sigmas: np.ndarray,
+    redundancy: np.ndarray,
+    *,
+    min_redundancy: float = MIN_TESTABLE_REDUNDANCY,
+) -> np.ndarray:
+    """Baarda's w-test of one Gauss-Helmert condition per point (a plane point, SPEC sections 4
+    and 7), (m,): ``w_i = e_i / sqrt(r_i)`` with ``e_i`` the whitened condition at the solution,
+    ``e_i^2 = sum_k (v_k / sigma_k)^2`` (its share of ``v^T P v``), and ``r_i = sum_k r_k`` the
+    condition's redundancy number; signed as the range residual. ``residuals``, ``sigmas``,
+    ``redundancy`` (m, 3). NaN where ``r_i`` is at most ``min_redundancy``."""
+    v, s = np.asarray(residuals, dtype=float), np.asarray(sigmas, dtype=float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        e = np.sqrt(np.sum(np.where(s > 0, v / np.where(s > 0, s, 1.0), 0.0) ** 2, axis=-1))
+    return w_tests(
+        np.where(v[:, 0] < 0, -e, e),
+        np.ones(len(e)),
+        np.sum(redundancy, axis=-1),
+        min_redundancy=min_redundancy,
+    )
+
+
 def ap_t_tests(result, alpha: float = 0.05) -> tuple:
     """t-test of every AP: ``t = x / s_x`` (a posteriori sigma) against Student's t with the
     adjustment's degrees of freedom, two-sided at ``alpha``. Non-estimable APs get NaN."""

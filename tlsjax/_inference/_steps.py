@@ -56,7 +56,9 @@ from ._pipeline import (
     add_warning,
     adjust,
     group_statistics,
+    plane_w,
     remove,
+    remove_plane_point,
     restore_last_ok,
     rounding_groups,
     sigmas,
@@ -127,10 +129,11 @@ def record_a_priori_tests(ctx: TestingContext, state: TestingState, stage: str) 
 
 def screening(ctx: TestingContext, state: TestingState) -> TestingState:
     """Gross-error screening before VCE (module docstring), then the a priori tests again on
-    the screened observations. Only with ``vce`` and ``screening`` and a first adjustment that
+    the screened observations. Only with ``screening``, ``vce`` or plane points (they have no
+    VCE, and the robust scale protects the snooping that follows) and a first adjustment that
     succeeded."""
     t = ctx.options
-    if not (state.ok and t.vce and t.screening):
+    if not (state.ok and (t.vce or ctx.network.has_planes) and t.screening):
         return state
     n_before = len(state.removals)
     state = _screen(ctx, state)
@@ -175,18 +178,49 @@ def _balance_groups(ctx: TestingContext, state: TestingState):
     return state, True
 
 
-def _largest_w(w):
-    """Row, group and size of the largest finite ``|w|`` (-1 where there is none)."""
+def _largest_w(w, wp=None):
+    """Row, group and size of the largest finite ``|w|`` (-1 where there is none) over the
+    target observations ``w`` (n, 3) and the plane points' conditions ``wp`` (m,); a plane
+    point comes back as (row, :data:`PLANE`, size)."""
     aw = np.where(np.isfinite(w), np.abs(w), -1.0)
-    i, g = np.unravel_index(int(np.argmax(aw)), aw.shape)
-    return int(i), int(g), float(aw[i, g])
+    i, g = np.unravel_index(int(np.argmax(aw)), aw.shape) if aw.size else (0, 0)
+    top = float(aw[i, g]) if aw.size else -1.0
+    if wp is not None and wp.size:
+        ap = np.where(np.isfinite(wp), np.abs(wp), -1.0)
+        k = int(np.argmax(ap))
+        if ap[k] > top:
+            return k, PLANE, float(ap[k])
+    return int(i), int(g), top
+
+
+#: The "group" of a plane point in :func:`_largest_w`: its condition, tested as a whole.
+PLANE = -1
+
+
+def _remove(ctx, state, i: int, g: int, w, wp, reason: str):
+    """Remove what :func:`_largest_w` found: a target observation (:func:`._pipeline.remove`)
+    or a plane point (:func:`._pipeline.remove_plane_point`); (state, removed)."""
+    if g == PLANE:
+        return remove_plane_point(ctx, state, i, float(wp[i]), reason)
+    return remove(ctx, state, i, g, w, reason), True
+
+
+def _plane_screening_w(ctx: TestingContext, state: TestingState):
+    """The plane points' w-tests over their robust scale (the plane group's own
+    ``median |w| / 0.6745``, so that plane sigmas off by any factor neither hide nor invent
+    outliers), (m,); None without planes."""
+    if not ctx.network.has_planes:
+        return None
+    wp = plane_w(ctx, state)
+    scale = robust_scale(wp, np.isfinite(wp), MIN_SCREENED)
+    return wp / scale if scale > 0 else np.full_like(wp, np.nan)
 
 
 def _screen(ctx: TestingContext, state: TestingState) -> TestingState:
     """Robust group scales, family-wise critical value, largest first, re-adjusting after each
     removal; stops with a warning when more than ``screening_max_share`` would go."""
     t = ctx.options
-    limit = max(1, int(t.screening_max_share * state.mask.sum()))
+    limit = max(1, int(t.screening_max_share * (state.mask.sum() + state.plane_mask.sum())))
     state, balanced = _balance_groups(ctx, state)
     if not balanced:
         return state  # noise-free: nothing to screen; VCE says so
@@ -195,12 +229,13 @@ def _screen(ctx: TestingContext, state: TestingState) -> TestingState:
         u, scale = _standardised(ctx, state)
         with np.errstate(invalid="ignore", divide="ignore"):
             w = u / np.where(scale > 0, scale, np.nan)[None, :]
-        n_tested = int(np.isfinite(w).sum())
+        wp = _plane_screening_w(ctx, state)
+        n_tested = int(np.isfinite(w).sum()) + (0 if wp is None else int(np.isfinite(wp).sum()))
         if n_tested == 0:
             return state
         crit = critical_value(t.screening_alpha / n_tested)
         state = dataclasses.replace(state, screening_critical_value=crit)
-        i, g, top = _largest_w(w)
+        i, g, top = _largest_w(w, wp)
         if top <= crit:
             return state
         if removed >= limit or len(state.removals) >= t.max_removals:
@@ -212,7 +247,10 @@ def _screen(ctx: TestingContext, state: TestingState) -> TestingState:
                 "few blunders",
             )
         why = "screening before VCE: robust |w| above the family-wise critical value"
-        state = adjust(ctx, remove(ctx, state, i, g, w, why))
+        state, done = _remove(ctx, state, i, g, w, wp, why)
+        if not done:
+            return state
+        state = adjust(ctx, state)
         removed += 1
         if not state.ok:
             return state
@@ -337,7 +375,8 @@ def _snoop_once(ctx: TestingContext, state: TestingState):
     """One test of every observation; (state, True) when the largest |w| was removed."""
     t, res = ctx.options, state.result
     w = np.where(state.mask, w_tests(res.residuals, sigmas(ctx, state), res.redundancy), np.nan)
-    n_tested = int(np.isfinite(w).sum())
+    wp = plane_w(ctx, state) if ctx.network.has_planes else None
+    n_tested = int(np.isfinite(w).sum()) + (0 if wp is None else int(np.isfinite(wp).sum()))
     crit = snooping_critical_value(
         t.alpha, n_tested, bonferroni=t.bonferroni, given=t.critical_value
     )
@@ -346,14 +385,14 @@ def _snoop_once(ctx: TestingContext, state: TestingState):
         {
             "step": state.removal_step,
             "sigma0": res.sigma0,
-            "max_abs_w": float(np.nanmax(np.abs(w))) if n_tested else None,
+            "max_abs_w": _largest_w(w, wp)[2] if n_tested else None,
             "critical": crit,
             "factors": state.factor.tolist(),
         },
     )
     if not t.snooping or n_tested == 0:
         return state, False
-    i, g, top = _largest_w(w)
+    i, g, top = _largest_w(w, wp)
     if top <= crit:
         return state, False
     if len(state.removals) >= t.max_removals:
@@ -362,7 +401,7 @@ def _snoop_once(ctx: TestingContext, state: TestingState):
             f"still above {crit:.2f}"
         )
         return add_warning(state, text), False
-    return remove(ctx, state, i, g, w, "largest |w| above critical value"), True
+    return _remove(ctx, state, i, g, w, wp, "largest |w| above critical value")
 
 
 # --- 6. Selection -----------------------------------------------------------------------------

@@ -200,6 +200,13 @@ class TestedCalibration:
     ``vce_iterations`` counts its re-weighted adjustments; ``warnings``
     name implausible variance factors (with a suspected unit mix-up) and other findings.
     ``ok``: the adjustment succeeded and VCE ended in a usable state.
+
+    With planes (None without), per plane point in the network's plane row order: ``plane_mask``
+    (m,) True where used, ``plane_w`` (m,) the w-test of its condition, ``plane_mdb`` (m, 3) the
+    minimal detectable bias of each of its observations [m, rad], ``plane_external`` (m,) and
+    ``plane_external_ap`` as ``external``; removed points are in ``outliers`` with group
+    ``plane`` (``target`` names the plane, ``row`` the plane row) and their residuals in
+    ``calibration.plane_residuals`` are those at the final unknowns (not 0).
     """
 
     calibration: CalibrationResult
@@ -224,6 +231,11 @@ class TestedCalibration:
     vce_iterations: int = 0
     screening_critical_value: float | None = None
     warnings: tuple = ()
+    plane_mask: np.ndarray | None = None
+    plane_w: np.ndarray | None = None
+    plane_mdb: np.ndarray | None = None
+    plane_external: np.ndarray | None = None
+    plane_external_ap: np.ndarray | None = None
 
     @property
     def ok(self) -> bool:
@@ -257,7 +269,9 @@ class TestedCalibration:
             },
             "a_priori_tests": list(self.a_priori_tests),
             "screening": {
-                "enabled": bool(self.options.vce and self.options.screening),
+                "enabled": bool(
+                    self.options.screening and (self.options.vce or self.plane_mask is not None)
+                ),
                 "critical_value": self.screening_critical_value,
                 "family_alpha": self.options.screening_alpha,
                 "n_removed": sum(o.reason.startswith("screening") for o in self.outliers),
@@ -315,8 +329,9 @@ class TestedCalibration:
             )
         )
         for o in self.outliers:
+            what = f"plane {o.target} point {o.row}" if o.group == "plane" else f"target {o.target}"
             lines.append(
-                f"    step {o.step}: scan {o.scan} target {o.target} {o.group}: v = {o.residual:.4g} {o.unit}, "
+                f"    step {o.step}: scan {o.scan} {what} {o.group}: v = {o.residual:.4g} {o.unit}, "
                 f"w = {o.w:.4g} ({o.reason})"
             )
         for w in self.warnings:

@@ -17,13 +17,23 @@ Units: SI inside, millimetres and arc seconds in the reports.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from .._adjustment._config import CalibrationModel, SolverOptions
 from .._adjustment._network import Network, check_calibration_arguments
 from .._adjustment._quality import minimal_detectable_bias
 from .._stats import non_centrality
-from ._pipeline import TestingContext, TestingState, group_statistics, run_pipeline, sigmas
+from ._pipeline import (
+    TestingContext,
+    TestingState,
+    group_statistics,
+    plane_w,
+    removed_plane_residuals,
+    run_pipeline,
+    sigmas,
+)
 from ._statistics import (
     ap_t_tests,
     external_reliability,
@@ -59,6 +69,14 @@ def calibrate_and_test(
     held at its last estimate by a weak pseudo-observation (no rank defect, no effect on the
     rest), and this is reported. Weights are traced arrays of the compiled adjustment: nothing
     recompiles.
+
+    Plane points (plane-based and combined networks) are tested by the same rules, one
+    Gauss-Helmert condition per point (:func:`._statistics.condition_w_tests`): screening with
+    the plane group's own robust scale and the same family-wise critical value (over targets'
+    observations and plane points together), snooping against the same critical value, a
+    rejected point removed as a whole (weight 0 for its three observations) and reported with
+    its range residual; a plane keeps at least three points in every scan. Plane weights are
+    held fixed (no variance component, SPEC section 5); a network of planes only has no VCE.
     """
     check_calibration_arguments(network, model, options, "calibrate_and_test")
     if testing is not None and not isinstance(testing, TestingOptions):
@@ -68,16 +86,10 @@ def calibrate_and_test(
     model = model or CalibrationModel()
     options = options or SolverOptions(full_covariance=False)
     testing = testing or TestingOptions()
-    if network.has_planes:
-        raise ValueError(
-            f"{network.source}: variance components and data snooping are for target networks; with "
-            "planes the weights are held fixed (SPEC section 5); screen plane points for outliers "
-            "with tlsjax.screen_planes(network, model)"
-        )
     ctx = TestingContext.make(network, model, options, testing)
     crit = snooping_critical_value(
         testing.alpha,
-        int(network.observations.size),
+        int(network.observations.size) + int(network.plane_observations.shape[0]),
         bonferroni=testing.bonferroni,
         given=testing.critical_value,
     )
@@ -90,7 +102,7 @@ def tested_calibration(ctx: TestingContext, state: TestingState) -> TestedCalibr
     warnings and the message."""
     t, res, mask = ctx.options, state.result, state.mask
     vce_result = state.vce_result
-    if t.vce and not state.ok and vce_result == VCEResult.CONVERGED:
+    if ctx.vce and not state.ok and vce_result == VCEResult.CONVERGED:
         vce_result = VCEResult.ADJUSTMENT_FAILED
     delta0 = non_centrality(t.alpha0, t.power)
     sig = sigmas(ctx, state)
@@ -105,12 +117,18 @@ def tested_calibration(ctx: TestingContext, state: TestingState) -> TestedCalibr
     vcs = _variance_components(ctx, state)
     warnings = state.warnings + _factor_warnings(state, vcs, vce_result)
     parts = [res.message]
-    if t.vce:
+    if ctx.vce:
         parts.append(vce_result.message)
-    if state.removals:
-        parts.append(f"{len(state.removals)} observation(s) removed")
+    n_points = sum(o.group == "plane" for o in state.removals)
+    if len(state.removals) > n_points:
+        parts.append(f"{len(state.removals) - n_points} observation(s) removed")
+    if n_points:
+        parts.append(f"{n_points} plane point(s) removed")
     if warnings:
         parts.append(f"{len(warnings)} warning(s)")
+    planes = _plane_quality(ctx, state, delta0)
+    if planes:
+        res = dataclasses.replace(res, plane_residuals=planes.pop("residuals"))
     return TestedCalibration(
         calibration=res,
         options=t,
@@ -134,13 +152,41 @@ def tested_calibration(ctx: TestingContext, state: TestingState) -> TestedCalibr
         vce_iterations=state.vce_iterations,
         screening_critical_value=state.screening_critical_value,
         warnings=warnings,
+        **planes,
+    )
+
+
+def _plane_quality(ctx: TestingContext, state: TestingState, delta0: float) -> dict:
+    """The plane points' tests and reliability at the final adjustment ({} without planes):
+    ``plane_w`` (m,), ``plane_mdb`` (m, 3) the bias of each observation that the point's
+    condition test detects, ``delta0 sigma_k / sqrt(r_k)`` (:func:`minimal_detectable_bias`
+    with the observation's share of the condition's redundancy), ``plane_external`` (m,) and
+    ``plane_external_ap``, and the residuals with those of the removed points filled in."""
+    if not ctx.network.has_planes:
+        return {}
+    res, mask = state.result, state.plane_mask
+    ext, ext_ap = external_reliability(
+        state.adjusted.plane_influence,
+        res.plane_redundancy.sum(axis=1, keepdims=True),
+        mask[:, None],
+        delta0,
+        res.ap_names,
+    )
+    mdb = minimal_detectable_bias(ctx.plane_sigma, res.plane_redundancy, delta0)
+    return dict(
+        residuals=removed_plane_residuals(ctx, state),
+        plane_mask=mask,
+        plane_w=plane_w(ctx, state),
+        plane_mdb=np.where(mask[:, None], mdb, np.nan),
+        plane_external=ext[:, 0],
+        plane_external_ap=ext_ap[:, 0],
     )
 
 
 def _variance_components(ctx: TestingContext, state: TestingState) -> list:
     """One :class:`VarianceComponent` per group with observations, at the final weights."""
     s2, r_g, n_g = group_statistics(ctx, state)
-    vce = ctx.options.vce
+    vce = ctx.vce
     out = []
     for gi, gname in enumerate(GROUPS):
         if n_g[gi] == 0:

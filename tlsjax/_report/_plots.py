@@ -59,12 +59,16 @@ def plot_residuals(
     show plain residuals. ``compare``: another result of the same observations (e.g. without
     APs), drawn in grey behind. ``mask`` (n, 3) bool: observations used in the adjustment
     (e.g. ``TestedCalibration.mask``; default all); the others (removed by data snooping) are
-    drawn as red crosses. ``scanner``: the :class:`Scanner` of the calibration (architecture and unit
+    drawn as red crosses. A plane network plots its points, the removed ones (weight 0 in
+    ``plane_used``) as red crosses at their residuals at the final unknowns
+    (:func:`tlsjax.calibrate_and_test` fills them in). ``scanner``: the :class:`Scanner` of the calibration (architecture and unit
     lengths enter some bases, e.g. B6 and A3/A4; default hybrid).
     """
     plt = _pyplot()
     l, v, used = _rows(result)
-    if mask is not None:
+    if mask is not None and np.shape(mask) == used.shape:
+        # The target rows' mask; a plane network's plot takes the removed points from the
+        # result (``plane_used``, their residuals at the final unknowns).
         used = np.asarray(mask, dtype=bool)
     curves = _ap_curves(result, scanner) if overlay else {}
     grey = None if compare is None else _rows(compare)[1]
