@@ -1,0 +1,297 @@
+"""The simulations of the AP-set compatibility test (SPEC section 9, steps 2-3), as pure JAX.
+
+One simulation draws targets over the room's faces, observes them twice from one levelled
+station (in the design's architecture, scan k with set k's noise), corrects scan k with set k
+(its own basis functions: architecture variant, unit lengths, user-registered terms),
+converts both to Cartesian coordinates and fits scan 2 onto scan 1 on the control points
+(rigid body, Horn/Kabsch). It returns sums over its check points of everything the test needs,
+so that N simulations reduce to a few small matrices (no per-point array leaves the device):
+
+* ``T``: sum of ``d^T C^-1 d``; ``n_sig``: how many exceed the chi-square(3) quantile;
+* ``G = sum F^T C^-1 F``, ``b = sum F^T C^-1 n``, ``c = sum n^T C^-1 n`` (the null's quadratic
+  form, SPEC section 9 step 5, on the union columns below);
+* ``Geu = sum F^T F`` and ``Kpre = sum Fpre^T Fpre``: the Euclidean size of an AP direction's
+  effect after and before the rigid fit (what object space can see of it);
+* ``ss``: sums of squared differences per axis.
+
+**Union columns.** ``[J1 J2] e = F P e``: a term both sets hold with one basis moves the two
+scans alike, so its column of J2 is minus its column of J1 to first
+order (the two scans differ by noise), and the pair enters through ``e1 - e2`` alone. F holds
+J1's columns (every term of set 1) and J2's columns of the other terms of set 2; ``P`` (host
+side) maps e = (e1, e2) onto them, and the covariance of ``P e`` is the argument ``Cu``. For two
+sets of one model this halves the width of every per-point product (a quarter of the work in
+``G``), which is what keeps a 23-AP test within twice a 4-AP one.
+
+Jacobians by autodiff, composed by the chain rule so that nothing is differentiated twice:
+per point ``dx/dl`` and ``dx/da`` of ``x = cart(l - Delta(l; a))`` (``jax.jacfwd``), and the
+12 x 6 n_c Jacobian of the fit's (R, t) with respect to the control points' coordinates
+(``jax.jacfwd`` through the SVD). A check point's difference ``d = R x2 + t - x1`` then has
+``J1 = -dx1/da1 + A dtheta/dx1_c dx1_c/da1``, ``J2 = R dx2/da2 + A dtheta/dx2_c dx2_c/da2``
+(``A = d(R x2 + t)/d(R, t)``), and the noise covariance
+``N = S1 + R S2 R^T + A P A^T`` with ``S_k = dx_k/dl Sigma_l dx_k/dl^T`` and ``P`` the
+covariance of (R, t) from the control points' noise.
+
+The instrument's own errors are not put into the simulated scans: both scans are of one mode,
+so its errors would move them alike and cancel from ``d`` to first order; what is left is the
+product of two AP effects (e.g. 1e-4 rad times a basis slope), far below the noise and common to
+the null. (Scans of two modes, hybrid and panoramic, would not cancel: the same collimation
+error moves the back half of a panoramic scan the other way. The design therefore observes both
+scans in one architecture.)
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._adjustment._linalg import spd_inverse
+from .._model._aps import ap_corrections, on_reregistration
+from .._model._geometry import cartesian_from_spherical, rigid_fit, spherical_from_cartesian
+from .._simulation._batch import compile_batched
+
+#: Relative ridge on a check point's 3 x 3 covariance: keeps ``d^T C^-1 d`` finite when the
+#: noise is zero and the AP difference moves the point in fewer than three directions.
+RIDGE = 1e-12
+
+
+def room_points(room, u):
+    """Points uniform by area over the room's six faces (margin from the edges), with the
+    faces' inward normals, from uniforms ``u`` (n, 4): targets at different distances from the
+    station. The face is the first uniform's bin in the cumulative face areas."""
+    L, W, H, m = room.length, room.width, room.height, room.margin
+    area = np.array([W * H, W * H, L * H, L * H, L * W, L * W])
+    edges = jnp.asarray(np.cumsum(area)[:-1] / area.sum())
+    value = jnp.asarray([0.0, L, 0.0, W, 0.0, H])
+    axis = jnp.asarray([0, 0, 1, 1, 2, 2])
+    normal = jnp.asarray(
+        [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=jnp.float64
+    )
+    face = jnp.sum(u[:, :1] >= edges[None, :], axis=1)
+    size = np.array([L, W, H])
+    X = m + u[:, 1:4] * (size - 2 * m)
+    X = jnp.where(jnp.arange(3)[None, :] == axis[face][:, None], value[face][:, None], X)
+    return X, normal[face]
+
+
+def _normals(u):
+    """Standard normals (n, 2k) from uniforms (n, 2k) by Box-Muller."""
+    k = u.shape[1] // 2
+    r = jnp.sqrt(-2.0 * jnp.log1p(-u[:, :k]))
+    phi = 2.0 * np.pi * u[:, k:]
+    return jnp.concatenate([r * jnp.cos(phi), r * jnp.sin(phi)], axis=1)
+
+
+def _observe(x, architecture):
+    """Observations of scanner-space points in the architecture's convention (SPEC section 1)."""
+    if architecture != "panoramic":
+        return spherical_from_cartesian(x)
+    face2 = jnp.mod(jnp.arctan2(x[..., 1], x[..., 0]), 2 * np.pi) >= np.pi
+    return spherical_from_cartesian(x, face2)
+
+
+def _fit_params(dst, src):
+    """(R, t) of the rigid fit of ``src`` onto ``dst`` as one 12-vector (R row-major, t)."""
+    R, t = rigid_fit(src, dst)
+    return jnp.concatenate([R.reshape(-1), t])
+
+
+def _moves(x):
+    """``A = d(R x + t)/d(vec R, t)`` (3 x 12) of each point of ``x`` (p, 3)."""
+    p = x.shape[0]
+    eye = jnp.broadcast_to(jnp.eye(3), (p, 3, 3))
+    rot = jnp.einsum("rq,ps->prqs", jnp.eye(3), x).reshape(p, 3, 9)
+    return jnp.concatenate([rot, eye], axis=2)
+
+
+def _corrector(scanner):
+    """Per point: ``x = cart(l - Delta(l; a))`` with ``dx/dl`` (3 x 3) and ``dx/da`` (3 x n).
+
+    The corrections are linear in ``a``, so ``dDelta/da`` is the basis matrix: reverse mode
+    gets it in three passes of n products (forward mode would push n tangents through all n
+    terms, n^2 per point, the largest cost of a 23-AP test)."""
+    names = scanner.aps
+
+    def correction(l, a):
+        return ap_corrections(a, names, l, scanner)
+
+    def point(l, a):
+        lc = l - correction(l, a)
+        Jc = jax.jacfwd(cartesian_from_spherical)(lc)
+        dl = jax.jacfwd(correction, argnums=0)(l, a)
+        B = jax.jacrev(correction, argnums=1)(l, a)
+        return cartesian_from_spherical(lc), Jc - Jc @ dl, -Jc @ B
+
+    return jax.vmap(point, in_axes=(0, None))
+
+
+def _flat(M, K):
+    """``M[p] @ K`` for a stack M (p, r, q) and one K (q, s), as one matrix product."""
+    return (M.reshape(-1, M.shape[-1]) @ K).reshape(M.shape[:-1] + K.shape[-1:])
+
+
+def _gram(U, V):
+    """``sum_p U[p]^T V[p]`` (p, r, a), (p, r, b) -> (a, b), as one matrix product (XLA lowers
+    the einsum with two contracted axes several times slower)."""
+    return U.reshape(-1, U.shape[-1]).T @ V.reshape(-1, V.shape[-1])
+
+
+def make_simulation(design):
+    """``one(key, a1, a2, C1, C2, sig1, sig2, reference) -> dict`` of check-point sums (module
+    docstring) for a :class:`~tlsjax._inference._compat.Design`; ``Geu`` and ``Kpre`` are
+    formed only when ``reference`` (an unbatched flag) is true, and are zeros otherwise."""
+    s1, s2 = design.scanner1, design.scanner2
+    nc, nt = design.n_control, design.n_targets
+    station = jnp.asarray(design.room.stations[0], dtype=jnp.float64)
+    point1, point2 = _corrector(s1), _corrector(s2)
+    fit_jac = jax.jacfwd(_fit_params, argnums=(0, 1))
+
+    def differences(x1, x2):
+        th = _fit_params(x1[:nc], x2[:nc])
+        R, t = th[:9].reshape(3, 3), th[9:]
+        return x2[nc:] @ R.T + t - x1[nc:], R
+
+    def scans(key, sig1, sig2):
+        # One flat draw per simulation: XLA compiles a multi-dimensional threefry draw many
+        # times slower (measured 14 s against 1.3 s for 1,000 uniforms under vmap).
+        u = jax.random.uniform(key, (nt * 10,)).reshape(nt, 10)
+        X, nrm = room_points(design.room, u[:, :4])
+        e = _normals(u[:, 4:])
+        los = X - station
+        cosb = jnp.abs(jnp.sum(los * nrm, axis=1)) / jnp.linalg.norm(los, axis=1)
+        unit = jnp.stack([1.0 / jnp.maximum(cosb, 0.05), jnp.ones(nt), jnp.ones(nt)], axis=1)
+        sd1, sd2 = unit * sig1, unit * sig2
+        l0 = _observe(los, design.architecture)
+        return l0, l0, l0 + e[:, :3] * sd1, l0 + e[:, 3:] * sd2, sd1, sd2
+
+    cols2 = np.asarray(design.columns2, dtype=int)
+
+    def one(key, a1, a2, Cu, sig1, sig2, reference):
+        l01, l02, l1, l2, sd1, sd2 = scans(key, sig1, sig2)
+        x1, Jl1, Ja1 = point1(l1, a1)
+        x2, Jl2, Ja2 = point2(l2, a2)
+        Ja2 = Ja2[:, :, cols2]
+        d, R = differences(x1, x2)
+        d0, _ = differences(point1(l01, a1)[0], point2(l02, a2)[0])
+        n = d - d0  # the noise part of d: d less its noise-free value
+
+        M1, M2 = (m.reshape(12, nc * 3) for m in fit_jac(x1[:nc], x2[:nc]))
+        A = _moves(x2[nc:])
+        F = jnp.concatenate(
+            [
+                -Ja1[nc:] + _flat(A, M1 @ Ja1[:nc].reshape(nc * 3, -1)),
+                jnp.einsum("ij,pja->pia", R, Ja2[nc:])
+                + _flat(A, M2 @ Ja2[:nc].reshape(nc * 3, -1)),
+            ],
+            axis=2,
+        )
+        S1 = jnp.einsum("pij,pj,pkj->pik", Jl1, sd1**2, Jl1)
+        S2 = jnp.einsum("pij,pj,pkj->pik", Jl2, sd2**2, Jl2)
+        S1c = jax.scipy.linalg.block_diag(*S1[:nc])
+        S2c = jax.scipy.linalg.block_diag(*S2[:nc])
+        P = M1 @ S1c @ M1.T + M2 @ S2c @ M2.T
+        N = S1[nc:] + R @ S2[nc:] @ R.T + _flat(A, P) @ jnp.swapaxes(A, 1, 2)
+        C = jnp.einsum("pia,pja->pij", _flat(F, Cu), F) + N
+        tr = jnp.trace(C, axis1=1, axis2=2)
+        Ci = spd_inverse(C + (RIDGE * tr / 3.0)[:, None, None] * jnp.eye(3))
+        Cid, Cin = jnp.einsum("pij,pj->pi", Ci, d), jnp.einsum("pij,pj->pi", Ci, n)
+        u = F.shape[2]
+
+        def reference_sums():
+            Fpre = jnp.concatenate([-Ja1[nc:], Ja2[nc:]], axis=2)
+            return _gram(F, F), _gram(Fpre, Fpre)
+
+        Geu, Kpre = jax.lax.cond(
+            reference, reference_sums, lambda: (jnp.zeros((u, u)), jnp.zeros((u, u)))
+        )
+        q = jnp.sum(d * Cid, axis=1)
+        return {
+            "T": jnp.sum(q),
+            "n_sig": jnp.sum(q > design.critical),
+            "G": _gram(F, Ci @ F),
+            "b": _gram(F, Cin[:, :, None])[:, 0],
+            "c": jnp.sum(n * Cin),
+            "Geu": Geu,
+            "Kpre": Kpre,
+            "ss": jnp.sum(d * d, axis=0),
+        }
+
+    return one
+
+
+def _realisation_key(seed_key, index, runs):
+    """Simulation ``index % runs`` of test ``index // runs``: ``fold_in(fold_in(seed key, test),
+    simulation)``, the same whatever the chunking and the number of devices."""
+    return jax.random.fold_in(jax.random.fold_in(seed_key, index // runs), index % runs)
+
+
+def _indexed(one):
+    """``one`` of a realisation index. The AP values come as tables ``V1`` (chunk, n1), ``V2``
+    (chunk, n2), one row per position in the chunk (chunks start at multiples of the chunk
+    size): one test repeats its values in every row, a batch of tests gives each realisation
+    its test's values, and both run through one compiled function."""
+
+    def run(index, seed_key, runs, V1, V2, Cu, sig1, sig2, reference):
+        pos = index % V1.shape[0]
+        key = _realisation_key(seed_key, index, runs)
+        return one(key, V1[pos], V2[pos], Cu, sig1, sig2, reference)
+
+    return run
+
+
+@functools.lru_cache(maxsize=16)
+def compiled_chunk(design, chunk: int, devices: tuple):
+    """One compiled chunk function per design, chunk size and devices (the cache key holds
+    everything the function closes over: the design's scanners carry their AP names and the
+    registration tokens of the terms). AP values, covariances, noise and seed are arguments:
+    another test of one design, or a batch of tests, never recompiles."""
+    one = _indexed(make_simulation(design))
+    n1, n2 = len(design.scanner1.aps), len(design.scanner2.aps)
+    u = n1 + len(design.columns2)
+    consts = (
+        jax.random.PRNGKey(0),
+        jnp.asarray(1, dtype=jnp.int64),
+        jnp.zeros((chunk, n1)),
+        jnp.zeros((chunk, n2)),
+        jnp.zeros((u, u)),
+        jnp.zeros(3),
+        jnp.zeros(3),
+        jnp.asarray(False),
+    )
+    return compile_batched(one, consts, chunk)
+
+
+def run_tests(b, seed_key, runs: int, V1, V2, rest):
+    """Realisations of ``len(V1)`` tests of ``runs`` simulations each through the compiled
+    chunk function ``b`` (test k has the values ``V1[k]``, ``V2[k]``; ``rest`` = (Cu, sig1,
+    sig2, reference)); returns the per-realisation outputs (tests * runs, ...) as numpy."""
+    n = V1.shape[0] * runs
+    consts = jax.device_put((seed_key, np.int64(runs)), b.replicated)
+    rest = jax.device_put(tuple(rest), b.replicated)
+    parts = []
+    for start in range(0, n, b.chunk):
+        idx = np.arange(start, start + b.chunk, dtype=np.int64)
+        test = np.minimum(idx, n - 1) // runs  # past the end: repeat the last (discarded)
+        tables = jax.device_put((V1[test], V2[test]), b.replicated)
+        out = b.compiled(jax.device_put(idx, b.batched), *consts, *tables, *rest)
+        parts.append(jax.tree.map(np.asarray, out))
+    return jax.tree.map(lambda *a: np.concatenate(a)[:n], *parts)
+
+
+def statistic_function(design, runs: int):
+    """``T(a1, a2, Cu, sig1, sig2, seed_key)``: the test statistic (SPEC section 9 step 4) as a
+    pure, differentiable function of the two AP vectors."""
+    one = make_simulation(design)
+    n_check = design.n_targets - design.n_control
+
+    def T(a1, a2, Cu, sig1, sig2, seed_key):
+        keys = jax.vmap(lambda i: _realisation_key(seed_key, i, runs))(jnp.arange(runs))
+        out = jax.vmap(one, in_axes=(0,) + (None,) * 6)(keys, a1, a2, Cu, sig1, sig2, False)
+        return jnp.sum(out["T"]) / (runs * n_check)
+
+    return T
+
+
+on_reregistration(compiled_chunk.cache_clear)
