@@ -35,9 +35,9 @@ from ._design._design import TargetDesign as TargetDesign
 from ._design._optimize import DesignOptimisation as DesignOptimisation
 from ._design._optimize import DesignSpace as DesignSpace
 from ._design._optimize import optimize_design as optimize_design
+from ._inference._apset import APSet as APSet
 from ._inference._checkpoints import CheckpointReport as CheckpointReport
 from ._inference._checkpoints import assess_checkpoints as assess_checkpoints
-from ._inference._apset import APSet as APSet
 from ._inference._compat import CompatibilityOptions as CompatibilityOptions
 from ._inference._compat import CompatibilityResult as CompatibilityResult
 from ._inference._compat import compatibility_batch as compatibility_batch

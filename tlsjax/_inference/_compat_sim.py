@@ -42,13 +42,14 @@ scans in one architecture.)
 from __future__ import annotations
 
 import functools
+import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._adjustment._linalg import spd_inverse
-from .._model._aps import ap_corrections, on_reregistration
+from .._model._aps import ap_basis_matrix, ap_corrections, on_reregistration
 from .._model._geometry import cartesian_from_spherical, rigid_fit, spherical_from_cartesian
 from .._simulation._batch import compile_batched
 
@@ -107,24 +108,39 @@ def _moves(x):
 
 
 def _corrector(scanner):
-    """Per point: ``x = cart(l - Delta(l; a))`` with ``dx/dl`` (3 x 3) and ``dx/da`` (3 x n).
+    """Per point of a noisy scan ``l`` with noise-free observations ``l0``: ``x = cart(l -
+    Delta(l; a))``, the same of ``l0``, ``dx/dl`` (3 x 3) and ``dx/da`` (3 x n); and
+    ``effect(l, a)`` -> (x, dx/da) alone.
 
-    The corrections are linear in ``a``, so ``dDelta/da`` is the basis matrix: reverse mode
-    gets it in three passes of n products (forward mode would push n tangents through all n
-    terms, n^2 per point, the largest cost of a 23-AP test)."""
+    The corrections are linear in ``a``: ``Delta = B(l) a`` with the basis matrix ``B =
+    dDelta/da`` (:func:`~tlsjax._model._aps.ap_basis_matrix`, each basis evaluated once;
+    ``jax.jacfwd`` or ``jax.jacrev`` of the corrections with respect to ``a`` cost two to three
+    times as much for 23 APs, measured under vmap on the CPU). ``dx/dl`` includes the slope of
+    the corrections, ``dDelta/dl`` (autodiff), taken at ``l0``: it is below 1e-3 for any
+    realistic AP set and changes by a relative 1e-4 over the noise, while the noise-free point
+    is evaluated anyway (for both sets, where XLA shares the basis evaluations)."""
     names = scanner.aps
 
-    def correction(l, a):
+    def correction(l, a):  # for the slope: the registry's sum is faster to differentiate
         return ap_corrections(a, names, l, scanner)
 
-    def point(l, a):
-        lc = l - correction(l, a)
+    def effect(l, a):
+        B = ap_basis_matrix(names, l, scanner)
+        lc = l - B @ a
         Jc = jax.jacfwd(cartesian_from_spherical)(lc)
-        dl = jax.jacfwd(correction, argnums=0)(l, a)
-        B = jax.jacrev(correction, argnums=1)(l, a)
-        return cartesian_from_spherical(lc), Jc - Jc @ dl, -Jc @ B
+        return cartesian_from_spherical(lc), Jc, -Jc @ B
 
-    return jax.vmap(point, in_axes=(0, None))
+    def point(l, l0, a):
+        x, Jc, Ja = effect(l, a)
+        slope = jax.jacfwd(correction)(l0, a)
+        x0 = cartesian_from_spherical(l0 - correction(l0, a))
+        return x, x0, Jc - Jc @ slope, Ja
+
+    def effect_only(l, a):
+        x, _, Ja = effect(l, a)
+        return x, Ja
+
+    return jax.vmap(point, in_axes=(0, 0, None)), jax.vmap(effect_only, in_axes=(0, None))
 
 
 def _flat(M, K):
@@ -138,20 +154,50 @@ def _gram(U, V):
     return U.reshape(-1, U.shape[-1]).T @ V.reshape(-1, V.shape[-1])
 
 
-def make_simulation(design):
-    """``one(key, a1, a2, C1, C2, sig1, sig2, reference) -> dict`` of check-point sums (module
-    docstring) for a :class:`~tlsjax._inference._compat.Design`; ``Geu`` and ``Kpre`` are
-    formed only when ``reference`` (an unbatched flag) is true, and are zeros otherwise."""
-    s1, s2 = design.scanner1, design.scanner2
-    nc, nt = design.n_control, design.n_targets
-    station = jnp.asarray(design.room.stations[0], dtype=jnp.float64)
-    point1, point2 = _corrector(s1), _corrector(s2)
-    fit_jac = jax.jacfwd(_fit_params, argnums=(0, 1))
+def _outer_sum(M, S, K):
+    """``sum_c M[:, c] S[c] K[:, c]^T`` for M, K (a, c, 3) and S (c, 3, 3)."""
+    return jnp.einsum("acj,cjk,bck->ab", M, S, K)
 
-    def differences(x1, x2):
+
+class _Fit:
+    """The rigid fit of scan 2 onto scan 1 on the first ``nc`` points and its Jacobians."""
+
+    def __init__(self, nc):
+        self.nc = nc
+        self._jac = jax.jacfwd(_fit_params, argnums=(0, 1))
+
+    def differences(self, x1, x2):
+        """Check-point differences ``R x2 + t - x1`` and R."""
+        nc = self.nc
         th = _fit_params(x1[:nc], x2[:nc])
         R, t = th[:9].reshape(3, 3), th[9:]
         return x2[nc:] @ R.T + t - x1[nc:], R
+
+    def columns(self, x1, x2, R, Ja1, Ja2):
+        """``F`` (check points, 3, u): the effect of each union column on ``d`` through the
+        correction, conversion and the fit; also dtheta/dx1_c, dtheta/dx2_c (12, nc, 3) and
+        ``A = d(R x2 + t)/d(R, t)`` of the check points."""
+        nc = self.nc
+        M1, M2 = self._jac(x1[:nc], x2[:nc])
+        M1, M2 = M1.reshape(12, nc, 3), M2.reshape(12, nc, 3)
+        A = _moves(x2[nc:])
+        F1 = -Ja1[nc:] + _flat(A, M1.reshape(12, -1) @ Ja1[:nc].reshape(nc * 3, -1))
+        F2 = jnp.einsum("ij,pja->pia", R, Ja2[nc:])
+        F2 = F2 + _flat(A, M2.reshape(12, -1) @ Ja2[:nc].reshape(nc * 3, -1))
+        return jnp.concatenate([F1, F2], axis=2), M1, M2, A
+
+
+def make_simulation(design):
+    """``one(key, a1, a2, Cu, sig1, sig2, reference) -> dict`` of check-point sums (module
+    docstring) for a :class:`~tlsjax._inference._compat.Design`; ``Geu`` and ``Kpre`` (at zero
+    noise, on the same targets) are formed only when ``reference`` (an unbatched flag) is
+    true, and are zeros otherwise."""
+    s1, s2 = design.scanner1, design.scanner2
+    nc, nt = design.n_control, design.n_targets
+    station = jnp.asarray(design.room.stations[0], dtype=jnp.float64)
+    (point1, effect1), (point2, effect2) = _corrector(s1), _corrector(s2)
+    fit = _Fit(nc)
+    cols2 = np.asarray(design.columns2, dtype=int)
 
     def scans(key, sig1, sig2):
         # One flat draw per simulation: XLA compiles a multi-dimensional threefry draw many
@@ -164,47 +210,40 @@ def make_simulation(design):
         unit = jnp.stack([1.0 / jnp.maximum(cosb, 0.05), jnp.ones(nt), jnp.ones(nt)], axis=1)
         sd1, sd2 = unit * sig1, unit * sig2
         l0 = _observe(los, design.architecture)
-        return l0, l0, l0 + e[:, :3] * sd1, l0 + e[:, 3:] * sd2, sd1, sd2
+        return l0, l0 + e[:, :3] * sd1, l0 + e[:, 3:] * sd2, sd1, sd2
 
-    cols2 = np.asarray(design.columns2, dtype=int)
-
-    def one(key, a1, a2, Cu, sig1, sig2, reference):
-        l01, l02, l1, l2, sd1, sd2 = scans(key, sig1, sig2)
-        x1, Jl1, Ja1 = point1(l1, a1)
-        x2, Jl2, Ja2 = point2(l2, a2)
-        Ja2 = Ja2[:, :, cols2]
-        d, R = differences(x1, x2)
-        d0, _ = differences(point1(l01, a1)[0], point2(l02, a2)[0])
-        n = d - d0  # the noise part of d: d less its noise-free value
-
-        M1, M2 = (m.reshape(12, nc * 3) for m in fit_jac(x1[:nc], x2[:nc]))
-        A = _moves(x2[nc:])
-        F = jnp.concatenate(
-            [
-                -Ja1[nc:] + _flat(A, M1 @ Ja1[:nc].reshape(nc * 3, -1)),
-                jnp.einsum("ij,pja->pia", R, Ja2[nc:])
-                + _flat(A, M2 @ Ja2[:nc].reshape(nc * 3, -1)),
-            ],
-            axis=2,
-        )
+    def noise_cov(Jl1, Jl2, sd1, sd2, R, M1, M2, A):
+        """N: both scans' observation noise through correction, conversion and the fit."""
         S1 = jnp.einsum("pij,pj,pkj->pik", Jl1, sd1**2, Jl1)
         S2 = jnp.einsum("pij,pj,pkj->pik", Jl2, sd2**2, Jl2)
-        S1c = jax.scipy.linalg.block_diag(*S1[:nc])
-        S2c = jax.scipy.linalg.block_diag(*S2[:nc])
-        P = M1 @ S1c @ M1.T + M2 @ S2c @ M2.T
-        N = S1[nc:] + R @ S2[nc:] @ R.T + _flat(A, P) @ jnp.swapaxes(A, 1, 2)
-        C = jnp.einsum("pia,pja->pij", _flat(F, Cu), F) + N
+        P = _outer_sum(M1, S1[:nc], M1) + _outer_sum(M2, S2[:nc], M2)
+        return S1[nc:] + R @ S2[nc:] @ R.T + _flat(A, P) @ jnp.swapaxes(A, 1, 2)
+
+    def reference_sums(l0, a1, a2):
+        """Post-fit and pre-fit Gram matrices of the union columns at zero noise."""
+        x1, Ja1 = effect1(l0, a1)
+        x2, Ja2 = effect2(l0, a2)
+        Ja2 = Ja2[:, :, cols2]
+        _, R = fit.differences(x1, x2)
+        F = fit.columns(x1, x2, R, Ja1, Ja2)[0]
+        Fpre = jnp.concatenate([-Ja1[nc:], Ja2[nc:]], axis=2)
+        return _gram(F, F), _gram(Fpre, Fpre)
+
+    def one(key, a1, a2, Cu, sig1, sig2, reference):
+        l0, l1, l2, sd1, sd2 = scans(key, sig1, sig2)
+        x1, x01, Jl1, Ja1 = point1(l1, l0, a1)
+        x2, x02, Jl2, Ja2 = point2(l2, l0, a2)
+        d, R = fit.differences(x1, x2)
+        n = d - fit.differences(x01, x02)[0]  # the noise part of d: d less its noise-free value
+        F, M1, M2, A = fit.columns(x1, x2, R, Ja1, Ja2[:, :, cols2])
+        C = jnp.einsum("pia,pja->pij", _flat(F, Cu), F)
+        C = C + noise_cov(Jl1, Jl2, sd1, sd2, R, M1, M2, A)
         tr = jnp.trace(C, axis1=1, axis2=2)
         Ci = spd_inverse(C + (RIDGE * tr / 3.0)[:, None, None] * jnp.eye(3))
         Cid, Cin = jnp.einsum("pij,pj->pi", Ci, d), jnp.einsum("pij,pj->pi", Ci, n)
-        u = F.shape[2]
-
-        def reference_sums():
-            Fpre = jnp.concatenate([-Ja1[nc:], Ja2[nc:]], axis=2)
-            return _gram(F, F), _gram(Fpre, Fpre)
-
+        zeros = jnp.zeros((F.shape[2],) * 2)
         Geu, Kpre = jax.lax.cond(
-            reference, reference_sums, lambda: (jnp.zeros((u, u)), jnp.zeros((u, u)))
+            reference, lambda: reference_sums(l0, a1, a2), lambda: (zeros, zeros)
         )
         q = jnp.sum(d * Cid, axis=1)
         return {
@@ -259,25 +298,39 @@ def compiled_chunk(design, chunk: int, devices: tuple):
         jnp.zeros(3),
         jnp.zeros(3),
         jnp.asarray(False),
-    )
+    )  # the order of run_tests' arguments
     return compile_batched(one, consts, chunk)
 
 
-def run_tests(b, seed_key, runs: int, V1, V2, rest):
+def run_tests(b, seed_key, runs: int, V1, V2, rest, *, reference=False, progress=False):
     """Realisations of ``len(V1)`` tests of ``runs`` simulations each through the compiled
     chunk function ``b`` (test k has the values ``V1[k]``, ``V2[k]``; ``rest`` = (Cu, sig1,
-    sig2, reference)); returns the per-realisation outputs (tests * runs, ...) as numpy."""
+    sig2)); with ``reference``, the first chunk also forms the zero-noise Gram matrices.
+    Returns the per-realisation outputs (tests * runs, ...) as numpy and the seconds."""
+    from tqdm.auto import tqdm
+
     n = V1.shape[0] * runs
     consts = jax.device_put((seed_key, np.int64(runs)), b.replicated)
     rest = jax.device_put(tuple(rest), b.replicated)
+    flags = [jax.device_put(np.asarray(f), b.replicated) for f in (False, True)]
+    single = V1.shape[0] == 1
+    if single:  # one test: its tables are the same for every chunk
+        tables = jax.device_put(
+            (np.tile(V1, (b.chunk, 1)), np.tile(V2, (b.chunk, 1))), b.replicated
+        )
     parts = []
-    for start in range(0, n, b.chunk):
+    t0 = time.perf_counter()
+    starts = range(0, n, b.chunk)
+    for start in tqdm(starts, desc="compatibility chunks", unit="chunk", disable=not progress):
         idx = np.arange(start, start + b.chunk, dtype=np.int64)
-        test = np.minimum(idx, n - 1) // runs  # past the end: repeat the last (discarded)
-        tables = jax.device_put((V1[test], V2[test]), b.replicated)
-        out = b.compiled(jax.device_put(idx, b.batched), *consts, *tables, *rest)
-        parts.append(jax.tree.map(np.asarray, out))
-    return jax.tree.map(lambda *a: np.concatenate(a)[:n], *parts)
+        if not single:
+            test = np.minimum(idx, n - 1) // runs  # past the end: repeat the last (discarded)
+            tables = jax.device_put((V1[test], V2[test]), b.replicated)
+        flag = flags[bool(reference) and start == 0]
+        out = b.compiled(jax.device_put(idx, b.batched), *consts, *tables, *rest, flag)
+        parts.append(out)
+    parts = [jax.tree.map(np.asarray, part) for part in parts]
+    return jax.tree.map(lambda *a: np.concatenate(a)[:n], *parts), time.perf_counter() - t0
 
 
 def statistic_function(design, runs: int):
