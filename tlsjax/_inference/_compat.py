@@ -25,7 +25,7 @@ the pure object-space test of the AP difference.
    transform set 2's points onto set 1's by a rigid-body least-squares fit on the control points.
 3. Check point i: the difference d_ij, its Jacobians J1_ij, J2_ij with respect to the two AP
    vectors (autodiff through correction, conversion and the fit), the noise part n_ij of d_ij
-   (d_ij less its value without noise), and ``C_ij = J1 C1 J1^T + J2 C2 J2^T + N_ij``, N_ij the
+   (d_ij less its value without noise, the noise-free points to first order in the noise), and ``C_ij = J1 C1 J1^T + J2 C2 J2^T + N_ij``, N_ij the
    two scans' observation covariance propagated through the same chain.
 4. Statistic: ``T = (1/(N n_c)) sum_ij d_ij^T C_ij^-1 d_ij`` over all simulations and check
    points.
@@ -97,8 +97,10 @@ class CompatibilityOptions:
     """Settings of :func:`compatibility_test` (defaults: Chow et al. 2013, section 4.3).
 
     ``null_draws``: draws of e for the p-value (the p-value's Monte Carlo error is at most
-    ``sqrt(p (1 - p) / draws)``: 0.0007 at p = 0.05 with the default 1e5); at zero noise
-    Imhof's formula is used instead. ``chunk_size``: simulations per compiled call.
+    ``sqrt(p (1 - p) / draws)``: 0.0007 at p = 0.05 with the default 1e5). ``null_method``:
+    "auto" (Imhof's formula at zero noise, the draws otherwise, as SPEC section 9 says),
+    "draws" or "imhof" (Imhof's formula for the noncentral quadratic form: exact at any noise).
+    ``chunk_size``: simulations per compiled call.
     """
 
     runs: int = 1000
@@ -109,6 +111,7 @@ class CompatibilityOptions:
     chunk_size: int = 100
     progress: bool = True
     null_draws: int = 100_000
+    null_method: str = "auto"
 
     def __post_init__(self):
         if int(self.runs) < 1:
@@ -122,6 +125,11 @@ class CompatibilityOptions:
             )
         if int(self.chunk_size) < 1:
             raise ValueError(f"CompatibilityOptions.chunk_size must be >= 1, got {self.chunk_size}")
+        if self.null_method not in ("auto", "draws", "imhof"):
+            raise ValueError(
+                "CompatibilityOptions.null_method must be 'auto', 'draws' or 'imhof', "
+                f"got {self.null_method!r}"
+            )
         if int(self.null_draws) < 1000:
             raise ValueError(
                 f"CompatibilityOptions.null_draws must be >= 1000, got {self.null_draws}"
@@ -390,35 +398,49 @@ def _block(a, b):
 # The null: the quadratic form in e, its p-value and its eigenvalues
 
 
-def null_p_value(T, lam, gamma, c, *, zero_noise, draws, rng, alpha=None):
+def null_p_value(T, lam, gamma, c, *, method, draws, rng, alpha=None):
     """p = P(T(e) >= T) for ``T(e) = sum_k lam_k y_k^2 + 2 gamma_k y_k + c`` with y ~ N(0, I)
-    (the quadratic form rotated to the eigenvectors of ``L^T G L``). Zero noise: Imhof's formula
-    (gamma = 0, c = 0); otherwise ``draws`` seeded draws, p = (1 + #{T(e) >= T}) / (draws + 1).
-    With ``alpha``, also the null's 1 - alpha quantile (else NaN). Returns (p, quantile, method)."""
+    (the quadratic form rotated to the eigenvectors of ``L^T G L``). ``method`` "draws":
+    ``draws`` seeded draws, p = (1 + #{T(e) >= T}) / (draws + 1); "imhof": Imhof's formula,
+    exact (``T(e) = c - sum gamma^2 / lam + sum lam (y + gamma / lam)^2``, a weighted sum of
+    noncentral chi-square(1)). With ``alpha``, also the null's 1 - alpha quantile (else NaN).
+    Returns (p, quantile)."""
     keep = lam > 1e-12 * max(float(lam.max(initial=0.0)), 1e-300)
     lam, gamma = lam[keep], gamma[keep]
     if not np.isfinite(T):
-        return float("nan"), float("nan"), "draws"
-    if zero_noise:
-        p = weighted_chi2_sf(T, lam)
-        q = float("nan") if alpha is None else _weighted_chi2_quantile(1.0 - alpha, lam)
-        return p, q, "imhof"
+        return float("nan"), float("nan")
+    if method == "imhof":
+        shift = c - float(np.sum(gamma**2 / lam))
+        nc = (gamma / lam) ** 2
+        p = weighted_chi2_sf(T - shift, lam, nc)
+        q = float("nan") if alpha is None else shift + _weighted_chi2_quantile(1 - alpha, lam, nc)
+        return p, q
     # T(e) - c in single precision: its terms are O(1) at most and the comparison with
     # T - c needs no more digits; it halves the time of the 1e5 draws.
     y = rng.standard_normal((int(draws), lam.size), dtype=np.float32)
     Te = (y * y) @ lam.astype(np.float32) + (y @ (2.0 * gamma).astype(np.float32))
     p = (1.0 + np.count_nonzero(Te >= np.float32(T - c))) / (draws + 1.0)
     q = float("nan") if alpha is None else c + float(np.quantile(Te, 1.0 - alpha))
-    return float(p), q, "draws"
+    return float(p), q
 
 
-def _weighted_chi2_quantile(q, lam):
+def _weighted_chi2_quantile(q, lam, nc):
     from scipy.optimize import brentq
 
     if lam.size == 0:
         return 0.0
-    hi = lam.sum() + 40.0 * np.sqrt(2.0 * np.sum(lam**2)) + 1.0
-    return float(brentq(lambda x: (1.0 - weighted_chi2_sf(x, lam)) - q, 0.0, hi, xtol=1e-10))
+    mean = float(np.sum(lam * (1.0 + nc)))
+    sd = float(np.sqrt(2.0 * np.sum(lam**2 * (1.0 + 2.0 * nc))))
+    hi = mean + 40.0 * sd + 1.0
+    return float(brentq(lambda x: (1.0 - weighted_chi2_sf(x, lam, nc)) - q, 0.0, hi, xtol=1e-9))
+
+
+def _method(options, noise):
+    """The p-value's method: Imhof's formula at zero noise, seeded draws otherwise, unless
+    ``options.null_method`` names one."""
+    if options.null_method != "auto":
+        return options.null_method
+    return "imhof" if not any(any(v > 0 for v in n) for n in noise) else "draws"
 
 
 def _quadratic_form(sums, n, L, P):
@@ -580,7 +602,6 @@ def compatibility_test(
     key = jax.random.PRNGKey(int(options.seed))
     _, P = _columns(set1, set2)
     Cu = P @ _block(set1.covariance, set2.covariance) @ P.T
-    zero_noise = not any(any(v > 0 for v in n) for n in noise)
     rest = (Cu, np.asarray(noise[0]), np.asarray(noise[1]))
     V1, V2 = set1.values[None], set2.values[None]
     out, run_s = run_tests(b, key, N, V1, V2, rest, reference=True, progress=options.progress)
@@ -591,7 +612,7 @@ def compatibility_test(
     sums = {k: v[good].sum(axis=0) for k, v in out.items()}
     ref = {k: v[np.all(np.isfinite(ref["G"]), axis=(1, 2))].sum(axis=0) for k, v in ref.items()}
     n_pts = max(int(good.sum()), 1) * n_check
-    res = _analyse(set1, set2, P, options, sums, ref, n_pts, zero_noise)
+    res = _analyse(set1, set2, P, options, sums, ref, n_pts, _method(options, noise))
     shares = out["n_sig"] / n_check
     q1, med, q3 = (float(v) for v in np.quantile(shares[good], [0.25, 0.5, 0.75]))
     ms = sums["ss"] / n_pts
@@ -614,18 +635,18 @@ def compatibility_test(
     )
 
 
-def _analyse(set1, set2, P, options, sums, ref, n_pts, zero_noise):
+def _analyse(set1, set2, P, options, sums, ref, n_pts, method):
     """Everything of the result that follows from the check-point sums."""
     L = _block(_sqrt_psd(set1.covariance), _sqrt_psd(set2.covariance))
     T, A, beta, c = _quadratic_form(sums, n_pts, L, P)
     lam_all, U = np.linalg.eigh(A)
     rng = np.random.default_rng([int(options.seed), 29])
-    p, crit, method = null_p_value(
+    p, crit = null_p_value(
         T,
         np.clip(lam_all, 0.0, None),
         U.T @ beta,
         c,
-        zero_noise=zero_noise,
+        method=method,
         draws=int(options.null_draws),
         rng=rng,
         alpha=options.alpha,
@@ -703,7 +724,7 @@ def compatibility_batch(
     Cu = P @ _block(set1.covariance, set2.covariance) @ P.T
     runs = int(options.runs)
     b = compiled_chunk(design, round_chunk(options.chunk_size), device_key())
-    zero_noise = not any(any(v > 0 for v in n) for n in noise)
+    method = _method(options, noise)
     rest = (Cu, np.asarray(noise[0]), np.asarray(noise[1]))
     out, _ = run_tests(b, jax.random.PRNGKey(int(options.seed)), runs, V1, V2, rest)
     sums = {k: v.reshape((V1.shape[0], runs) + v.shape[1:]).sum(axis=1) for k, v in out.items()}
@@ -722,7 +743,7 @@ def compatibility_batch(
             np.clip(lam, 0.0, None),
             U.T @ beta,
             c,
-            zero_noise=zero_noise,
+            method=method,
             draws=int(options.null_draws),
             rng=rng,
         )[0]
