@@ -59,6 +59,7 @@ def weighted_chi2_sf(x: float, weights, noncentrality=None) -> float:
     about 1e-10. Equal weights without noncentrality reduce to the chi-square distribution.
     """
     from scipy import integrate
+    from scipy.special import gammaln
 
     w = np.asarray(weights, dtype=np.float64).reshape(-1)
     nc = np.zeros_like(w) if noncentrality is None else np.asarray(noncentrality, float).reshape(-1)
@@ -70,6 +71,13 @@ def weighted_chi2_sf(x: float, weights, noncentrality=None) -> float:
         return 0.0
     if not nc.any() and np.allclose(w, w[0], rtol=1e-13):
         return chi2_sf(x / w[0], w.size)
+    # Far below the mass (e.g. two identical AP sets at zero noise, x at rounding level):
+    # P(Q <= x) <= (x/2)^(r/2) / (Gamma(r/2 + 1) prod w^(1/2)), the integral of the density's
+    # bound near 0; the oscillation period 4 pi / x would be beyond any quadrature there.
+    log_head = 0.5 * w.size * np.log(0.5 * x) - gammaln(0.5 * w.size + 1.0)
+    log_head -= 0.5 * np.sum(np.log(w))
+    if log_head < np.log(1e-12):
+        return float(1.0 - np.exp(log_head))
 
     def amplitude(u):
         wu2 = (w * u) ** 2

@@ -83,7 +83,7 @@ from .._simulation._room import Room
 from .._stats import chi2_quantile, chi2_sf, weighted_chi2_sf
 from .._units import display_unit
 from ._apset import APSet, basis_text, same_basis
-from ._compat_sim import compiled_chunk, run_tests, statistic_function
+from ._compat_sim import compiled_chunk, room_vector, run_tests, statistic_function
 
 #: A difference direction whose post-fit effect keeps less than this share of its pre-fit sum of
 #: squares is one object space cannot see (the rigid fit absorbs it).
@@ -142,14 +142,13 @@ class Design:
     (AP names, architecture, unit lengths, registration tokens), the architecture both scans
     are observed in (panoramic when both sets are, else hybrid: a hybrid set's basis means
     nothing on the back face), the terms of set 2 that get a
-    column of their own (``columns2``; the others share set 1's column), the room, the target
-    counts and the chi-square(3) quantile of the descriptive share."""
+    column of their own (``columns2``; the others share set 1's column), the target counts and
+    the chi-square(3) quantile of the descriptive share. The room is an argument."""
 
     scanner1: Scanner
     scanner2: Scanner
     architecture: str
     columns2: tuple
-    room: Room
     n_targets: int
     n_control: int
     critical: float
@@ -273,52 +272,56 @@ class CompatibilityResult:
         return "\n".join(lines)
 
     def to_dict(self) -> dict:
-        """The result as JSON-ready values (SI units, mm for the RMS; strict JSON with
-        :func:`tlsjax._io._json.write_json_file`)."""
-        return {
-            "test": "AP-set compatibility (SPEC section 9)",
-            "compatible": self.compatible,
-            "p_value": self.p_value,
-            "p_method": self.p_method,
-            "statistic": self.statistic,
-            "critical_value": self.critical_value,
-            "alpha": self.alpha,
-            "runs": self.runs,
-            "null_draws": self.null_draws if self.p_method == "draws" else None,
-            "n_failed": self.n_failed,
-            "noise": [
-                dict(zip(("sigma_range_m", "sigma_hz_rad", "sigma_el_rad"), n)) for n in self.noise
-            ],
-            "aps": {
-                n: {"difference": d, "sigma": s, "unit": u}
-                for n, d, s, u in zip(
-                    self.ap_names, self.difference, self.difference_sigma, self.ap_units
-                )
-            },
-            "visibility": [
-                {"eigenvalue": lam, "seen_share": s, "direction": t}
-                for lam, s, t in zip(self.eigenvalues, self.seen_share, self.direction_text)
-            ],
-            "least_visible": self.least_visible,
-            "invisible": list(self.invisible),
-            "null_eigenvalues": self.null_eigenvalues,
-            "share": {
-                "median": self.median_share,
-                "quartiles": list(self.share_quartiles),
-                "descriptive": True,
-            },
-            "rms_mm": dict(zip(("X", "Y", "Z", "3D"), self.rms_mm)),
-            "naive_chi2_test": {
-                "label": "naive chi-square test of the AP differences (for comparison only)",
-                "chi2": self.naive_chi2,
-                "dof": self.naive_dof,
-                "p_value": self.naive_p_value,
-                "compatible": self.naive_compatible,
-                "meaningful": self.naive_meaningful,
-                "note": self.naive_note or None,
-            },
-            "notes": list(self.notes),
-        }
+        """The result as plain JSON values (SI units, mm for the RMS; undefined values None)."""
+        from .._io._json import to_json_value
+
+        return to_json_value(
+            {
+                "test": "AP-set compatibility (SPEC section 9)",
+                "compatible": self.compatible,
+                "p_value": self.p_value,
+                "p_method": self.p_method,
+                "statistic": self.statistic,
+                "critical_value": self.critical_value,
+                "alpha": self.alpha,
+                "runs": self.runs,
+                "null_draws": self.null_draws if self.p_method == "draws" else None,
+                "n_failed": self.n_failed,
+                "noise": [
+                    dict(zip(("sigma_range_m", "sigma_hz_rad", "sigma_el_rad"), n))
+                    for n in self.noise
+                ],
+                "aps": {
+                    n: {"difference": d, "sigma": s, "unit": u}
+                    for n, d, s, u in zip(
+                        self.ap_names, self.difference, self.difference_sigma, self.ap_units
+                    )
+                },
+                "visibility": [
+                    {"eigenvalue": lam, "seen_share": s, "direction": t}
+                    for lam, s, t in zip(self.eigenvalues, self.seen_share, self.direction_text)
+                ],
+                "least_visible": self.least_visible,
+                "invisible": list(self.invisible),
+                "null_eigenvalues": self.null_eigenvalues,
+                "share": {
+                    "median": self.median_share,
+                    "quartiles": list(self.share_quartiles),
+                    "descriptive": True,
+                },
+                "rms_mm": dict(zip(("X", "Y", "Z", "3D"), self.rms_mm)),
+                "naive_chi2_test": {
+                    "label": "naive chi-square test of the AP differences (for comparison only)",
+                    "chi2": self.naive_chi2,
+                    "dof": self.naive_dof,
+                    "p_value": self.naive_p_value,
+                    "compatible": self.naive_compatible,
+                    "meaningful": self.naive_meaningful,
+                    "note": self.naive_note or None,
+                },
+                "notes": list(self.notes),
+            }
+        )
 
 
 _ARCSEC = math.pi / 648000.0
@@ -353,12 +356,11 @@ def _prepare(set1, set2, room, scanner, options, sigma_range, sigma_angle):
         set2.scanner,
         "panoramic" if both == {"panoramic"} else "hybrid",
         own,
-        room,
         int(options.n_targets),
         int(options.n_control),
         chi2_quantile(1.0 - options.alpha, 3),
     )
-    return set1, set2, design, noise
+    return set1, set2, design, noise, room_vector(room)
 
 
 def _with_scanner(s: APSet, scanner: Scanner) -> APSet:
@@ -592,7 +594,7 @@ def compatibility_test(
     names, scanner settings, room, target counts, alpha) does not recompile.
     """
     options = options or CompatibilityOptions()
-    set1, set2, design, noise = _prepare(
+    set1, set2, design, noise, room_vec = _prepare(
         set1, set2, room, scanner, options, sigma_range, sigma_angle
     )
     N, n_check = int(options.runs), design.n_targets - design.n_control
@@ -602,7 +604,7 @@ def compatibility_test(
     key = jax.random.PRNGKey(int(options.seed))
     _, P = _columns(set1, set2)
     Cu = P @ _block(set1.covariance, set2.covariance) @ P.T
-    rest = (Cu, np.asarray(noise[0]), np.asarray(noise[1]))
+    rest = (Cu, np.asarray(noise[0]), np.asarray(noise[1]), room_vec)
     V1, V2 = set1.values[None], set2.values[None]
     out, run_s = run_tests(b, key, N, V1, V2, rest, reference=True, progress=options.progress)
     ref = {k: v[: min(b.chunk, N)] for k, v in out.items()}
@@ -710,7 +712,7 @@ def compatibility_batch(
     ``compatible``, ``median_share`` (the descriptive share's median over the pair's
     simulations), ``naive_chi2``, ``naive_p_value``."""
     options = options or CompatibilityOptions()
-    set1, set2, design, noise = _prepare(
+    set1, set2, design, noise, room_vec = _prepare(
         set1, set2, room, scanner, options, sigma_range, sigma_angle
     )
     V1 = np.atleast_2d(np.asarray(values1, dtype=np.float64))
@@ -725,7 +727,7 @@ def compatibility_batch(
     runs = int(options.runs)
     b = compiled_chunk(design, round_chunk(options.chunk_size), device_key())
     method = _method(options, noise)
-    rest = (Cu, np.asarray(noise[0]), np.asarray(noise[1]))
+    rest = (Cu, np.asarray(noise[0]), np.asarray(noise[1]), room_vec)
     out, _ = run_tests(b, jax.random.PRNGKey(int(options.seed)), runs, V1, V2, rest)
     sums = {k: v.reshape((V1.shape[0], runs) + v.shape[1:]).sum(axis=1) for k, v in out.items()}
     n_sig = out["n_sig"].reshape(V1.shape[0], runs)
@@ -773,7 +775,7 @@ def compatibility_statistic(
     ``options.runs`` simulations of seed ``options.seed`` fixed: jit-, vmap- and
     grad-compatible (``jax.grad(T)(a1, a2)`` is dT/da1)."""
     options = options or CompatibilityOptions()
-    set1, set2, design, noise = _prepare(
+    set1, set2, design, noise, room_vec = _prepare(
         set1, set2, room, scanner, options, sigma_range, sigma_angle
     )
     _, P = _columns(set1, set2)
@@ -781,4 +783,4 @@ def compatibility_statistic(
     f = statistic_function(design, int(options.runs))
     key = jax.random.PRNGKey(int(options.seed))
     s1, s2 = np.asarray(noise[0]), np.asarray(noise[1])
-    return lambda a1, a2: f(a1, a2, Cu, s1, s2, key)
+    return lambda a1, a2: f(a1, a2, Cu, s1, s2, room_vec, key)

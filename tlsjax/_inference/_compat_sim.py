@@ -58,20 +58,27 @@ from .._simulation._batch import compile_batched
 RIDGE = 1e-12
 
 
+def room_vector(room) -> np.ndarray:
+    """The room as an argument of the compiled simulation: (L, W, H, margin, station xyz) [m]
+    (the scanner at the room's first station), so that another room does not recompile."""
+    return np.array([room.length, room.width, room.height, room.margin, *room.stations[0]])
+
+
 def room_points(room, u):
     """Points uniform by area over the room's six faces (margin from the edges), with the
     faces' inward normals, from uniforms ``u`` (n, 4): targets at different distances from the
-    station. The face is the first uniform's bin in the cumulative face areas."""
-    L, W, H, m = room.length, room.width, room.height, room.margin
-    area = np.array([W * H, W * H, L * H, L * H, L * W, L * W])
-    edges = jnp.asarray(np.cumsum(area)[:-1] / area.sum())
-    value = jnp.asarray([0.0, L, 0.0, W, 0.0, H])
+    station. ``room``: :func:`room_vector`. The face is the first uniform's bin in the
+    cumulative face areas."""
+    L, W, H, m = room[0], room[1], room[2], room[3]
+    area = jnp.stack([W * H, W * H, L * H, L * H, L * W, L * W])
+    edges = jnp.cumsum(area)[:-1] / jnp.sum(area)
+    value = jnp.stack([0.0 * L, L, 0.0 * W, W, 0.0 * H, H])
     axis = jnp.asarray([0, 0, 1, 1, 2, 2])
     normal = jnp.asarray(
         [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], dtype=jnp.float64
     )
     face = jnp.sum(u[:, :1] >= edges[None, :], axis=1)
-    size = np.array([L, W, H])
+    size = jnp.stack([L, W, H])
     X = m + u[:, 1:4] * (size - 2 * m)
     X = jnp.where(jnp.arange(3)[None, :] == axis[face][:, None], value[face][:, None], X)
     return X, normal[face]
@@ -187,24 +194,23 @@ class _Fit:
 
 
 def make_simulation(design):
-    """``one(key, a1, a2, Cu, sig1, sig2, reference) -> dict`` of check-point sums (module
+    """``one(key, a1, a2, Cu, sig1, sig2, room, reference) -> dict`` of check-point sums (module
     docstring) for a :class:`~tlsjax._inference._compat.Design`; ``Geu`` and ``Kpre`` (at zero
     noise, on the same targets) are formed only when ``reference`` (an unbatched flag) is
     true, and are zeros otherwise."""
     s1, s2 = design.scanner1, design.scanner2
     nc, nt = design.n_control, design.n_targets
-    station = jnp.asarray(design.room.stations[0], dtype=jnp.float64)
     (point1, effect1), (point2, effect2) = _corrector(s1), _corrector(s2)
     fit = _Fit(nc)
     cols2 = np.asarray(design.columns2, dtype=int)
 
-    def scans(key, sig1, sig2):
+    def scans(key, sig1, sig2, room):
         # One flat draw per simulation: XLA compiles a multi-dimensional threefry draw many
         # times slower (measured 14 s against 1.3 s for 1,000 uniforms under vmap).
         u = jax.random.uniform(key, (nt * 10,)).reshape(nt, 10)
-        X, nrm = room_points(design.room, u[:, :4])
+        X, nrm = room_points(room, u[:, :4])
         e = _normals(u[:, 4:])
-        los = X - station
+        los = X - room[4:7]
         cosb = jnp.abs(jnp.sum(los * nrm, axis=1)) / jnp.linalg.norm(los, axis=1)
         unit = jnp.stack([1.0 / jnp.maximum(cosb, 0.05), jnp.ones(nt), jnp.ones(nt)], axis=1)
         nu1, nu2 = e[:, :3] * unit * sig1, e[:, 3:] * unit * sig2
@@ -227,8 +233,8 @@ def make_simulation(design):
         Fpre = jnp.concatenate([-Ja1[nc:], Ja2[nc:]], axis=2)
         return _gram(F, F), _gram(Fpre, Fpre)
 
-    def one(key, a1, a2, Cu, sig1, sig2, reference):
-        l0, nu1, nu2, sd1, sd2 = scans(key, sig1, sig2)
+    def one(key, a1, a2, Cu, sig1, sig2, room, reference):
+        l0, nu1, nu2, sd1, sd2 = scans(key, sig1, sig2, room)
         x1, x01, Jl1, Ja1 = point1(l0 + nu1, nu1, a1)
         x2, x02, Jl2, Ja2 = point2(l0 + nu2, nu2, a2)
         d, R = fit.differences(x1, x2)
@@ -270,10 +276,10 @@ def _indexed(one):
     size): one test repeats its values in every row, a batch of tests gives each realisation
     its test's values, and both run through one compiled function."""
 
-    def run(index, seed_key, runs, V1, V2, Cu, sig1, sig2, reference):
+    def run(index, seed_key, runs, V1, V2, Cu, sig1, sig2, room, reference):
         pos = index % V1.shape[0]
         key = _realisation_key(seed_key, index, runs)
-        return one(key, V1[pos], V2[pos], Cu, sig1, sig2, reference)
+        return one(key, V1[pos], V2[pos], Cu, sig1, sig2, room, reference)
 
     return run
 
@@ -282,8 +288,8 @@ def _indexed(one):
 def compiled_chunk(design, chunk: int, devices: tuple):
     """One compiled chunk function per design, chunk size and devices (the cache key holds
     everything the function closes over: the design's scanners carry their AP names and the
-    registration tokens of the terms). AP values, covariances, noise and seed are arguments:
-    another test of one design, or a batch of tests, never recompiles."""
+    registration tokens of the terms). AP values, covariances, noise, room and seed are
+    arguments: another test of one design, or a batch of tests, never recompiles."""
     one = _indexed(make_simulation(design))
     n1, n2 = len(design.scanner1.aps), len(design.scanner2.aps)
     u = n1 + len(design.columns2)
@@ -295,6 +301,7 @@ def compiled_chunk(design, chunk: int, devices: tuple):
         jnp.zeros((u, u)),
         jnp.zeros(3),
         jnp.zeros(3),
+        jnp.zeros(7),
         jnp.asarray(False),
     )  # the order of run_tests' arguments
     return compile_batched(one, consts, chunk)
@@ -303,7 +310,7 @@ def compiled_chunk(design, chunk: int, devices: tuple):
 def run_tests(b, seed_key, runs: int, V1, V2, rest, *, reference=False, progress=False):
     """Realisations of ``len(V1)`` tests of ``runs`` simulations each through the compiled
     chunk function ``b`` (test k has the values ``V1[k]``, ``V2[k]``; ``rest`` = (Cu, sig1,
-    sig2)); with ``reference``, the first chunk also forms the zero-noise Gram matrices.
+    sig2, room vector)); with ``reference``, the first chunk also forms the zero-noise Gram matrices.
     Returns the per-realisation outputs (tests * runs, ...) as numpy and the seconds."""
     from tqdm.auto import tqdm
 
@@ -332,14 +339,14 @@ def run_tests(b, seed_key, runs: int, V1, V2, rest, *, reference=False, progress
 
 
 def statistic_function(design, runs: int):
-    """``T(a1, a2, Cu, sig1, sig2, seed_key)``: the test statistic (SPEC section 9 step 4) as a
-    pure, differentiable function of the two AP vectors."""
+    """``T(a1, a2, Cu, sig1, sig2, room, seed_key)``: the test statistic (SPEC section 9 step 4)
+    as a pure, differentiable function of the two AP vectors."""
     one = make_simulation(design)
     n_check = design.n_targets - design.n_control
 
-    def T(a1, a2, Cu, sig1, sig2, seed_key):
+    def T(a1, a2, Cu, sig1, sig2, room, seed_key):
         keys = jax.vmap(lambda i: _realisation_key(seed_key, i, runs))(jnp.arange(runs))
-        out = jax.vmap(one, in_axes=(0,) + (None,) * 6)(keys, a1, a2, Cu, sig1, sig2, False)
+        out = jax.vmap(one, in_axes=(0,) + (None,) * 7)(keys, a1, a2, Cu, sig1, sig2, room, False)
         return jnp.sum(out["T"]) / (runs * n_check)
 
     return T
