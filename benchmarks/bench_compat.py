@@ -40,7 +40,6 @@ def _host_devices():
 _host_devices()
 
 import jax  # noqa: E402
-import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import loadavg, stats, write_results  # noqa: E402

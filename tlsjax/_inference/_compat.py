@@ -363,6 +363,16 @@ def _prepare(set1, set2, room, scanner, options, sigma_range, sigma_angle):
     return set1, set2, design, noise, room_vector(room)
 
 
+def _setup(set1, set2, room, scanner, options, sigma_range, sigma_angle):
+    """:func:`_prepare`, then P onto the union columns and the covariance ``Cu`` of ``P e``."""
+    set1, set2, design, noise, room_vec = _prepare(
+        set1, set2, room, scanner, options, sigma_range, sigma_angle
+    )
+    _, P = _columns(set1, set2)
+    Cu = P @ _block(set1.covariance, set2.covariance) @ P.T
+    return set1, set2, design, noise, room_vec, P, Cu
+
+
 def _with_scanner(s: APSet, scanner: Scanner) -> APSet:
     if not isinstance(scanner, Scanner):
         raise ValueError("compatibility_test: scanner must be a tlsjax.Scanner")
@@ -585,16 +595,17 @@ def compatibility_test(
 
     ``room``: the room of the real data (default 14 x 11 x 3 m), the scanner at its first
     station. ``scanner``: when given, overrides both sets' scanner settings (architecture and
-    unit lengths); by default each set is applied with its own basis functions to scans observed
-    as a panoramic scanner when both sets are panoramic, else as a hybrid one. ``sigma_range`` [m] at normal
-    incidence and ``sigma_angle`` [rad] (both angles) of both scans; by default each scan has
+    unit lengths); by default each set is applied with its own basis functions to scans
+    observed as a panoramic scanner when both sets are panoramic, else as a hybrid one.
+    ``sigma_range`` [m] at normal incidence and ``sigma_angle`` [rad] (both angles) of both
+    scans; by default each scan has
     the noise of the data its set came from (``APSet.noise``), or 0.5 mm and 20" when unknown;
     0 gives the pure object-space test. All simulations run as one compiled, vmapped
     computation in chunks, sharded over the devices; another test of the same design (AP
     names, scanner settings, room, target counts, alpha) does not recompile.
     """
     options = options or CompatibilityOptions()
-    set1, set2, design, noise, room_vec = _prepare(
+    set1, set2, design, noise, room_vec, P, Cu = _setup(
         set1, set2, room, scanner, options, sigma_range, sigma_angle
     )
     N, n_check = int(options.runs), design.n_targets - design.n_control
@@ -602,8 +613,6 @@ def compatibility_test(
     b = compiled_chunk(design, round_chunk(min(options.chunk_size, N)), device_key())
     compile_s = time.perf_counter() - t0
     key = jax.random.PRNGKey(int(options.seed))
-    _, P = _columns(set1, set2)
-    Cu = P @ _block(set1.covariance, set2.covariance) @ P.T
     rest = (Cu, np.asarray(noise[0]), np.asarray(noise[1]), room_vec)
     V1, V2 = set1.values[None], set2.values[None]
     out, run_s = run_tests(b, key, N, V1, V2, rest, reference=True, progress=options.progress)
@@ -712,7 +721,7 @@ def compatibility_batch(
     ``compatible``, ``median_share`` (the descriptive share's median over the pair's
     simulations), ``naive_chi2``, ``naive_p_value``."""
     options = options or CompatibilityOptions()
-    set1, set2, design, noise, room_vec = _prepare(
+    set1, set2, design, noise, room_vec, P, Cu = _setup(
         set1, set2, room, scanner, options, sigma_range, sigma_angle
     )
     V1 = np.atleast_2d(np.asarray(values1, dtype=np.float64))
@@ -722,33 +731,15 @@ def compatibility_batch(
             f"compatibility_batch: values1 must be (P, {len(set1.names)}) and values2 "
             f"(P, {len(set2.names)}), got {V1.shape} and {V2.shape}"
         )
-    _, P = _columns(set1, set2)
-    Cu = P @ _block(set1.covariance, set2.covariance) @ P.T
     runs = int(options.runs)
     b = compiled_chunk(design, round_chunk(options.chunk_size), device_key())
-    method = _method(options, noise)
     rest = (Cu, np.asarray(noise[0]), np.asarray(noise[1]), room_vec)
     out, _ = run_tests(b, jax.random.PRNGKey(int(options.seed)), runs, V1, V2, rest)
     sums = {k: v.reshape((V1.shape[0], runs) + v.shape[1:]).sum(axis=1) for k, v in out.items()}
     n_sig = out["n_sig"].reshape(V1.shape[0], runs)
     n_check = design.n_targets - design.n_control
     L = _block(_sqrt_psd(set1.covariance), _sqrt_psd(set2.covariance))
-    rng = np.random.default_rng([int(options.seed), 29])
-    p, T = np.empty(V1.shape[0]), np.empty(V1.shape[0])
-    for k in range(V1.shape[0]):
-        T[k], A, beta, c = _quadratic_form(
-            {key: v[k] for key, v in sums.items()}, runs * n_check, L, P
-        )
-        lam, U = np.linalg.eigh(A)
-        p[k] = null_p_value(
-            T[k],
-            np.clip(lam, 0.0, None),
-            U.T @ beta,
-            c,
-            method=method,
-            draws=int(options.null_draws),
-            rng=rng,
-        )[0]
+    p, T = _batch_p(sums, runs * n_check, L, P, options, _method(options, noise))
     chi2, _, p_naive, *_ = _naive(set1, set2, options.alpha, V1, V2)
     return {
         "p_value": p,
@@ -758,6 +749,21 @@ def compatibility_batch(
         "naive_chi2": chi2,
         "naive_p_value": p_naive,
     }
+
+
+def _batch_p(sums, n_pts, L, P, options, method):
+    """p-value and T of each test of a batch from its check-point sums (stacked along axis 0)."""
+    rng = np.random.default_rng([int(options.seed), 29])
+    n = len(sums["T"])
+    p, T = np.empty(n), np.empty(n)
+    for k in range(n):
+        T[k], A, beta, c = _quadratic_form({key: v[k] for key, v in sums.items()}, n_pts, L, P)
+        lam, U = np.linalg.eigh(A)
+        draws = int(options.null_draws)
+        p[k] = null_p_value(
+            T[k], np.clip(lam, 0, None), U.T @ beta, c, method=method, draws=draws, rng=rng
+        )[0]
+    return p, T
 
 
 def compatibility_statistic(
@@ -775,11 +781,9 @@ def compatibility_statistic(
     ``options.runs`` simulations of seed ``options.seed`` fixed: jit-, vmap- and
     grad-compatible (``jax.grad(T)(a1, a2)`` is dT/da1)."""
     options = options or CompatibilityOptions()
-    set1, set2, design, noise, room_vec = _prepare(
+    set1, set2, design, noise, room_vec, P, Cu = _setup(
         set1, set2, room, scanner, options, sigma_range, sigma_angle
     )
-    _, P = _columns(set1, set2)
-    Cu = P @ _block(set1.covariance, set2.covariance) @ P.T
     f = statistic_function(design, int(options.runs))
     key = jax.random.PRNGKey(int(options.seed))
     s1, s2 = np.asarray(noise[0]), np.asarray(noise[1])

@@ -197,7 +197,9 @@ def make_simulation(design):
     """``one(key, a1, a2, Cu, sig1, sig2, room, reference) -> dict`` of check-point sums (module
     docstring) for a :class:`~tlsjax._inference._compat.Design`; ``Geu`` and ``Kpre`` (at zero
     noise, on the same targets) are formed only when ``reference`` (an unbatched flag) is
-    true, and are zeros otherwise."""
+    true, and are zeros otherwise. (One closure over the design, longer than a page: its steps,
+    the scans, the noise covariance and the reference sums, share the design's static
+    settings.)"""
     s1, s2 = design.scanner1, design.scanner2
     nc, nt = design.n_control, design.n_targets
     (point1, effect1), (point2, effect2) = _corrector(s1), _corrector(s2)
