@@ -1,14 +1,17 @@
 """The AP-set compatibility test of SPEC section 9: size, power, visibility, inputs and the CLI.
 
-Why the sizes suffice. The null of T is exact (to first order in the sets' errors) for any
-number of simulations and check points: given the simulated noise, which is known, T_obs and
-the null T(e) are the same quadratic function of the sets' errors e. So a level study needs
-many independent pairs of AP sets, not many simulations per pair: 300-400 pairs of 2
-simulations each (180 check points; 20 with 10 check points) give the rejection rate at 5 % to
-a Monte Carlo standard error of 1.1-1.3 %, and the check fails only when the rate is off by more than that error
-allows (two-sided binomial test at 0.1 %). Many pairs run as one batch through the one compiled
-function of a design (``tj.compatibility_batch``), and every test uses one chunk size so that
-the tests of a design share that compilation. Power is compared on the same kind of batches.
+Why the sizes suffice. The null of T is exact (to first order in the sets' errors) for any number of
+simulations and check points: given the simulated noise, which is known, T_obs and the null T(e) are
+the same quadratic function of the sets' errors e. So a level study needs many independent pairs of
+AP sets, not many simulations per pair: 300-400 pairs of 2 simulations each (180 check points; 20
+with 10 check points) give the rejection rate at 5 % to a Monte Carlo standard error of 1.1-1.3 %,
+and the check fails only when the rate is off by more than that error allows (two-sided binomial
+test at 0.1 %). Many pairs run as one batch through the one compiled function of a design
+(``tj.compatibility_batch``), and every test uses one chunk size so that the tests of a design share
+that compilation. Power is compared on the same kind of batches.
+
+Private import: ``tlsjax._cli.main`` is the ``tlsjax`` console script's entry point
+(pyproject), called in process.
 """
 
 import dataclasses
@@ -309,9 +312,10 @@ def test_statistic_gradient_matches_finite_differences(set4):
             2 * h[k]
         )
         assert float(g[k]) == pytest.approx(float(fd), rel=1e-4, abs=1e-6 * abs(float(t0)) / sd[k])
-    # The function is the statistic of the test with the same settings.
+    # The function is the statistic of the test with the same settings (through the compiled
+    # function above: T traced op by op costs more than its compilation).
     r = tj.compatibility_test(set4, set4.with_values(a1), options=options(runs=2, seed=5))
-    assert float(T(set4.values, a1)) == pytest.approx(r.statistic, rel=1e-10)
+    assert float(value_and_grad(set4.values, a1)[0]) == pytest.approx(r.statistic, rel=1e-10)
 
 
 # ------------------------------------------------------------------------------------------

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
-from tlsjax._simulation._montecarlo import MonteCarloOptions, monte_carlo, monte_carlo_network
+from tlsjax import MonteCarloOptions, monte_carlo, monte_carlo_network
 
 ROOM = tj.Room(n_targets=30)
 N = 300

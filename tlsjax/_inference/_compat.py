@@ -352,8 +352,8 @@ def _prepare(set1, set2, room, scanner, options, sigma_range, sigma_angle):
     own, _ = _columns(set1, set2)
     both = {set1.scanner.architecture, set2.scanner.architecture}
     design = Design(
-        set1.scanner,
-        set2.scanner,
+        set1.scanner.current(),  # the registration tokens now (tlsjax/_model/_aps.py)
+        set2.scanner.current(),
         "panoramic" if both == {"panoramic"} else "hybrid",
         own,
         int(options.n_targets),
