@@ -17,16 +17,17 @@ the pure object-space test of the AP difference.
    absent from a set is zero with zero variance; the sets may use different basis functions,
    e.g. the hybrid reduced collimation sec(alpha) - 1 against the full sec(alpha): each set is
    applied with its own scanner settings to scans of one architecture, and e = (e1, e2) lives on
-   the two sets' own terms), a room and scanner design, the observation noise (default: that of the data the sets came
-   from), N simulations (default 1,000), alpha (default 5%).
+   the two sets' own terms), a room and scanner design, the observation noise (default: that of
+   the data the sets came from), N simulations (default 1,000), alpha (default 5%).
 2. Simulation j: draw 100 targets over the room's surfaces at different distances, pick 10 as
    control; simulate two independent noisy scans of them from one station (one per session);
    correct scan 1 with set 1 and scan 2 with set 2; convert both to Cartesian coordinates;
    transform set 2's points onto set 1's by a rigid-body least-squares fit on the control points.
 3. Check point i: the difference d_ij, its Jacobians J1_ij, J2_ij with respect to the two AP
    vectors (autodiff through correction, conversion and the fit), the noise part n_ij of d_ij
-   (d_ij less its value without noise, the noise-free points to first order in the noise), and ``C_ij = J1 C1 J1^T + J2 C2 J2^T + N_ij``, N_ij the
-   two scans' observation covariance propagated through the same chain.
+   (d_ij less its value without noise, the noise-free points to first order in the noise), and
+   ``C_ij = J1 C1 J1^T + J2 C2 J2^T + N_ij``, N_ij the two scans' observation covariance
+   propagated through the same chain.
 4. Statistic: ``T = (1/(N n_c)) sum_ij d_ij^T C_ij^-1 d_ij`` over all simulations and check
    points.
 5. Null: to first order d_ij = J1 e1 + J2 e2 + n_ij with e1 ~ N(0, C1), e2 ~ N(0, C2), so over

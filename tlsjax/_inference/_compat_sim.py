@@ -312,7 +312,8 @@ def compiled_chunk(design, chunk: int, devices: tuple):
 def run_tests(b, seed_key, runs: int, V1, V2, rest, *, reference=False, progress=False):
     """Realisations of ``len(V1)`` tests of ``runs`` simulations each through the compiled
     chunk function ``b`` (test k has the values ``V1[k]``, ``V2[k]``; ``rest`` = (Cu, sig1,
-    sig2, room vector)); with ``reference``, the first chunk also forms the zero-noise Gram matrices.
+    sig2, room vector)); with ``reference``, the first chunk also forms the zero-noise Gram
+    matrices.
     Returns the per-realisation outputs (tests * runs, ...) as numpy and the seconds."""
     from tqdm.auto import tqdm
 
