@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import warnings
 
 import equinox as eqx
 import jax
@@ -21,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._jit import jit
+from .._model._plausibility import PlausibilityWarning
 from ._config import CalibrationModel, SolverOptions
 from ._families import Params, grid_layout, on_grid
 from ._network import Network, check_calibration_arguments
@@ -254,4 +256,7 @@ def calibrate(
     res = analyze(network, model, options).solve(initial=initial)
     if throw and not res.ok:
         raise RuntimeError(res.message)
+    _, implausible = res.plausibility()  # the rules of _model._plausibility, as the CLI's
+    if implausible:
+        warnings.warn(implausible, PlausibilityWarning, stacklevel=2)
     return res

@@ -7,6 +7,7 @@ from .._inference._compat import APSet, CompatibilityOptions, compatibility_test
 from .._model._scanner import Scanner
 from .._simulation._room import Room
 from .._units import ARCSEC
+from ._checks import non_negative_int, positive_float, positive_int, probability, state_cost
 from ._common import devices_arg
 
 
@@ -18,13 +19,19 @@ def add_compare_parser(subparsers):
     p.add_argument("set1", help="tlsjax result JSON of the first calibration")
     p.add_argument("set2", help="tlsjax result JSON of the second calibration")
     p.add_argument("--room", default="14x11x3", help="room LxWxH in metres (default 14x11x3)")
-    p.add_argument("--runs", type=int, default=1000, help="number of simulations N (default 1000)")
-    p.add_argument("--alpha", type=float, default=0.05, help="significance level (default 0.05)")
+    p.add_argument(
+        "--runs", type=positive_int, default=1000, help="number of simulations N (default 1000)"
+    )
+    p.add_argument(
+        "--alpha", type=probability, default=0.05, help="significance level (default 0.05)"
+    )
     p.add_argument("--architecture", default="hybrid", choices=("hybrid", "panoramic"))
-    p.add_argument("--unit-length", type=float, default=1.2, help="unit length U of A3/A4 [m]")
-    p.add_argument("--sigma-range-mm", type=float, default=DEFAULT_SIGMA_RANGE * 1e3)
-    p.add_argument("--sigma-angle-arcsec", type=float, default=20.0)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--unit-length", type=positive_float, default=1.2, help="unit length U of A3/A4 [m]"
+    )
+    p.add_argument("--sigma-range-mm", type=positive_float, default=DEFAULT_SIGMA_RANGE * 1e3)
+    p.add_argument("--sigma-angle-arcsec", type=positive_float, default=20.0)
+    p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--json", default=None, help="write the result as JSON to this file")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     devices_arg(p)
@@ -34,10 +41,22 @@ def add_compare_parser(subparsers):
 
 def cli_compare(args) -> int:
     """CLI handler: prints the report; exit code 0 compatible, 1 not compatible."""
-    from .._io._json import check_output_file, write_json_file
+    from .._io._json import write_json_file
+    from .._io._outputs import check_outputs
 
-    check_output_file(args.json, "--json ")  # before the simulations run
+    check_outputs([("--json", args.json)], [("set1", args.set1), ("set2", args.set2)])
     s1, s2 = APSet.from_json(args.set1), APSet.from_json(args.set2)
+    a = len(set(s1.names) | set(s2.names))
+    state_cost(  # each simulation: two scans of 100 targets, Jacobians of 90 check points
+        "the compatibility test",
+        "--runs",
+        args.runs,
+        rows=200,
+        parameters=6 + 2 * a,
+        devices=args.devices,
+        result_bytes=8.0 * 90 * 3 * (2 + 2 * a),
+        usual="1,000 is usual",
+    )
     room = Room.parse(args.room)
     sc = Scanner(architecture=args.architecture, aps=(), unit_length=args.unit_length)
     res = compatibility_test(

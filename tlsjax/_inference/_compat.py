@@ -100,6 +100,11 @@ class APSet:
     def from_result(cls, result) -> APSet:
         """From a :class:`tlsjax.CalibrationResult` (full AP covariance when it was formed)."""
         names = tuple(result.ap_names)
+        if not result.ok:  # its numbers would look plausible and be wrong
+            raise ValueError(
+                f"result {result.result} ({result.message}): a failed adjustment has no AP set "
+                "to compare; compare converged calibrations"
+            )
         if result.not_estimable:
             raise ValueError(
                 f"result has non-estimable APs ({', '.join(n for n, *_ in result.not_estimable)}); refit without them"
@@ -124,6 +129,8 @@ class APSet:
         aps = doc.get("aps") if isinstance(doc, dict) else None
         if not isinstance(aps, dict) or not aps:
             raise ValueError(f"{path}: no 'aps' object with per-AP 'value' and 'sigma'")
+        if doc.get("estimates", "valid") != "valid":
+            raise ValueError(f"{path}: no AP set to compare: the estimates are {doc['estimates']}")
         names, vals, sig = [], [], []
         for name, rec in aps.items():
             if isinstance(rec, dict) and rec.get("value", 0) is None:

@@ -387,9 +387,7 @@ class TestedCalibration:
         for w in self.warnings:
             lines.append(f"warning: {w}")
         for t in self.ap_tests:
-            lines.append(
-                f"  {t.name}: t = {t.t:.2f} ({'significant' if t.significant else 'not significant'} at |t| > {t.critical:.2f})"
-            )
+            lines.append(f"  {t.describe()}")
         return "\n".join(lines)
 
 

@@ -8,6 +8,7 @@ import numpy as np
 
 from .._clouds._extract import ExtractedPlanes
 from .._units import UNITS
+from ._outputs import atomic_output
 from ._tables import _Located, _number, _read_rows, parse_unit_column
 
 _NPZ_ARRAYS = (
@@ -34,7 +35,7 @@ def save_planes(path, planes: ExtractedPlanes) -> None:
         arrays["poses"] = planes.poses
     if planes.planes is not None:
         arrays["planes"] = planes.planes
-    with open(path, "wb") as fh:
+    with atomic_output(path) as tmp, open(tmp, "wb") as fh:  # a file object: no ".npz" added
         np.savez(fh, **arrays)
 
 

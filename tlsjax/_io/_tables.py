@@ -17,6 +17,7 @@ import numpy as np
 
 from .._adjustment._network import ObservationTable
 from .._units import UNITS
+from ._outputs import atomic_output
 
 #: Numeric quantity -> dimension, for both file kinds.
 QUANTITIES: dict[str, str] = {
@@ -432,7 +433,7 @@ def write_observations(path, table: ObservationTable, *, length_unit="m", angle_
     ):
         raise ValueError("table columns have different lengths")
 
-    with open(path, "w", newline="", encoding="utf-8") as fh:
+    with atomic_output(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh, delimiter=",", lineterminator="\n")
         writer.writerow(header)
         for i in range(n):
@@ -453,7 +454,7 @@ def write_scans(path, levelling: dict, *, angle_unit="arcsec") -> None:
             f"angle_unit {angle_unit!r} is not an angle unit; accepted: {_accepted('angle')}"
         )
     f = UNITS[angle_unit][1]
-    with open(path, "w", newline="", encoding="utf-8") as fh:
+    with atomic_output(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh, delimiter=",", lineterminator="\n")
         writer.writerow(["scan"] + [f"{q}_{angle_unit}" for q in _SCAN_NUMERIC])
         for scan, d in levelling.items():
