@@ -15,7 +15,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from .._model._plausibility import PlausibilityWarning, check_ranges
+from .._model._plausibility import PlausibilityWarning, check_ranges, design_warnings
 from .._units import ARCSEC
 
 #: Default a priori sigmas (SPEC section 8): 0.5 mm range at normal incidence, 20" for the angles.
@@ -771,6 +771,20 @@ def _check_connected(scan_names, target_names, scan_index, target_index, source)
             f"{source}: scan(s) {', '.join(missing)} are disconnected from scan {scan_names[0]}: "
             "no chain of scans sharing at least 3 targets or planes links them"
         )
+
+
+def network_design_warnings(network, model) -> list[str]:
+    """:func:`tlsjax._model._plausibility.design_warnings` of a network and a model."""
+    from ._config import CalibrationModel  # _config is above this module
+
+    scanners = (model or CalibrationModel()).scanner
+    scanners = list(scanners.values()) if isinstance(scanners, Mapping) else [scanners]
+    return design_warnings(
+        n_scans=len(network.scans),
+        n_targets=len(network.targets),
+        n_planes=len(network.planes),
+        n_aps=sum(len(s.aps) for s in scanners),
+    )
 
 
 def check_calibration_arguments(network, model, options, where: str = "calibrate") -> None:

@@ -267,6 +267,7 @@ def _read(args):
 
 def _calibrate(args) -> int:
     from .._adjustment._config import CalibrationModel
+    from .._adjustment._network import network_design_warnings
     from .._model._scanner import Scanner
 
     _check_options(args)
@@ -288,6 +289,8 @@ def _calibrate(args) -> int:
         fixed_scan=args.fixed_scan,
         correlation_threshold=args.correlation_threshold,
     )
+    for note in network_design_warnings(net, model):
+        warn(note)
     if args.fixed_scan is not None and args.fixed_scan not in net.scans:
         raise ValueError(
             f"--fixed-scan {args.fixed_scan}: no such scan (scans: {', '.join(net.scans)})"

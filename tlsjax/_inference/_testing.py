@@ -386,7 +386,9 @@ class TestedCalibration:
             )
         for w in self.warnings:
             lines.append(f"warning: {w}")
-        for t in self.ap_tests:
+        if not self.ok:  # no t-tests of estimates that are not a calibration
+            lines.append("  no AP t-tests: the run failed, its estimates are not a calibration")
+        for t in self.ap_tests if self.ok else ():
             lines.append(f"  {t.describe()}")
         return "\n".join(lines)
 

@@ -91,6 +91,29 @@ def check_ranges(ranges, where, what, source: str) -> list[str]:
     return [far] if med > FAR_MEDIAN_RANGE else []
 
 
+def design_warnings(*, n_scans: int, n_targets: int, n_planes: int, n_aps: int) -> list[str]:
+    """Designs too small for the chosen APs, said before the adjustment runs (its result will
+    name the APs it cannot determine; these say why)."""
+    out = []
+    if not n_aps:
+        return out
+    if n_scans == 1:
+        out.append(
+            f"1 scan for {n_aps} AP(s): only the shape of what one scan sees separates the APs "
+            "from its pose and the planes/targets, so expect weak or implausible estimates; "
+            "self-calibration needs scans from two or more stations, some tilted (Chow et al. "
+            "2013)"
+        )
+    n_prim = n_targets + n_planes
+    if n_prim < n_aps:
+        kind = "planes" if not n_targets else "targets" if not n_planes else "targets and planes"
+        out.append(
+            f"{n_prim} {kind} for {n_aps} APs: fewer primitives than APs, so the terms cannot be "
+            "told apart; use fewer APs (e.g. physical) or more targets/planes spread over the room"
+        )
+    return out
+
+
 @dataclasses.dataclass(frozen=True)
 class Finding:
     """An AP value judged implausible: ``level`` "warning" or "impossible", the AP ``name``
