@@ -152,7 +152,10 @@ class APSet:
         C = np.diag(np.square(sig))
         if doc.get("ap_covariance") is not None:
             cn = doc.get("ap_covariance_names")
-            M = np.asarray(doc["ap_covariance"], dtype=np.float64)
+            try:
+                M = np.asarray(doc["ap_covariance"], dtype=np.float64)
+            except (TypeError, ValueError):
+                raise ValueError(f"{path}: 'ap_covariance' is not a matrix of numbers") from None
             if not isinstance(cn, list) or M.shape != (len(cn), len(cn)):
                 raise ValueError(
                     f"{path}: 'ap_covariance' must be a square list of rows with matching 'ap_covariance_names'"

@@ -111,6 +111,21 @@ def _check_result_doc(doc, source) -> None:
         v = doc.get(key)
         if v is not None and not _is_number(v):
             raise ValueError(f"{source}: '{key}' is not a number or null ({v!r})")
+    names, cov = doc.get("ap_covariance_names"), doc.get("ap_covariance")
+    if names is not None and not (
+        isinstance(names, list) and all(isinstance(n, str) for n in names)
+    ):
+        raise ValueError(f"{source}: 'ap_covariance_names' must be a list of AP names")
+    if cov is not None and not (
+        isinstance(cov, list)
+        and all(isinstance(r, list) and len(r) == len(cov) for r in cov)
+        and all(v is None or _is_number(v) for r in cov for v in r)
+        and (names is None or len(names) == len(cov))
+    ):
+        raise ValueError(
+            f"{source}: 'ap_covariance' must be a square matrix of numbers or null, one row per "
+            "name in 'ap_covariance_names'"
+        )
     for keys, kind in ((_TOP_MAPPINGS, dict), (_TOP_LISTS, list)):
         for key in keys:
             v = doc.get(key)
