@@ -92,7 +92,9 @@ def summary(res, alpha: float = 0.05, *, after_vce: bool = False) -> str:
             f"{'accepted' if gt['accepted'] else 'REJECTED'} (p = {gt['p_value']:.3f})"
         )
     groups = ", ".join(
-        f"{g} {red[g]['mean']:.3f}" for g in ("range", "hz", "el", "levelling") if g in red
+        f"{g} {_number(red[g]['mean'], 0, 3).strip()}"
+        for g in ("range", "hz", "el", "levelling")
+        if g in red
     )
     if groups:
         out.append(f"mean redundancy numbers: {groups}")
