@@ -108,7 +108,8 @@ def main(argv=None) -> int:
         # Every output is written to a temporary file and renamed when complete, so an
         # interrupted run leaves the previous files as they were and no half-written one.
         print(
-            f"tlsjax {args.command}: interrupted (Ctrl-C); no output file was written or changed",
+            f"tlsjax {args.command}: interrupted (Ctrl-C); no file was left half-written (an "
+            "output not yet complete keeps its previous content)",
             file=sys.stderr,
         )
         return EXIT_INTERRUPTED
