@@ -149,7 +149,9 @@ def test_units_do_not_change_the_result(simulated, tmp_path, length_unit, angle_
     write_observations(
         other, read_observations(obs), length_unit=length_unit, angle_unit=angle_unit
     )
-    assert f"range_{length_unit}" in other.read_text().splitlines()[0]
+    comment, header = other.read_text().splitlines()[:2]
+    assert comment == "# tlsjax target observations: architecture=hybrid"  # recorded, read back
+    assert f"range_{length_unit}" in header
     a, b = tmp_path / "a.json", tmp_path / "b.json"
     assert main(["calibrate", str(obs), "--scans", str(scans), "--json", str(a)]) == 0
     assert main(["calibrate", str(other), "--scans", str(scans), "--json", str(b)]) == 0

@@ -36,7 +36,9 @@ from ._design._optimize import DesignOptimisation as DesignOptimisation
 from ._design._optimize import DesignSpace as DesignSpace
 from ._design._optimize import optimize_design as optimize_design
 from ._inference._checkpoints import CheckpointReport as CheckpointReport
+from ._inference._checkpoints import TargetCheck as TargetCheck
 from ._inference._checkpoints import assess_checkpoints as assess_checkpoints
+from ._inference._checkpoints import check_targets as check_targets
 from ._inference._compat import APSet as APSet
 from ._inference._compat import CompatibilityOptions as CompatibilityOptions
 from ._inference._compat import CompatibilityResult as CompatibilityResult
@@ -71,6 +73,8 @@ from ._io._tables import read_observations as read_observations
 from ._io._tables import read_planes as read_planes
 from ._io._tables import read_scans as read_scans
 from ._io._tables import write_observations as write_observations
+from ._io._target_lists import read_reference as read_reference
+from ._io._target_lists import read_target_list as read_target_list
 from ._model._aps import PRESETS as PRESETS
 from ._model._aps import register_ap as register_ap
 from ._model._aps import registered_aps as registered_aps

@@ -30,6 +30,9 @@ class ObservationTable:
 
     ``sigmas`` is None when the file has no sigma column; a sigma column or cell that is absent
     is NaN (the caller fills the defaults). ``rows`` holds the 1-based line number of each row.
+    ``architecture``: the scanner architecture the observations are expressed in (SPEC section
+    1), when the file records it (None: not recorded); ``notes``: what a reader decided (layout,
+    units and the rule that chose them) for the user to check.
     """
 
     kind: str
@@ -41,6 +44,8 @@ class ObservationTable:
     incidence: np.ndarray | None
     instruments: tuple[str, ...] | None
     rows: np.ndarray
+    architecture: str | None = None
+    notes: tuple = ()
 
     def __len__(self) -> int:
         return len(self.scans)
@@ -227,7 +232,9 @@ def check_angles(obs, architecture, where, what) -> None:
             (
                 past_zenith,
                 "el",
-                "is beyond 90 deg: a hybrid scanner observes el in [-90, 90] deg",
+                "is beyond 90 deg: a hybrid scanner observes el in [-90, 90] deg (only the "
+                "second face of a panoramic scanner looks past the zenith: architecture "
+                "'panoramic', CLI --architecture panoramic)",
             )
         )
     elif architecture == "panoramic":

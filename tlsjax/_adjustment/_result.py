@@ -106,6 +106,12 @@ class CalibrationResult:
     # What a person can act on when the adjustment fails (largest normalised misclosures,
     # sigma0 per scan and per primitive, suspicious plane matches); see _diagnose.
     diagnosis: dict = dataclasses.field(default_factory=dict)
+    # (t, 3, 3) a posteriori covariance of each target [m^2] in the datum used (the diagonal
+    # blocks the quality pass computes anyway): confidence ellipsoids at no extra cost.
+    target_covariance: np.ndarray | None = dataclasses.field(default=None, repr=False)
+    # The CalibrationModel adjusted (scanner architecture, unit lengths, datum): what a result
+    # file must record so that the calibration is applied as it was estimated.
+    model: object = dataclasses.field(default=None, repr=False)
 
     @property
     def ok(self) -> bool:
@@ -308,7 +314,7 @@ def _observation_arrays(net: Network, plan: Plan, q, state, s0sq):
     resid, redund = np.zeros((n_obs, 3)), np.zeros((n_obs, 3))
     used = np.ones((n_obs, 3), dtype=bool)
     txyz = np.zeros((len(net.targets), 3))
-    tsig = np.full((len(net.targets), 3), np.nan)
+    tcov = np.full((len(net.targets), 3, 3), np.nan)
     sig_of = lambda fi: np.sqrt(
         np.clip(np.diagonal(np.asarray(q.prim_cofactor[fi]), axis1=1, axis2=2) * s0sq, 0, None)
     )
@@ -318,7 +324,8 @@ def _observation_arrays(net: Network, plan: Plan, q, state, s0sq):
         redund[rows] = np.asarray(q.redundancy[fi])
         used[rows] = np.asarray(plan.problem.families[fi].weight) > 0
         txyz[tg.reshape(-1)] = np.asarray(state.params.prims[fi]).reshape(-1, 3)
-        tsig[tg.reshape(-1)] = sig_of(fi).reshape(-1, 3)
+        tcov[tg.reshape(-1)] = np.asarray(q.prim_cofactor[fi]).reshape(-1, 3, 3) * s0sq
+    tsig = np.sqrt(np.clip(np.diagonal(tcov, axis1=1, axis2=2), 0, None))
     planes = {}
     fp = plan.plane_family
     if fp is not None:
@@ -330,7 +337,7 @@ def _observation_arrays(net: Network, plan: Plan, q, state, s0sq):
             plane_redundancy=np.asarray(q.redundancy[fp]),
             plane_used=np.asarray(plan.problem.families[fp].weight) > 0,
         )
-    return resid, redund, used, txyz, tsig, planes
+    return resid, redund, used, txyz, tsig, tcov, planes
 
 
 def assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
@@ -359,7 +366,7 @@ def assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
     diagnosis = failure_diagnosis(net, plan, q) if code != ResultCode.SUCCESS else {}
     if code == ResultCode.MAX_ITERATIONS:
         _name_nearly_absorbed(plan, q, ap_dep | ap_fixed, diagnosis)
-    resid, redund, used, txyz, tsig, plane_out = _observation_arrays(
+    resid, redund, used, txyz, tsig, tcov, plane_out = _observation_arrays(
         net, plan, q, state, s0sq_scale
     )
     eop_sig = np.sqrt(np.clip(np.diag(np.asarray(q.Qzz))[: 6 * ns] * s0sq_scale, 0, None)).reshape(
@@ -408,6 +415,8 @@ def assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
         used=used,
         ap_fixed=tuple(plan.ap_labels[i] for i in np.flatnonzero(ap_fixed)),
         diagnosis=diagnosis,
+        target_covariance=tcov,
+        model=model,
         **plane_out,
     )
 

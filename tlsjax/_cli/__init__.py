@@ -1,5 +1,5 @@
 """Command line: ``tlsjax demo | simulate | calibrate | extract-planes | correct | report |
-montecarlo | compare | design``.
+montecarlo | compare | design | import-targets | check-targets``.
 
 Every subcommand is a thin layer over the public API. Bad input is reported as one line
 naming the file, line, scan, target or parameter (exit code 2), and so is every file-system
@@ -27,6 +27,7 @@ from ._extract import add_extract_parser
 from ._montecarlo import add_montecarlo_parser
 from ._report import add_report_parser
 from ._simulate import add_demo_parser, add_simulate_parser
+from ._targets import add_check_targets_parser, add_import_targets_parser
 
 
 def _enable_compilation_cache():
@@ -71,6 +72,8 @@ def build_parser() -> argparse.ArgumentParser:
         add_montecarlo_parser,
         add_compare_parser,
         add_design_parser,
+        add_import_targets_parser,
+        add_check_targets_parser,
     ):
         add(sub)
     return ap

@@ -147,7 +147,15 @@ def add_calibrate_parser(sub):
         default=None,
         help="a candidate more correlated than this with the model is not added (default 0.9)",
     )
-    scanner_args(c)
+    c.add_argument(
+        "--targets-out",
+        metavar="CSV",
+        help="write the adjusted target coordinates with sigmas and ellipsoid axes here (in "
+        "the datum of the adjustment; the JSON has them too)",
+    )
+    scanner_args(
+        c, default=None, default_help="the one recorded in the observation file, else hybrid"
+    )
     c.set_defaults(func=_calibrate)
     return c
 
@@ -280,7 +288,9 @@ def _calibrate(args) -> int:
             ("--planes", args.planes),
             ("--scans", args.scans),
         ),
+        more=[("--targets-out", args.targets_out)],
     )
+    args.architecture = file_architecture(args.architecture, args.observations, args.planes)
     scanner = Scanner(architecture=args.architecture, aps=args.aps, unit_length=args.unit_length)
     net = _read(args)
     model = CalibrationModel(
@@ -310,9 +320,16 @@ def _calibrate(args) -> int:
     write_outputs(
         res, args.json, args.plots, extra=extra, scanner=scanner, mask=mask, withheld=withheld
     )
+    failed = not res.ok or withheld is not None or impossible(res)
+    if (
+        args.targets_out and failed and res.ok
+    ):  # no target estimates of a run that is no calibration
+        print(f"--targets-out {args.targets_out}: not written (the run is no calibration)")
+    elif args.targets_out:
+        write_targets(res, args.targets_out)
     if args.report:
         _write_report(res, args.report, extra, scanner, mask, withheld)
-    return EXIT_OK if res.ok and withheld is None and not impossible(res) else EXIT_FAILED
+    return EXIT_FAILED if failed else EXIT_OK
 
 
 def impossible(res) -> bool:
@@ -341,6 +358,46 @@ def _run(args, net, model, scanner):
             warnings.simplefilter("ignore", PlausibilityWarning)
             res = calibrate(net, model, solver)
     return extra, res, tested, mask, mdb
+
+
+def file_architecture(given, *paths) -> str:
+    """``given``, else the architecture recorded in the first observation CSV that records
+    one (files tlsjax writes), else hybrid; a mismatch is refused by ``read_network``."""
+    from .._io._tables import recorded_architecture
+
+    if given is not None:
+        return given
+    for p in paths:
+        if p is not None and str(p).lower().endswith(".csv") and os.path.isfile(p):
+            arch = recorded_architecture(p)
+            if arch is not None:
+                print(f"{p}: {arch} scanner (recorded in the file)")
+                return arch
+    return "hybrid"
+
+
+def write_targets(res, path):
+    """The adjusted targets as CSV (``--targets-out``); none for a failed adjustment."""
+    from .._io._target_lists import write_target_csv
+    from .._report._json import datum_text, target_ellipsoids, target_scan_counts
+
+    if not res.ok:
+        print(f"--targets-out {path}: not written (the adjustment failed: no estimates)")
+        return
+    if not len(res.targets):
+        print(f"--targets-out {path}: not written (no targets in this network)")
+        return
+    axes, _ = target_ellipsoids(res.target_covariance)
+    write_target_csv(
+        path,
+        res.targets,
+        res.target_xyz,
+        res.target_sigmas,
+        axes,
+        target_scan_counts(res),
+        datum_text(res),
+    )
+    print(f"wrote {path}")
 
 
 def _select(args, net, model, scanner, extra):

@@ -9,12 +9,12 @@ from ._checks import positive_float, positive_int
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERNAL = 0, 1, 2, 3
 
 
-def scanner_args(p):
+def scanner_args(p, default="hybrid", default_help="hybrid"):
     p.add_argument(
         "--architecture",
         choices=("hybrid", "panoramic"),
-        default="hybrid",
-        help="scanner architecture (default: hybrid)",
+        default=default,
+        help=f"scanner architecture (default: {default_help})",
     )
     p.add_argument(
         "--unit-length",

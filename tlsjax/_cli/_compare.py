@@ -25,7 +25,12 @@ def add_compare_parser(subparsers):
     p.add_argument(
         "--alpha", type=probability, default=0.05, help="significance level (default 0.05)"
     )
-    p.add_argument("--architecture", default="hybrid", choices=("hybrid", "panoramic"))
+    p.add_argument(
+        "--architecture",
+        default=None,
+        choices=("hybrid", "panoramic"),
+        help="scanner architecture (default: the one stored in the JSONs, else hybrid)",
+    )
     p.add_argument(
         "--unit-length", type=positive_float, default=1.2, help="unit length U of A3/A4 [m]"
     )
@@ -37,6 +42,25 @@ def add_compare_parser(subparsers):
     devices_arg(p)
     p.set_defaults(func=cli_compare)
     return p
+
+
+def _stored_architecture(args) -> str:
+    """``--architecture``, else the architecture both JSONs store (their ``scanner``
+    section), else hybrid; two sets of different architectures are refused."""
+    from .._io._json import read_result_json
+
+    if args.architecture is not None:
+        return args.architecture
+    found = {}
+    for path in (args.set1, args.set2):
+        sc = read_result_json(path).get("scanner")
+        if isinstance(sc, dict) and sc.get("architecture"):
+            found[path] = sc["architecture"]
+    if len(set(found.values())) > 1:
+        raise ValueError(
+            f"the AP sets calibrate different architectures ({found}); give --architecture"
+        )
+    return next(iter(found.values()), "hybrid")
 
 
 def cli_compare(args) -> int:
@@ -57,6 +81,7 @@ def cli_compare(args) -> int:
         result_bytes=8.0 * 90 * 3 * (2 + 2 * a),
         usual="1,000 is usual",
     )
+    args.architecture = _stored_architecture(args)
     room = Room.parse(args.room)
     sc = Scanner(architecture=args.architecture, aps=(), unit_length=args.unit_length)
     res = compatibility_test(

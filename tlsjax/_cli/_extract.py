@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 import numpy as np
 
@@ -129,7 +130,8 @@ def cli_extract(args) -> int:
         planes = match_planes(planes, poses)
     save_planes(args.out, planes)
     if args.csv:
-        write_observations(args.csv, planes.to_table())
+        table = dataclasses.replace(planes.to_table(), architecture=args.architecture)
+        write_observations(args.csv, table)
     matched = (
         "not matched (no scan poses: give --poses)"
         if planes.planes is None

@@ -140,9 +140,14 @@ class Calibration:
         return _calibration_from_json(os.fspath(path), architecture, instrument)
 
 
-def _scanner_from_doc(doc, source, architecture, names):
+def _scanner_from_doc(doc, source, architecture, names, instrument=None):
+    """The Scanner of a result JSON: its ``scanner`` section (per instrument when it has
+    ``instruments``), else the top-level ``architecture`` of a simulation's truth JSON."""
     settings = doc.get("scanner") if isinstance(doc.get("scanner"), dict) else {}
-    arch = architecture or settings.get("architecture")
+    per = settings.get("instruments")
+    if instrument is not None and isinstance(per, dict) and isinstance(per.get(instrument), dict):
+        settings = per[instrument]
+    arch = architecture or settings.get("architecture") or doc.get("architecture")
     notes = []
     if arch is None:
         arch = "hybrid"
@@ -163,7 +168,9 @@ def _scanner_from_doc(doc, source, architecture, names):
 
 
 def _calibration_from_json(source, architecture, instrument) -> Calibration:
-    doc = read_result_json(source)
+    # A simulation's truth and a target check (which records the APs it applied) carry an
+    # AP set too; the other kinds of tlsjax JSON are named and refused.
+    doc = read_result_json(source, accept=("truth", "target check"))
     estimates = doc.get("estimates", "valid")
     if estimates != "valid":  # withheld (a failed run) or implausible: never applied
         raise ValueError(f"{source}: no calibration to apply: the estimates are {estimates}")
@@ -185,10 +192,12 @@ def _calibration_from_json(source, architecture, instrument) -> Calibration:
             get_ap(n)
         except ValueError as err:
             raise ValueError(f"{source}: {err}") from None
-    scanner, notes = _scanner_from_doc(doc, source, architecture, names)
+    scanner, notes = _scanner_from_doc(doc, source, architecture, names, instrument)
     values = []
     for k in keys:
-        entry = aps[k] if isinstance(aps[k], dict) else {}
+        # A result JSON has {"value": ..., "sigma": ...} per AP; a simulation's truth JSON the
+        # plain true value.
+        entry = aps[k] if isinstance(aps[k], dict) else {"value": aps[k]}
         v = entry.get("value")
         if v is None:
             notes.append(
@@ -199,7 +208,7 @@ def _calibration_from_json(source, architecture, instrument) -> Calibration:
         if not isinstance(v, (int, float)) or not np.isfinite(v):
             raise ValueError(f"{source}: AP {k} has no numeric value ({v!r})")
         values.append(float(v))
-    if keys and all(aps[k].get("value") is None for k in keys):
+    if keys and all(isinstance(aps[k], dict) and aps[k].get("value") is None for k in keys):
         raise ValueError(f"{source}: no AP has a value (every estimate is null): nothing to apply")
     return Calibration(
         scanner, np.array(values), _covariance(doc, keys, source), source, tuple(notes)
@@ -210,7 +219,9 @@ def _covariance(doc, keys, source):
     names = doc.get("ap_covariance_names")
     rows = doc.get("ap_covariance")
     if not names or rows is None:
-        sig = [(doc["aps"][k] or {}).get("sigma") for k in keys]
+        sig = [
+            (doc["aps"][k] if isinstance(doc["aps"][k], dict) else {}).get("sigma") for k in keys
+        ]
         if any(s is None for s in sig):
             return None
         return np.diag(np.square(np.asarray(sig, dtype=np.float64)))

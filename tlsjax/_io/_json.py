@@ -65,12 +65,13 @@ def write_json_file(path, obj, option: str = "") -> dict:
     return value
 
 
-#: Top-level keys that tell the other JSON files tlsjax writes from a calibration result.
+#: The other JSON files tlsjax writes, told from a calibration result (which has "result") by
+#: their keys: (name, test, description).
 _OTHER_KINDS = (
-    (("runs", "successful"), "a Monte Carlo summary (tlsjax montecarlo --json)"),
-    (("p_value", "compatible"), "an AP-set compatibility test (tlsjax compare --json)"),
-    (("criterion", "start_value"), "a design optimisation (tlsjax design --json)"),
-    (("targets", "eops", "units"), "the truth of a simulation (tlsjax simulate --truth)"),
+    ("montecarlo", ("runs", "successful"), "a Monte Carlo summary (tlsjax montecarlo --json)"),
+    ("compare", ("p_value", "compatible"), "an AP-set compatibility test (tlsjax compare --json)"),
+    ("design", ("criterion", "start_value"), "a design optimisation (tlsjax design --json)"),
+    ("truth", ("targets", "eops", "units"), "the truth of a simulation (tlsjax simulate --truth)"),
 )
 _AP_NUMBERS = ("value", "sigma", "t", "max_abs_corr")
 _TOP_NUMBERS = ("sigma0", "dof", "n_observations", "n_unknowns", "iterations", "result")
@@ -82,23 +83,44 @@ def _is_number(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
-def _check_result_doc(doc, source) -> None:
+def json_kind(doc) -> str:
+    """ "result" (a calibration), "target check", or one of the names of :data:`_OTHER_KINDS`;
+    "unknown" for anything else."""
+    if not isinstance(doc, dict):
+        return "unknown"
+    if "result" in doc:
+        return "result"
+    if doc.get("kind") == "target check":
+        return "target check"
+    for name, keys, _ in _OTHER_KINDS:
+        if all(k in doc for k in keys):
+            return name
+    return "unknown"
+
+
+def _check_result_doc(doc, source, accept=()) -> str:
     """The contract fields of a result JSON (SPEC section 11) have their JSON types: each AP an
-    object whose value, sigma, t and max_abs_corr are numbers or null; one-line ValueError."""
+    object whose value, sigma, t and max_abs_corr are numbers or null (a plain number in a
+    simulation's truth); one-line ValueError. ``accept``: other kinds that carry an AP set and
+    may be read too ("truth", "target check"). Returns the kind."""
     if not isinstance(doc, dict):
         raise ValueError(
             f"{source}: not a tlsjax result JSON (the top level is a {type(doc).__name__}, "
             "not an object)"
         )
-    for keys, kind in _OTHER_KINDS:
-        if all(k in doc for k in keys) and "result" not in doc:
-            raise ValueError(
-                f"{source}: {kind}, not a calibration result; give the JSON that "
-                "`tlsjax calibrate --json` writes"
-            )
+    kind = json_kind(doc)
+    described = {name: text for name, _, text in _OTHER_KINDS}
+    described["target check"] = "a target check (tlsjax check-targets --json)"
+    if kind in described and kind not in accept:
+        raise ValueError(
+            f"{source}: {described[kind]}, not a calibration result; give the JSON that "
+            "`tlsjax calibrate --json` writes"
+        )
     if not isinstance(doc.get("aps"), dict):
         raise ValueError(f"{source}: not a tlsjax result JSON (no 'aps' object)")
     for name, entry in doc["aps"].items():
+        if kind == "truth" and _is_number(entry):
+            continue
         if not isinstance(entry, dict):
             raise ValueError(
                 f"{source}: AP {name}: expected an object with value, sigma, unit, got {entry!r}"
@@ -126,19 +148,21 @@ def _check_result_doc(doc, source) -> None:
             f"{source}: 'ap_covariance' must be a square matrix of numbers or null, one row per "
             "name in 'ap_covariance_names'"
         )
-    for keys, kind in ((_TOP_MAPPINGS, dict), (_TOP_LISTS, list)):
+    for keys, want in ((_TOP_MAPPINGS, dict), (_TOP_LISTS, list)):
         for key in keys:
             v = doc.get(key)
-            if v is not None and not isinstance(v, kind):
+            if v is not None and not isinstance(v, want):
                 raise ValueError(
-                    f"{source}: '{key}' must be a JSON {'object' if kind is dict else 'array'}, "
+                    f"{source}: '{key}' must be a JSON {'object' if want is dict else 'array'}, "
                     f"got {type(v).__name__}"
                 )
+    return kind
 
 
-def read_result_json(source) -> dict:
+def read_result_json(source, *, accept=()) -> dict:
     """A tlsjax result JSON as a dict; a one-line ValueError naming the file otherwise (not
-    JSON, another kind of tlsjax JSON, a contract field of the wrong type)."""
+    JSON, another kind of tlsjax JSON unless in ``accept``, a contract field of the wrong
+    type)."""
     try:
         with open(source, encoding="utf-8") as fh:
             doc = json.load(fh)
@@ -150,5 +174,5 @@ def read_result_json(source) -> dict:
         raise ValueError(f"{source}: not a readable result JSON ({err})") from None
     except RecursionError:
         raise ValueError(f"{source}: not a readable result JSON (nested too deeply)") from None
-    _check_result_doc(doc, source)
+    _check_result_doc(doc, source, accept)
     return doc

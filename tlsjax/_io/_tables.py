@@ -12,10 +12,12 @@ import csv
 import dataclasses
 import math
 import os
+import re
 
 import numpy as np
 
 from .._adjustment._network import ObservationTable
+from .._model._scanner import ARCHITECTURES
 from .._units import UNITS
 from ._outputs import atomic_output
 
@@ -115,8 +117,14 @@ def open_text(path, what: str = "CSV file"):
         raise ValueError(f"{source}: cannot be read ({err.strerror or err})") from None
 
 
+#: First characters of a comment line before the header: tlsjax writes
+#: ``# tlsjax target observations: architecture=panoramic`` there (:func:`recorded_architecture`).
+COMMENT = "#"
+
+
 def _read_rows(path, loc: _Located):
-    """Header (list of (line, names)) and data rows as (line, fields), blank lines skipped."""
+    """Header (list of (line, names)) and data rows as (line, fields), blank lines and comment
+    lines before the header (``#``) skipped."""
     with open_text(path) as fh:
         reader = csv.reader(fh, delimiter=",", strict=True)
         records = []
@@ -125,6 +133,8 @@ def _read_rows(path, loc: _Located):
             for fields in reader:
                 start, last = last + 1, reader.line_num
                 if not fields or all(not f.strip() for f in fields):
+                    continue
+                if not records and fields[0].lstrip().startswith(COMMENT):
                     continue
                 records.append((start, fields))
         except csv.Error as err:
@@ -220,15 +230,52 @@ def _check_directions(row, cells, line, loc) -> None:
             )
 
 
+_ARCH_KEY = re.compile(r"architecture\s*[=:]\s*([A-Za-z]+)")
+
+
+def recorded_architecture(path) -> str | None:
+    """The scanner architecture recorded in the comment lines before the header of an
+    observation CSV (``# tlsjax ...: architecture=panoramic``), or None."""
+    source = os.fspath(path)
+    found = None
+    with open_text(source) as fh:
+        try:
+            for line in fh:
+                text = line.strip()
+                if not text:
+                    continue
+                if not text.startswith(COMMENT):
+                    break
+                m = _ARCH_KEY.search(text)
+                if m:
+                    found = m.group(1).lower()
+        except UnicodeDecodeError:
+            return None  # not text: the reader says so, with the line
+    if found is not None and found not in ARCHITECTURES:
+        raise ValueError(
+            f"{source}: the recorded scanner architecture {found!r} is not one of {ARCHITECTURES}"
+        )
+    return found
+
+
+def architecture_comment(kind: str, architecture: str) -> str:
+    """The comment line that records the architecture (read back by
+    :func:`recorded_architecture`)."""
+    return f"# tlsjax {kind} observations: architecture={architecture}"
+
+
 def read_observations(path) -> ObservationTable:
     """Read a target or plane observation CSV (SPEC section 11) into SI units.
 
     The kind comes from the presence of a ``target`` or a ``plane`` column; hz is wrapped into
-    [0, 2pi), el is left as given (panoramic elevations reach past pi/2).
+    [0, 2pi), el is left as given (panoramic elevations reach past pi/2). The architecture
+    recorded in a comment line before the header (files tlsjax writes) is in
+    ``table.architecture``.
     """
     _check_path(path, "path")
     source = os.fspath(path)
     loc = _Located(source)
+    architecture = recorded_architecture(source)
     header_line, names, data = _read_rows(path, loc)
     columns, seen = _parse_header(names, header_line, loc, _OBS_TEXT, _OBS_NUMERIC)
 
@@ -313,6 +360,7 @@ def read_observations(path) -> ObservationTable:
         incidence=inc if "incidence" in seen else None,
         instruments=tuple(instruments) if "instrument" in seen else None,
         rows=np.asarray(lines, dtype=np.int64),
+        architecture=architecture,
     )
 
 
@@ -395,7 +443,8 @@ def write_observations(path, table: ObservationTable, *, length_unit="m", angle_
     """Write ``table`` as a CSV that :func:`read_observations` reads back to the same numbers.
 
     Lengths go out in ``length_unit`` (m, mm), angles in ``angle_unit`` (rad, deg, gon, arcsec),
-    with 17 significant digits.
+    with 17 significant digits; the table's architecture, when known, in a comment line before
+    the header (the units are in the column names).
     """
     for unit, dim in ((length_unit, "length"), (angle_unit, "angle")):
         if unit not in UNITS or UNITS[unit][0] != dim:
@@ -434,6 +483,8 @@ def write_observations(path, table: ObservationTable, *, length_unit="m", angle_
         raise ValueError("table columns have different lengths")
 
     with atomic_output(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
+        if table.architecture is not None:
+            fh.write(architecture_comment(table.kind, table.architecture) + "\n")
         writer = csv.writer(fh, delimiter=",", lineterminator="\n")
         writer.writerow(header)
         for i in range(n):
@@ -461,9 +512,9 @@ def write_scans(path, levelling: dict, *, angle_unit="arcsec") -> None:
             writer.writerow([scan] + [_format(float(d[q]) / f) for q in _SCAN_NUMERIC])
 
 
-def table_from_network(net) -> ObservationTable:
+def table_from_network(net, architecture: str | None = None) -> ObservationTable:
     """The target observations of a :class:`~tlsjax.Network` as a table (sigmas as used, i.e.
-    with the incidence scaling of the range already applied)."""
+    with the incidence scaling of the range already applied), recording ``architecture``."""
     inst = None
     if len(net.instruments) > 1:
         inst = tuple(net.instruments[net.instrument_of_scan[j]] for j in net.scan_index)
@@ -477,6 +528,7 @@ def table_from_network(net) -> ObservationTable:
         incidence=None,
         instruments=inst,
         rows=np.arange(2, len(net.scan_index) + 2),
+        architecture=architecture,
     )
 
 
@@ -538,19 +590,23 @@ def read_network(
     """Read observation files (and the optional scans CSV) into a validated Network.
 
     ``observations_path``: a target or a plane observation CSV (told apart by its ``target`` or
-    ``plane`` column). ``planes``: a plane CSV or an extracted-planes ``.npz`` besides a target
+    ``plane`` column), or a table already read (e.g. :func:`~tlsjax.read_target_list` of vendor
+    target lists). ``planes``: a plane CSV or an extracted-planes ``.npz`` besides a target
     file (a combined network), or instead of it. Missing sigma cells take the group defaults of
     :func:`~tlsjax.make_network` (or the ``sigma_range``/``sigma_hz``/``sigma_el`` given here);
-    errors name the file and line.
+    errors name the file and line. The architecture a file records is checked against
+    ``architecture`` (and used for the angle checks when that is None).
     """
     from .._adjustment._network import make_network
 
     for value, name in ((observations_path, "observations_path"), (scans_path, "scans_path")):
-        if value is not None:
+        if value is not None and not isinstance(value, ObservationTable):
             _check_path(value, name)
     if observations_path is None and planes is None:
         raise ValueError("give an observation file, a planes file, or both")
-    table = read_observations(observations_path) if observations_path is not None else None
+    table = observations_path
+    if table is not None and not isinstance(table, ObservationTable):
+        table = read_observations(observations_path)
     plane_table = read_planes(planes) if planes is not None else None
     if table is not None and table.kind == "plane":
         if plane_table is not None:
@@ -558,6 +614,7 @@ def read_network(
                 f"{table.source}: a plane file; a combined network takes one target file and one plane file"
             )
         table, plane_table = None, table
+    kwargs["architecture"] = _agreed_architecture(kwargs.get("architecture"), table, plane_table)
     levelling = read_scans(scans_path) if scans_path is not None else None
     if table is None:
         return make_network(
@@ -583,3 +640,21 @@ def read_network(
         planes=plane_table,
         **kwargs,
     )
+
+
+def _agreed_architecture(architecture, *tables):
+    """``architecture``, or the one the tables record; a table recorded for another
+    architecture is refused (its elevations and directions would be misread)."""
+    for t in tables:
+        rec = getattr(t, "architecture", None) if t is not None else None
+        if rec is None:
+            continue
+        if architecture is None:
+            architecture = rec
+        elif rec != architecture:
+            raise ValueError(
+                f"{t.source}: the observations are recorded for a {rec} scanner, but the "
+                f"architecture given is {architecture}; give --architecture {rec} (or "
+                f"architecture='{rec}'), or convert the file again"
+            )
+    return architecture

@@ -81,3 +81,18 @@ def rigid_fit(src, dst, xp=jnp):
     D = xp.diag(xp.stack([xp.ones_like(dsign), xp.ones_like(dsign), dsign]))
     R = Vt.T @ D @ U.T
     return R, cd - R @ cs
+
+
+def helmert_fit(src, dst, scale: bool = False, xp=np):
+    """s, R, t minimising ``sum |s R src + t - dst|^2`` (s = 1 unless ``scale``): the rigid
+    (6-parameter) or similarity (7-parameter Helmert) least-squares fit with equal weights,
+    which is the inner-constraint solution on the points (Horn 1987; Umeyama 1991: the rotation
+    does not depend on the scale, ``s = sum (R src_c) . dst_c / sum |src_c|^2``)."""
+    R, t = rigid_fit(src, dst, xp=xp)
+    s = 1.0
+    if scale:
+        cs, cd = src.mean(axis=0), dst.mean(axis=0)
+        a = (src - cs) @ R.T
+        s = xp.sum(a * (dst - cd)) / xp.sum(a * a)
+        t = cd - s * (R @ cs)
+    return s, R, t

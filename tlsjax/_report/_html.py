@@ -29,6 +29,7 @@ import numpy as np
 
 from .._io._json import read_result_json
 from .._units import ARCSEC, DISPLAY_UNITS
+from ._json import scanner_settings as scanner_settings
 
 DELTA0 = 4.13
 _GROUPS = ("range", "hz", "el")
@@ -71,16 +72,6 @@ def provenance(files=(), argv=None) -> dict:
         "python": platform.python_version(),
         "platform": platform.platform(),
         "inputs": inputs,
-    }
-
-
-def scanner_settings(scanner) -> dict:
-    """Architecture, unit lengths and AP names: what ``tlsjax correct`` needs to apply the APs."""
-    return {
-        "architecture": scanner.architecture,
-        "unit_length": scanner.unit_length,
-        "unit_length_2": scanner.unit_length_2,
-        "aps": list(scanner.aps),
     }
 
 
