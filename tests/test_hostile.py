@@ -49,8 +49,8 @@ def base(tmp_path_factory):
     assert main(argv) == 0
     argv = ["calibrate", str(d / "obs.csv"), "--scans", str(d / "scans.csv"), "--no-vce"]
     assert main(argv + ["--json", str(d / "cal.json")]) == 0
-    with open(d / "obs.csv", newline="") as fh:
-        rows = list(csv.reader(fh))
+    with open(d / "obs.csv", newline="") as fh:  # without the "# tlsjax ..." comment line
+        rows = [r for r in csv.reader(fh) if r and not r[0].startswith("#")]
     head, body = rows[0], rows[1:]
     i_range = head.index("range_m")
 
