@@ -17,6 +17,7 @@ import shutil
 import jax
 import numpy as np
 import pytest
+from helpers import tiny_planes
 from strict_json import load_strict
 
 import tlsjax as tj
@@ -105,23 +106,7 @@ def base(tmp_path_factory):
     (d / "compare.json").write_text(json.dumps({"p_value": 0.3, "compatible": True, "runs": 10}))
     (d / "garbage.json").write_text("{not json")
     # Plane files: one cut short, one whose arrays disagree.
-    n = 40  # two scans, one patch each on one plane, 20 points per patch
-    planes = tj.ExtractedPlanes(
-        scans=("S1", "S2"),
-        patch_scan=np.array([0, 1]),
-        patch_normal=np.array([[1.0, 0, 0], [1.0, 0, 0]]),
-        patch_distance=np.array([5.0, 5.0]),
-        patch_rms=np.full(2, 1e-3),
-        patch_inliers=np.array([20, 20]),
-        patch_plane=np.array([0, 0]),
-        point_patch=np.repeat([0, 1], 20),
-        point_index=np.arange(n),
-        observations=np.column_stack([np.full(n, 5.0), rng.uniform(-0.3, 0.3, (n, 2))]),
-        incidence=np.zeros(n),
-        poses=np.zeros((2, 6)),
-        planes=np.array([[1.0, 0, 0, 5.0]]),
-    )
-    tj.save_planes(d / "planes.npz", planes)
+    tj.save_planes(d / "planes.npz", tiny_planes(rng, 40))
     raw = (d / "planes.npz").read_bytes()
     (d / "planes_truncated.npz").write_bytes(raw[: len(raw) // 2])
     with np.load(d / "planes.npz") as z:

@@ -17,6 +17,7 @@ import tempfile
 
 import numpy as np
 import pytest
+from helpers import tiny_planes
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -51,25 +52,7 @@ def files(tmp_path_factory):
     write_ptx(d / "c.ptx", [(x, None)])
     tj.write_ply(d / "c.ply", x)
     tj.write_las(d / "c.las", x, np.zeros(6))
-    n = 20
-    tj.save_planes(
-        d / "p.npz",
-        tj.ExtractedPlanes(
-            scans=("S1", "S2"),
-            patch_scan=np.array([0, 1]),
-            patch_normal=np.array([[1.0, 0, 0], [1.0, 0, 0]]),
-            patch_distance=np.array([5.0, 5.0]),
-            patch_rms=np.full(2, 1e-3),
-            patch_inliers=np.array([10, 10]),
-            patch_plane=np.array([0, 0]),
-            point_patch=np.repeat([0, 1], 10),
-            point_index=np.arange(n),
-            observations=np.column_stack([np.full(n, 5.0), rng.uniform(-0.3, 0.3, (n, 2))]),
-            incidence=np.zeros(n),
-            poses=np.zeros((2, 6)),
-            planes=np.array([[1.0, 0, 0, 5.0]]),
-        ),
-    )
+    tj.save_planes(d / "p.npz", tiny_planes(rng, 20))
     return d
 
 
@@ -140,36 +123,39 @@ def mutated_table(draw, text):
     return "\n".join(lines) + "\n"
 
 
-@settings(max_examples=40)
-@given(data=st.data())
-def test_malformed_tables_at_the_reader(files, data):
-    text = data.draw(mutated_table((files / "obs.csv").read_text()))
+@contextlib.contextmanager
+def _table_file(text):
+    """``text`` written to a CSV in a fresh folder (surrogates kept as invalid UTF-8); the
+    file must be unchanged when the block ends."""
     with _folder() as d:
         path = os.path.join(d, "obs.csv")
         with open(path, "w", encoding="utf-8", errors="surrogatepass") as fh:
             fh.write(text)
         before = _digest(path)
+        yield d, path
+        assert _digest(path) == before
+
+
+@settings(max_examples=40)
+@given(data=st.data())
+def test_malformed_tables_at_the_reader(files, data):
+    text = data.draw(mutated_table((files / "obs.csv").read_text()))
+    with _table_file(text) as (_, path):
         try:
             net = tj.read_network(path)
         except Exception as exc:  # noqa: BLE001 - any class but a clear ValueError fails
             _assert_clear(exc, path)
         else:
             assert np.all(np.isfinite(net.observations)) and np.all(net.sigmas > 0)
-        assert _digest(path) == before
 
 
 @settings(max_examples=12)
 @given(data=st.data())
 def test_malformed_tables_at_calibrate(files, data):
     text = data.draw(mutated_table((files / "obs.csv").read_text()))
-    with _folder() as d:
-        path = os.path.join(d, "obs.csv")
-        with open(path, "w", encoding="utf-8", errors="surrogatepass") as fh:
-            fh.write(text)
-        before = _digest(path)
+    with _table_file(text) as (d, path):
         code, err = _cli(["calibrate", path, "--no-vce", "--json", os.path.join(d, "c.json")])
         _assert_outcome(code, err, "calibrate")
-        assert _digest(path) == before
 
 
 # --- result JSON ----------------------------------------------------------------------------
