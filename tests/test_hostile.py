@@ -173,6 +173,26 @@ ERRORS = [
     ("json empty name", "calibrate {d}/obs.csv --json=", "not a file name"),
     ("montecarlo png under a file", "montecarlo --runs 5 --png {d}/obs.csv/x.png", "is a file"),
     ("design json under a file", "design --json {d}/obs.csv/x.json", "is a file"),
+    ("import-targets over its list", "import-targets {d}/scan.xyz --architecture hybrid "
+     "--out {d}/scan.xyz", "is the input list"),
+    ("check-targets json over the reference", "check-targets {d}/cal.json {d}/obs.csv "
+     "--reference {d}/poses.csv --json {d}/poses.csv", "is the input --reference"),
+    ("check-targets json over the calibration", "check-targets {d}/cal.json {d}/obs.csv "
+     "--reference {d}/poses.csv --json {d}/cal.json", "is the input calibration"),
+    ("extract-targets over a scan", "extract-targets {d}/scan.xyz --spheres 0.07 "
+     "--out {d}/scan.xyz", "--out .*scan.xyz: is the input scan"),
+    ("extract-targets table over poses", "extract-targets {d}/scan.xyz --spheres 0.07 "
+     "--out {d}/t.csv --poses {d}/poses.csv --table {d}/poses.csv", "is the input --poses"),
+    ("extract-targets default table over the list", "extract-targets {d}/scan.xyz --spheres "
+     "0.07 --out {d}/t.csv --target-list {d}/t_table.csv", "--table .*t_table.csv: is the input"),
+    ("extract-targets out and table one path", "extract-targets {d}/scan.xyz --spheres 0.07 "
+     "--out {d}/t.csv --table {d}/t.csv", "are the same file"),
+    ("extract-targets plots is a file", "extract-targets {d}/scan.xyz --spheres 0.07 "
+     "--out {d}/t.csv --plots {d}/obs.csv", "--plots .*obs.csv: is a file"),
+    ("extract-targets negative radius", "extract-targets {d}/scan.xyz --spheres -0.07 "
+     "--out {d}/t.csv", "--spheres: -0.07 must be a positive number"),
+    ("extract-targets coverage above one", "extract-targets {d}/scan.xyz --spheres 0.07 "
+     "--min-coverage 2 --out {d}/t.csv", "--min-coverage: 2 must be between 0 and 1"),
     # Unit mix-ups and impossible values in the data.
     ("metres under range_mm", "calibrate {d}/obs_metres_as_mm.csv", "metres read as millimetres"),
     ("millimetres under range_m", "calibrate {d}/obs_mm_as_metres.csv",
@@ -312,18 +332,19 @@ def test_undefined_quantities_are_said_in_words(work, capsys):
 
 def test_a_run_whose_vce_failed_writes_no_estimates(work, capsys, monkeypatch):
     """VCE that oscillates (forced): exit 1, and the text, the JSON and the exit code agree
-    that there is no calibration (issue 28: it used to say "valid" and hold B6)."""
-    from tlsjax._inference import _testing
+    that there is no calibration (issue 28: it used to say "valid" and hold B6). Private:
+    the group statistics of the VCE step are patched to force the failure."""
+    from tlsjax._inference import _steps
 
-    real = _testing._Session.group_factors
+    real = _steps.group_statistics
     calls = {"n": 0}
 
-    def alternating(self):
-        s2, r_g, n_g = real(self)
+    def alternating(ctx, state):
+        s2, r_g, n_g = real(ctx, state)
         calls["n"] += 1
         return np.where(np.arange(len(s2)) < 3, 4.0 if calls["n"] % 2 else 0.25, s2), r_g, n_g
 
-    monkeypatch.setattr(_testing._Session, "group_factors", alternating)
+    monkeypatch.setattr(_steps, "group_statistics", alternating)
     d = work
     argv = ["calibrate", d / "obs.csv", "--scans", d / "scans.csv", "--json", d / "v.json"]
     code, out, err = run(argv + ["--report", d / "v.html"], capsys)

@@ -54,7 +54,12 @@ import logging
 
 import numpy as np
 
-from .._model._geometry import angles_from_matrix, cartesian_from_spherical
+from .._model._geometry import (
+    angles_from_matrix,
+    cartesian_from_spherical,
+    kabsch,
+    plane_from_moments,
+)
 from .._units import DEG
 from ._network import Network
 
@@ -180,11 +185,8 @@ def _plane_fit(cnt, s1, s2, cfg: ApproxConfig):
     """PCA plane fits from moments: normal (g, 3), has_n, sigma of the normal [rad], centroid,
     sigma of the centroid across the plane [m]."""
     m = np.maximum(cnt, 1.0)
-    c = s1 / m[:, None]
-    C = s2 / m[:, None, None] - c[:, :, None] * c[:, None, :]
-    w, V = np.linalg.eigh(C)
+    n, c, w = plane_from_moments(m, s1, s2)
     w = np.clip(w, 0.0, None)
-    n = V[:, :, 0]
     has_n = (cnt >= 3) & (w[:, 1] >= cfg.min_spread**2)
     # Tilt of a PCA normal: residual variance over the points' spread along the weaker axis.
     resid = w[:, 0] * m / np.maximum(m - 3.0, 1.0)
@@ -430,10 +432,8 @@ class _Fit:
 def _kabsch(u, v, w):
     """Rotation R minimising ``sum w |R u - v|^2`` (rows u, v; Horn 1987), and the ratio of
     the second to the first singular value of the cross-covariance (0: rotation undetermined)."""
-    H = (u * w[:, None]).T @ v
-    U, sv, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0])
-    return Vt.T @ D @ U.T, sv[1] / max(sv[0], 1e-300)
+    R, sv = kabsch(u, v, w, xp=np)
+    return R, sv[1] / max(sv[0], 1e-300)
 
 
 def _cross(a, b):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 
+import jax.numpy as jnp
 import numpy as np
 
 from .._model._aps import get_ap
@@ -42,6 +43,18 @@ _MESSAGES = {
 #: Code -> message, for users who keep codes as plain integers.
 RESULT_MESSAGES = {int(c): c.message for c in ResultCode}
 SUCCESS, MAX_ITERATIONS, NOT_ESTIMABLE, RANK_DEFICIENT, NONFINITE = (int(c) for c in ResultCode)
+
+
+def result_code_of(*, finite, rank_deficient, converged, not_estimable):
+    """The :class:`ResultCode` of an adjustment from what it found, in the one order of
+    precedence (the first that applies): non-finite values, a rank defect of the scan poses,
+    no convergence, APs not estimable; success otherwise. Traceable (``jnp.where`` on booleans
+    or traced booleans), so the host-side assembly of a result and the compiled batch of a
+    Monte Carlo (:func:`._calibrate.result_code`) share it; an int32 code."""
+    code = jnp.where(not_estimable, NOT_ESTIMABLE, SUCCESS)
+    code = jnp.where(converged, code, MAX_ITERATIONS)
+    code = jnp.where(rank_deficient, RANK_DEFICIENT, code)
+    return jnp.where(finite, code, NONFINITE).astype(jnp.int32)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -282,16 +295,13 @@ def _max_correlations(plan: Plan, q, skip):
 
 
 def _result_code(state, q, rank_def, not_est):
-    finite = bool(state.finite) and np.isfinite(float(q.vtpv))
-    if not finite:
-        return ResultCode.NONFINITE
-    if rank_def:
-        return ResultCode.RANK_DEFICIENT
-    if not bool(state.converged):
-        return ResultCode.MAX_ITERATIONS
-    if not_est:
-        return ResultCode.NOT_ESTIMABLE
-    return ResultCode.SUCCESS
+    code = result_code_of(
+        finite=bool(state.finite) and bool(np.isfinite(float(q.vtpv))),
+        rank_deficient=bool(rank_def),
+        converged=bool(state.converged),
+        not_estimable=bool(not_est),
+    )
+    return ResultCode(int(code))
 
 
 def _message(code, rank_def, not_est, state, diagnosis):
@@ -305,6 +315,14 @@ def _message(code, rank_def, not_est, state, diagnosis):
     if code in (ResultCode.MAX_ITERATIONS, ResultCode.NONFINITE) and diagnosis.get("summary"):
         msg += "; " + diagnosis["summary"]
     return msg
+
+
+def _point_blocks(cof):
+    """The 3x3 diagonal blocks of per-primitive cofactors (n, 3k, 3k), one per point, in the
+    order of the primitives' points (a scale bar carries k = 2 points)."""
+    k = cof.shape[-1] // 3
+    idx = np.arange(k)
+    return cof.reshape(-1, k, 3, k, 3)[:, idx, :, idx, :].transpose(1, 0, 2, 3).reshape(-1, 3, 3)
 
 
 def _observation_arrays(net: Network, plan: Plan, q, state, s0sq):
@@ -324,7 +342,7 @@ def _observation_arrays(net: Network, plan: Plan, q, state, s0sq):
         redund[rows] = np.asarray(q.redundancy[fi])
         used[rows] = np.asarray(plan.problem.families[fi].weight) > 0
         txyz[tg.reshape(-1)] = np.asarray(state.params.prims[fi]).reshape(-1, 3)
-        tcov[tg.reshape(-1)] = np.asarray(q.prim_cofactor[fi]).reshape(-1, 3, 3) * s0sq
+        tcov[tg.reshape(-1)] = _point_blocks(np.asarray(q.prim_cofactor[fi])) * s0sq
     tsig = np.sqrt(np.clip(np.diagonal(tcov, axis1=1, axis2=2), 0, None))
     planes = {}
     fp = plan.plane_family
@@ -342,7 +360,11 @@ def _observation_arrays(net: Network, plan: Plan, q, state, s0sq):
 
 def assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
     """The arrays of one adjustment (state, quality) as a :class:`CalibrationResult` with
-    names, units, result code and message."""
+    names, units, result code and message.
+
+    Long because a result holds some forty named fields, set here in one place; the computations
+    are the helpers of this module.
+    """
     spec = plan.spec
     ns = spec.n_scans
     dof = float(q.dof)

@@ -17,6 +17,8 @@ from ._common import EXIT_FAILED, EXIT_OK, scanner_args
 
 
 def add_calibrate_parser(sub):
+    """The options of ``tlsjax calibrate``, declared one after another (long because there are many
+    of them; there is no logic here)."""
     c = sub.add_parser("calibrate", help="self-calibrate from target and/or plane observations")
     c.add_argument(
         "observations",
@@ -274,6 +276,8 @@ def _read(args):
 
 
 def _calibrate(args) -> int:
+    """Run ``tlsjax calibrate``: check the options and outputs, read, adjust (or adjust and
+    test), print and write; one sequence of steps, each a call."""
     from .._adjustment._config import CalibrationModel
     from .._adjustment._network import network_design_warnings
     from .._model._scanner import Scanner

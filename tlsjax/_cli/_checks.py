@@ -54,6 +54,14 @@ def probability(text: str) -> float:
     return value
 
 
+def fraction(text: str) -> float:
+    """argparse type: a share in [0, 1] (coverage)."""
+    value = _number(text, float)
+    if not 0 <= value <= 1:
+        raise argparse.ArgumentTypeError(f"{text} must be between 0 and 1")
+    return value
+
+
 def correlation(text: str) -> float:
     """argparse type: an |correlation| threshold in (0, 1]."""
     value = _number(text, float)

@@ -76,7 +76,10 @@ def read_scan_files(paths, architecture, poses_path=None, *, out=None):
 
 
 def cli_extract(args) -> int:
-    """Run ``tlsjax extract-planes``; returns the exit code."""
+    """Run ``tlsjax extract-planes``; returns the exit code.
+
+    (A little over 60 lines: one sequence of steps of the command, each a call.)
+    """
     import sys
 
     from .._clouds._extract import ExtractionConfig, extract_planes

@@ -35,7 +35,11 @@ import numpy as np
 from .._adjustment._network import refuse_traced
 from .._jit import jit
 from .._model._aps import ap_corrections, get_ap
-from .._model._geometry import TWO_PI, cartesian_from_spherical, rotation_matrix
+from .._model._geometry import (
+    cartesian_from_spherical,
+    rotation_matrix,
+    scanner_observations,
+)
 from .._model._plausibility import PlausibilityWarning, ap_findings
 from .._model._scanner import ARCHITECTURES, Scanner
 from .._units import display
@@ -234,25 +238,12 @@ def _covariance(doc, keys, source):
     return np.nan_to_num(C, nan=0.0)  # a non-estimable AP: applied as zero, no variance
 
 
-def _observations(x, architecture):
-    """(rho, theta, alpha) of scanner-space points in jax, as the readers compute them."""
-    rho = jnp.sqrt(jnp.sum(x * x, axis=-1))
-    theta = jnp.mod(jnp.arctan2(x[..., 1], x[..., 0]), TWO_PI)
-    theta = jnp.where(theta >= TWO_PI, 0.0, theta)
-    alpha = jnp.arctan2(x[..., 2], jnp.hypot(x[..., 0], x[..., 1]))
-    if architecture == "panoramic":
-        face2 = theta >= np.pi
-        theta = jnp.where(face2, theta - np.pi, theta)
-        alpha = jnp.where(face2, np.pi - alpha, alpha)
-    return jnp.stack([rho, theta, alpha], axis=-1)
-
-
 @functools.partial(jit, static_argnames=("scanner", "with_sigma"))
 def _correct_chunk(x, coeffs, cov, scanner: Scanner, with_sigma: bool):
     """Corrected scanner-space points of one chunk and, if asked, their sigma [m]."""
 
     def corrected(c, xi):
-        l = _observations(xi, scanner.architecture)
+        l = scanner_observations(xi, scanner.architecture)
         return cartesian_from_spherical(l - ap_corrections(c, scanner.aps, l, scanner))
 
     out = jax.vmap(corrected, in_axes=(None, 0))(coeffs, x)
@@ -319,7 +310,9 @@ def correct_points(
         part = x[i : i + size]
         pad = size - len(part)
         block = np.concatenate([part, np.repeat(part[:1], pad, axis=0)]) if pad else part
-        c, s = _correct_chunk(jnp.asarray(block), coeffs, cov, calibration.scanner, precision)
+        c, s = _correct_chunk(
+            jnp.asarray(block), coeffs, cov, calibration.scanner.current(), precision
+        )
         out_x[i : i + len(part)] = np.asarray(c)[: len(part)]
         sig[i : i + len(part)] = np.asarray(s)[: len(part)]
         if on_chunk is not None:

@@ -178,6 +178,8 @@ def withhold_estimates(d: dict, reason: str) -> None:
 
 
 def _result_dict(res, alpha: float) -> dict:
+    """The result JSON of SPEC section 11, field by field (long because the contract has many
+    fields; there is no logic beyond the conversions)."""
     notes = ap_notes(res)
     aps = {}
     for i, name in enumerate(res.ap_names):
