@@ -466,6 +466,24 @@ def test_same_plausibility_rules_in_the_api():
         )
 
 
+def test_one_wrong_cell_in_a_point_list_is_named_not_rescaled(tmp_path):
+    """A reference survey in metres with one coordinate typed as 50,000: its line is refused;
+    the unit rule (median distance from the median point) is not flipped to millimetres by
+    it, which would have scaled every other point by 1/1000 without a word."""
+    rng = np.random.default_rng(3)
+    xyz = rng.uniform(-6.0, 6.0, (12, 3))
+    rows = [f"T{i:02d},{x:.4f},{y:.4f},{z:.4f}" for i, (x, y, z) in enumerate(xyz)]
+    (tmp_path / "ok.csv").write_text("\n".join(["name,x,y,z", *rows]) + "\n")
+    ref = tj.read_reference(tmp_path / "ok.csv")
+    np.testing.assert_allclose(ref["T03"], np.round(xyz[3], 4))
+    rows[5] = "T05,50000," + rows[5].split(",", 2)[2]
+    (tmp_path / "bad.csv").write_text("\n".join(["name,x,y,z", *rows]) + "\n")
+    with pytest.raises(ValueError, match=r"bad.csv, line 7: point T05 lies 5[.\d]*e\+04 m from"):
+        tj.read_reference(tmp_path / "bad.csv")
+    with pytest.raises(ValueError, match=r"bad.csv, line 7: point T05 lies .* from the scanner"):
+        tj.read_target_list(tmp_path / "bad.csv", "hybrid", scan="S1")
+
+
 def test_t_tests_give_no_verdict_where_none_is_defined(sim):
     net = tj.simulate(tj.Room(n_targets=N_TARGETS), aps="A0 B6 B7 C0", seed=1).network
     res = tj.calibrate(net, tj.CalibrationModel(tj.Scanner(aps="A0 A1 B6 B7 C0")))

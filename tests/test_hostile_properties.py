@@ -300,3 +300,69 @@ def test_inconsistent_plane_arrays(files, key, value):
             tj.read_planes(path)
         except Exception as exc:  # noqa: BLE001
             _assert_clear(exc, path)
+
+
+# --- vendor target lists and reference surveys ----------------------------------------------
+
+LISTS = os.path.join(os.path.dirname(__file__), "data", "target_lists")
+LIST_CELLS = ["", "abc", "nan", "inf", "1e300", "-0", "0", "1,5", "1.5.3", "T001", "\x00", ";"]
+
+
+@st.composite
+def mutated_list(draw, text):
+    """A vendor target list with one to three mutations: a cell, a dropped or duplicated line,
+    noise, a cut, a changed header."""
+    lines = text.splitlines()
+    for _ in range(draw(st.integers(1, 3))):
+        kind = draw(st.sampled_from(["cell", "drop", "duplicate", "cut", "noise", "header"]))
+        i = draw(st.integers(0, len(lines) - 1))
+        if kind == "cell":
+            fields = lines[i].replace("\t", " ").replace(";", " ").replace(",", " ").split()
+            if fields:
+                fields[draw(st.integers(0, len(fields) - 1))] = draw(st.sampled_from(LIST_CELLS))
+            lines[i] = " ".join(fields)
+        elif kind == "drop" and len(lines) > 1:
+            del lines[i]
+        elif kind == "duplicate":
+            lines.insert(i, lines[i])
+        elif kind == "cut":
+            lines = lines[: i + 1]
+            lines[-1] = lines[-1][: draw(st.integers(0, len(lines[-1])))]
+        elif kind == "header":
+            lines[0] = draw(st.sampled_from(["", "x y z", "Name X[km] Y Z", "#", "a,b,c,d,e"]))
+        else:
+            lines.insert(i, draw(st.text(max_size=12)))
+    return "\n".join(lines) + "\n"
+
+
+@settings(max_examples=30)
+@given(
+    data=st.data(),
+    layout=st.sampled_from(["cyclone_", "cloudcompare_", "scene_", "riscan_tpl_socs_", ""]),
+)
+def test_malformed_target_lists_at_the_readers_and_import(layout, data):
+    """A mutated Station1 list beside an intact Station2 list: read_target_list,
+    read_reference and import-targets give a table, a clear error naming the mutated file, or
+    exit 1/2; the lists are never modified."""
+    ext = ".pts" if not layout else (".txt" if layout in ("cyclone_", "cloudcompare_") else ".csv")
+    with open(os.path.join(LISTS, f"{layout}Station1{ext}"), encoding="utf-8") as fh:
+        text = data.draw(mutated_list(fh.read()))
+    with _folder() as d:
+        one, two = os.path.join(d, f"Station1{ext}"), os.path.join(d, f"Station2{ext}")
+        with open(one, "w", encoding="utf-8", errors="surrogatepass") as fh:
+            fh.write(text)
+        with open(os.path.join(LISTS, f"{layout}Station2{ext}"), "rb") as src:
+            with open(two, "wb") as fh:
+                fh.write(src.read())
+        before = _digest(one)
+        for read in (lambda: tj.read_target_list([one, two], "hybrid").observations,
+                     lambda: np.array(list(tj.read_reference(one).values()))):  # fmt: skip
+            try:
+                values = read()
+            except Exception as exc:  # noqa: BLE001 - any class but a clear ValueError fails
+                _assert_clear(exc, one)
+            else:  # what is read is finite and within a laser scan's reach
+                assert np.all(np.isfinite(values)) and np.all(np.abs(values) <= 1e4)
+        argv = ["import-targets", one, two, "--architecture", "panoramic"]
+        _assert_outcome(*_cli(argv + ["--out", os.path.join(d, "obs.csv")]), "import-targets")
+        assert _digest(one) == before
