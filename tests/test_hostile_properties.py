@@ -227,39 +227,41 @@ def mutated_bytes(draw, raw: bytes):
     return raw[:i] + draw(st.binary(min_size=1, max_size=16)) + raw[i:]
 
 
+@contextlib.contextmanager
+def _bytes_file(raw: bytes, name: str):
+    """``raw`` written to ``name`` in a fresh folder; the file must be unchanged at the end."""
+    with _folder() as d:
+        path = os.path.join(d, name)
+        with open(path, "wb") as fh:
+            fh.write(raw)
+        yield d, path
+        with open(path, "rb") as fh:
+            assert fh.read() == raw
+
+
 @settings(max_examples=40)
 @given(data=st.data(), fmt=st.sampled_from(["xyz", "ptx", "ply", "las"]))
 def test_malformed_clouds_at_the_reader_and_correct(files, data, fmt):
     raw = data.draw(mutated_bytes((files / f"c.{fmt}").read_bytes()))
-    with _folder() as d:
-        path = os.path.join(d, f"c.{fmt}")
-        with open(path, "wb") as fh:
-            fh.write(raw)
+    with _bytes_file(raw, f"c.{fmt}") as (d, path):
         try:
             tj.read_point_clouds(path)
         except Exception as exc:  # noqa: BLE001
             _assert_clear(exc, path)
         argv = ["correct", files / "cal.json", path, "--out", os.path.join(d, "out")]
         _assert_outcome(*_cli(argv), "correct")
-        with open(path, "rb") as fh:
-            assert fh.read() == raw
 
 
 @settings(max_examples=25)
 @given(data=st.data())
 def test_malformed_plane_files(files, data):
     raw = data.draw(mutated_bytes((files / "p.npz").read_bytes()))
-    with _folder() as d:
-        path = os.path.join(d, "p.npz")
-        with open(path, "wb") as fh:
-            fh.write(raw)
+    with _bytes_file(raw, "p.npz") as (_, path):
         try:
             tj.read_planes(path)
         except Exception as exc:  # noqa: BLE001
             _assert_clear(exc, path)
         _assert_outcome(*_cli(["calibrate", "--planes", path, "--no-screen"]), "calibrate")
-        with open(path, "rb") as fh:
-            assert fh.read() == raw
 
 
 @settings(max_examples=25)
