@@ -46,6 +46,14 @@ def positive_float(text: str) -> float:
     return value
 
 
+def non_negative_float(text: str) -> float:
+    """argparse type: a finite number >= 0 (a noise that may be zero)."""
+    value = _number(text, float)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text} must be 0 or more")
+    return value
+
+
 def probability(text: str) -> float:
     """argparse type: a significance level in (0, 1)."""
     value = _number(text, float)
