@@ -237,3 +237,26 @@ def dense_gauss_helmert(net, names, x0, pseudo=(), iterations=40, tol=1e-10, dat
     vtpv = float(np.sum(v**2 / sig**2))
     dof = len(w) - u + n_pl + len(cols)
     return dict(x=x, Q=Q, v=v, r=r, vtpv=vtpv, dof=dof, iterations=done, n_points=m)
+
+
+def tiny_planes(rng, n: int):
+    """A small valid extracted-planes object (two scans, one patch each on one plane x = 5 m,
+    n points), for tests of the planes file and its readers."""
+    import tlsjax as tj
+
+    half = n // 2
+    return tj.ExtractedPlanes(
+        scans=("S1", "S2"),
+        patch_scan=np.array([0, 1]),
+        patch_normal=np.array([[1.0, 0, 0], [1.0, 0, 0]]),
+        patch_distance=np.array([5.0, 5.0]),
+        patch_rms=np.full(2, 1e-3),
+        patch_inliers=np.array([half, n - half]),
+        patch_plane=np.array([0, 0]),
+        point_patch=np.repeat([0, 1], [half, n - half]),
+        point_index=np.arange(n),
+        observations=np.column_stack([np.full(n, 5.0), rng.uniform(-0.3, 0.3, (n, 2))]),
+        incidence=np.zeros(n),
+        poses=np.zeros((2, 6)),
+        planes=np.array([[1.0, 0, 0, 5.0]]),
+    )
