@@ -91,17 +91,19 @@ def compile_batched(one, constants, chunk: int) -> Batched:
     return Batched(compiled, chunk, batched, replicated, time.perf_counter() - t0)
 
 
-def run_batched(b: Batched, n: int, constants, *, desc: str, progress: bool):
-    """Run realisations ``0 .. n-1`` in chunks; returns (pytree of (n, ...) numpy arrays, seconds)."""
+def run_batched(b: Batched, n: int, constants, *, desc: str, progress: bool, indices=None):
+    """Run realisations ``0 .. n-1`` (or ``indices``) in chunks; returns (pytree of (n, ...)
+    numpy arrays in that order, seconds)."""
     from tqdm.auto import tqdm
 
+    idx_all = np.arange(n, dtype=np.int64) if indices is None else np.asarray(indices, np.int64)
+    n = len(idx_all)
+    pad = np.concatenate([idx_all, np.full(-n % b.chunk, idx_all[-1] if n else 0)])
     consts = jax.device_put(tuple(constants), b.replicated)
     parts = []
     t0 = time.perf_counter()
-    for c in tqdm(
-        range(int(math.ceil(n / b.chunk))), desc=desc, unit="chunk", disable=not progress
-    ):
-        idx = np.arange(c * b.chunk, (c + 1) * b.chunk, dtype=np.int64)
+    for c in tqdm(range(len(pad) // b.chunk), desc=desc, unit="chunk", disable=not progress):
+        idx = pad[c * b.chunk : (c + 1) * b.chunk]
         parts.append(jax.tree.map(np.asarray, b.compiled(jax.device_put(idx, b.batched), *consts)))
     run_s = time.perf_counter() - t0
     out = jax.tree.map(lambda *a: np.concatenate(a)[:n], *parts)
