@@ -15,13 +15,9 @@ import pytest
 from networks import SIX_SCANS, ST1, ST2
 
 import tlsjax as tj
-from tlsjax._adjustment._approx import (
-    ApproxConfig,
-    _Prims,
-    _register,
-    approximate,
-    approximate_network,
-)
+from tlsjax._adjustment._approx import ApproxConfig, approximate, approximate_network
+from tlsjax._adjustment._approx._local import Prims
+from tlsjax._adjustment._approx._register import register
 from tlsjax._adjustment._network import ObservationTable
 from tlsjax._model._geometry import rotation_matrix
 
@@ -263,7 +259,7 @@ def test_normals_of_either_sign_give_one_registration():
 
     def prims(normals, centres, signs):
         k = len(normals)
-        return _Prims(
+        return Prims(
             np.arange(k),
             normals * signs[:, None],
             np.ones(k, dtype=bool),
@@ -277,7 +273,7 @@ def test_normals_of_either_sign_give_one_registration():
 
     for _ in range(5):
         sa, sb = rng.choice([-1.0, 1.0], size=(2, 7))
-        fit = _register(prims(n, c, sa), prims(nb, cb, sb), ApproxConfig())
+        fit = register(prims(n, c, sa), prims(nb, cb, sb), ApproxConfig(), rng)
         assert fit.determined and fit.n_inliers == 7
         np.testing.assert_allclose(fit.R, R, atol=1e-9)
         np.testing.assert_allclose(fit.t, t, atol=1e-9)

@@ -34,7 +34,6 @@ code of a failed convergence, which the caller answers with the full loop.
 from __future__ import annotations
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
