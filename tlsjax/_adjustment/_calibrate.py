@@ -51,7 +51,7 @@ def estimate(spec, problem, params0, options):
     and its result code, computed in the graph: what a batch of realisations (Monte Carlo)
     needs of each. Pure, so it can be vmapped; the codes are those of :func:`calibrate`."""
     grid = on_grid(problem)
-    state, lin = adjust_linearised(spec, grid, params0, options, final_pass=False)
+    state, lin = adjust_linearised(spec, grid, params0, options)
     s = summary_from(spec, grid, state.params, lin, state.cost)
     return state, s, result_code(spec, problem, state, s)
 

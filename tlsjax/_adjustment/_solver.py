@@ -117,10 +117,12 @@ def adjust(spec: Spec, problem: Problem, params0: Params, options: Options) -> S
 
 
 class _Loop(eqx.Module):
-    state: SolveState
-    rows: tuple  # at state.params (before a final chord correction)
-    lin: Linearisation  # the last pass's factorisation (at the point the last step left)
-    damped: Bool[Array, ""]  # the last pass's factorisation was damped
+    state: SolveState  # at the current estimate x
+    rows: tuple  # at x
+    lin: Linearisation  # the factorisation at x that made the candidate
+    candidate: Params  # the point the next pass evaluates (the start, then x + dx)
+    step: Float[Array, ""]  # length of the step to the candidate, sqrt(dx^T b)
+    first: Bool[Array, ""]  # the candidate is the start
     done: Bool[Array, ""]
 
 
@@ -134,16 +136,15 @@ def _frozen_cost(problem: Problem, params: Params, rows, frozen):
     return total
 
 
-def adjust_linearised(
-    spec: Spec, problem: Problem, params0: Params, options: Options, final_pass: bool = True
-):
+def adjust_linearised(spec: Spec, problem: Problem, params0: Params, options: Options):
     """:func:`adjust` on a problem already on its grid (:func:`._families.on_grid`); also
     returns the :class:`Linearisation` the quality pass needs (see the module docstring).
 
-    ``final_pass``: when the loop ends without convergence (iteration limit, too much damping)
-    the last factorisation may be damped; the quality then needs an undamped one at the final
-    estimate, made after the loop (a ``lax.cond``). Monte Carlo, which reports failures by
-    their result code only, passes False."""
+    One pass evaluates the rows at the candidate (the start, then the last step's end point),
+    accepts or rejects it, tests convergence with the chord step of the factorisation at hand,
+    and, unless converged, factorises at the accepted estimate and steps. A loop that ends
+    without convergence (iteration limit, too much damping) factorises its final estimate
+    undamped, for the quality. Every piece of the pass is traced and compiled once."""
     ap_jac = ap_jacobians(spec, problem, params0)
     dof = jnp.maximum(
         count_observations(problem, params0)
@@ -154,108 +155,109 @@ def adjust_linearised(
     rho = rounding_sigma(problem)
     floor = ROUNDING_FACTOR * rho
 
-    # Nested jits: the initial rows and the candidate's rows share one trace, as do the
-    # factorisation in the loop and after it.
-    @jax.jit
-    def rows_of(params):
-        return rows_at(spec, problem, params, ap_jac)
-
-    @jax.jit
+    @jax.jit  # a nested jit, so that eval_shape below reuses the loop body's trace
     def factorise(params, rows, damping, dependent):
         blocks = assemble(spec, problem, params, rows)
         Hp, Hz = null_space(spec, problem.families, params)
         red = reduce(spec, problem, blocks, Hz, damping, options.rank_tolerance, dependent)
-        return blocks, Linearisation(rows, Hp, Hz, red)
-
-    def threshold(cost):
-        s0 = jnp.sqrt(jnp.maximum(cost, 0.0) / dof)
-        return jnp.maximum(options.tolerance * s0, floor)
+        return Linearisation(rows, Hp, Hz, red), blocks.bp, blocks.bz
 
     def body(loop: _Loop):
-        state, rows = loop.state, loop.rows
-        damping = state.damping
-        blocks, lin = factorise(state.params, rows, damping, state.dependent)
-        red = lin.reduced
-        dps, dz = solve(spec, red, blocks.bp, blocks.bz, lin.Hp, lin.Hz)
-        new = apply_update(spec, problem, state.params, dps, dz)
-        new_rows = rows_of(new)
-        new_cost = _frozen_cost(problem, new, new_rows, rows)
-        finite = jnp.isfinite(new_cost)
-        accept = finite & (new_cost <= state.cost * (1.0 + 1e-12))
+        state, y, first = loop.state, loop.candidate, loop.first
+        rows_y = rows_at(spec, problem, y, ap_jac)
+        own_cost = linearised_cost(problem, y, rows_y)
+        new_cost = _frozen_cost(problem, y, rows_y, loop.rows)
+        accept = first | (jnp.isfinite(new_cost) & (new_cost <= state.cost * (1.0 + 1e-12)))
         # A step is accepted by comparing costs, and the cost carries rounding noise of about
         # 2 rho sqrt(cost) (rho: rounding of one whitened residual). A step of length u (in a
         # priori sigmas) lowers the cost by about u^2; below COST_RESOLUTION times that noise
         # its rejection says nothing: at the solution an undamped step is rounding noise and
         # may be rejected by rounding alone; it is converged either way.
-        update = jnp.sqrt(jnp.maximum(norm_squared(dps, dz, blocks.bp, blocks.bz), 0.0))
         resolvable = jnp.sqrt(COST_RESOLUTION * 2.0 * rho * jnp.sqrt(jnp.maximum(state.cost, 0)))
-        unresolved = ~accept & (update < resolvable)
+        undamped = ~first & (state.damping == 0)
+        unresolved = undamped & ~accept & (loop.step < resolvable)
         # The chord step at the candidate with the factorisation at hand (module docstring).
-        own_cost = linearised_cost(problem, new, new_rows)
-        bp, bz = gradient(spec, problem, new, new_rows)
-        bp = tuple(f.tangent_gradient(P, b) for f, P, b in zip(problem.families, new.prims, bp))
-        cps, cz = solve(spec, red, bp, bz, lin.Hp, lin.Hz)
-        chord = jnp.sqrt(jnp.maximum(norm_squared(cps, cz, bp, bz), 0.0)) / threshold(own_cost)
-        undamped = damping == 0
+        bp, bz = gradient(spec, problem, y, rows_y)
+        bp = tuple(f.tangent_gradient(P, b) for f, P, b in zip(problem.families, y.prims, bp))
+        cps, cz = solve(spec, loop.lin.reduced, bp, bz, loop.lin.Hp, loop.lin.Hz)
+        s0 = jnp.sqrt(jnp.maximum(own_cost, 0.0) / dof)
+        chord = jnp.sqrt(jnp.maximum(norm_squared(cps, cz, bp, bz), 0.0))
+        chord = chord / jnp.maximum(options.tolerance * s0, floor)
         done_here = undamped & accept & jnp.isfinite(chord) & (chord < 1.0)
-        converged = done_here | (undamped & unresolved)
-        params = _where(accept, new, state.params)
-        params = _where(done_here, apply_update(spec, problem, new, cps, cz), params)
-        damping_next = jnp.where(
-            accept,
-            jnp.where(damping < options.damping_min, 0.0, damping * options.damping_decrease),
-            jnp.maximum(damping * options.damping_increase, options.damping_initial),
+        converged = done_here | unresolved
+
+        params = _where(accept, y, state.params)
+        rows = _where(accept, rows_y, loop.rows)
+        cost_x = jnp.where(accept, own_cost, state.cost)
+        damping = jnp.where(
+            first,
+            state.damping,
+            jnp.where(
+                accept,
+                jnp.where(
+                    state.damping < options.damping_min,
+                    0.0,
+                    state.damping * options.damping_decrease,
+                ),
+                jnp.maximum(state.damping * options.damping_increase, options.damping_initial),
+            ),
         )
-        size = jnp.where(unresolved, 0.0, chord)
-        new_state = SolveState(
-            params,
-            jnp.where(accept, own_cost, state.cost),
-            damping_next,
-            state.iteration + 1,
-            converged,
-            finite | accept,
-            jnp.where(undamped, size, state.size),
-            jnp.where(undamped, red.dependent, state.dependent),
-        )
-        rows = _where(accept, new_rows, rows)
-        lin = Linearisation(rows, lin.Hp, lin.Hz, red)
+        iteration = state.iteration + jnp.where(first, 0, 1)
+        finite = jnp.isfinite(cost_x) & (first | jnp.isfinite(new_cost) | accept)
         stop = (
             converged
-            | (new_state.iteration >= options.max_iterations)
-            | (damping_next > options.damping_max)
+            | (iteration >= options.max_iterations)
+            | (damping > options.damping_max)
+            | ~jnp.isfinite(cost_x)
         )
-        return _Loop(new_state, rows, lin, ~undamped, stop)
+        # Unless converged, factorise at the estimate: for the next step, or, at a stop
+        # without convergence, undamped for the quality.
+        used = jnp.where(stop, 0.0, damping)
+        lin, b_p, b_z = lax.cond(
+            converged,
+            lambda: (Linearisation(rows, loop.lin.Hp, loop.lin.Hz, loop.lin.reduced), bp, bz),
+            lambda: factorise(params, rows, used, state.dependent),
+        )
+        dps, dz = solve(spec, lin.reduced, b_p, b_z, lin.Hp, lin.Hz)
+        step = jnp.sqrt(jnp.maximum(norm_squared(dps, dz, b_p, b_z), 0.0))
+        final = _where(done_here, apply_update(spec, problem, y, cps, cz), params)
+        new_state = SolveState(
+            final,
+            cost_x,
+            damping,
+            iteration,
+            converged,
+            finite,
+            jnp.where(undamped, jnp.where(unresolved, 0.0, chord), state.size),
+            jnp.where(~converged & (used == 0), lin.reduced.dependent, state.dependent),
+        )
+        candidate = apply_update(spec, problem, params, dps, dz)
+        return _Loop(new_state, rows, lin, candidate, step, jnp.asarray(False), stop)
 
-    rows0 = rows_of(params0)
-    cost0 = linearised_cost(problem, params0, rows0)
     init = SolveState(
         params0,
-        cost0,
+        jnp.asarray(jnp.inf),
         jnp.asarray(0.0),
         jnp.asarray(0),
         jnp.asarray(False),
-        jnp.isfinite(cost0),
+        jnp.asarray(True),
         jnp.asarray(jnp.inf),
         jnp.zeros(spec.r, dtype=bool),
     )
-    # The loop carries the last factorisation; its first pass fills it.
-    _, lin0 = jax.eval_shape(factorise, params0, rows0, jnp.asarray(0.0), init.dependent)
-    zeros = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), lin0)
-    zeros = Linearisation(rows0, zeros.Hp, zeros.Hz, zeros.reduced)
-    start = _Loop(init, rows0, zeros, jnp.asarray(False), ~init.finite)
+    rows0 = jax.eval_shape(lambda p: rows_at(spec, problem, p, ap_jac), params0)
+    shapes = jax.eval_shape(factorise, params0, rows0, jnp.asarray(0.0), init.dependent)[0]
+    zeros = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
+    start = _Loop(
+        init,
+        zeros.rows,
+        zeros,
+        params0,
+        jnp.asarray(jnp.inf),
+        jnp.asarray(True),
+        jnp.asarray(False),
+    )
     out = lax.while_loop(lambda loop: ~loop.done, body, start)
-    state, lin = out.state, out.lin
-    state = eqx.tree_at(lambda s: s.finite, state, state.finite & jnp.isfinite(state.cost))
-    if final_pass:
-        # Without convergence the last factorisation may be damped, or be missing (a start
-        # that is not finite): an undamped one at the final estimate for the quality.
-        redo = ~state.converged | out.damped | (state.iteration == 0)
-        lin = lax.cond(
-            redo,
-            lambda: factorise(state.params, out.rows, jnp.asarray(0.0), state.dependent)[1],
-            lambda: lin,
-        )
-    return state, lin
+    return out.state, out.lin
 
 
 def _where(flag, a, b):
