@@ -625,7 +625,7 @@ def grid_layout(fam: Family, n_scans: int) -> Layout | None:
     rows = np.where(valid, rows, first[np.arange(rows.size) // (n_scans * c)])
     pos = np.empty(m, dtype=np.int64)
     pos[order] = slot
-    return Layout(jnp.asarray(rows), jnp.asarray(valid), jnp.asarray(pos), (n, n_scans, c))
+    return Layout(rows, valid, pos, (n, n_scans, c))
 
 
 def on_grid(problem: Problem) -> Problem:

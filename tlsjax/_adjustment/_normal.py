@@ -113,7 +113,7 @@ def _sums_by_segment(fam, ns, Jp, Js, Ja):
     )
 
 
-def _gradient_sums(grid, fam, ns, r: "Rows"):
+def _gradient_sums(grid, fam, ns, r: Rows):
     """``-J^T e`` of a family's rows: per primitive (n, p), per scan (s, 6) and APs (a,)."""
     if grid:
         n, ns_, c = grid
