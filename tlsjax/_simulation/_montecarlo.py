@@ -546,9 +546,7 @@ def monte_carlo(
     # The realisations the chord method does not converge on: the full loop of calibrate.
     redo = np.flatnonzero(res["result"] == MAX_ITERATIONS)
     if len(redo):
-        _, _, bf = _compiled_chunk(
-            simulation, model, options.ap_sigma, min(chunk, len(redo)), len(redo), full=True
-        )
+        _, _, bf = _compiled_chunk(simulation, model, options.ap_sigma, chunk, len(redo), full=True)
         more, more_s = run_batched(
             bf, len(redo), constants, desc="full adjustments", progress=False, indices=redo
         )
@@ -574,7 +572,7 @@ def monte_carlo(
         alpha=float(options.alpha),
         seed=int(options.seed),
         chunk_size=chunk,
-        n_devices=len(jax.devices()),
+        n_devices=jax.device_count(),
         compile_s=compile_s,
         run_s=run_s,
     )
