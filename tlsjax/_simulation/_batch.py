@@ -20,6 +20,7 @@ same per-device batch and seed (tested with two processes on one machine).
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import time
 
@@ -144,6 +145,7 @@ def _gather(local, n_slices, size, procs):
         extra = np.zeros((max(rows - len(a), 0),) + a.shape[1:], a.dtype)
         return np.concatenate([a[:rows], extra])
 
+    _wait_for_all()
     every = multihost_utils.process_allgather(jax.tree.map(fixed, local))
 
     def order(a):  # a: (P, rows, ...)
@@ -154,3 +156,22 @@ def _gather(local, n_slices, size, procs):
         return out.reshape((n_slices * size,) + a.shape[2:])
 
     return jax.tree.map(order, every)
+
+
+#: How long a process waits at the gather for the others to finish their share [ms]. The
+#: processes of one run differ by their compile and run times (seconds to minutes on a loaded
+#: machine), and the CPU collective's own connect timeout (gloo, 30 s) is shorter than that.
+GATHER_WAIT_MS = 3_600_000
+_BARRIERS = itertools.count()
+
+
+def _wait_for_all():
+    """A barrier of every process, with :data:`GATHER_WAIT_MS` (each call a new barrier id,
+    the same sequence on every process)."""
+    # JAX has no public barrier with a timeout: multihost_utils.sync_global_devices is itself a
+    # collective under gloo's 30 s connect timeout; the coordination client's barrier waits.
+    from jax._src import distributed
+
+    client = distributed.global_state.client
+    if client is not None:
+        client.wait_at_barrier(f"tlsjax_gather_{next(_BARRIERS)}", GATHER_WAIT_MS)
