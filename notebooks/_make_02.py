@@ -112,7 +112,8 @@ in the plain residuals.
 
 code(r"""
 import tempfile
-FIGS = tempfile.mkdtemp()  # PNGs are shown inline; the files themselves are not kept
+_FIGS = tempfile.TemporaryDirectory()  # PNGs are shown inline; the folder goes with the kernel
+FIGS = _FIGS.name
 for arch in ("hybrid", "panoramic"):
     path = f"{FIGS}/02_{arch}_all_terms.png"
     tj.plot_residuals(fits[arch, None], path, scanner=tj.Scanner(architecture=arch),

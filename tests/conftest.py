@@ -1,4 +1,5 @@
 import os
+import tempfile
 
 import jax
 import pytest
@@ -30,6 +31,23 @@ def _all_written_json_is_strict(tmp_path_factory):
     """The same for the module- and session-scoped folders (tmp_path_factory), at the end."""
     yield
     check_tree(tmp_path_factory.getbasetemp())
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _temporary_files_in_pytest_tree(tmp_path_factory):
+    """Whatever asks the system for a temporary folder during the tests (the CLI's report, a
+    notebook kernel, chromium, matplotlib) gets one inside pytest's own temporary tree, which
+    pytest manages: nothing is left in the system temporary folder. Tests themselves use
+    ``tmp_path``."""
+    folder = str(tmp_path_factory.mktemp("system-tmp"))
+    before = os.environ.get("TMPDIR"), tempfile.tempdir
+    os.environ["TMPDIR"], tempfile.tempdir = folder, folder
+    yield
+    if before[0] is None:
+        os.environ.pop("TMPDIR", None)
+    else:
+        os.environ["TMPDIR"] = before[0]
+    tempfile.tempdir = before[1]
 
 
 # Property-based tests (tests/test_property_networks.py): derandomised, so that CI draws the same

@@ -8,8 +8,11 @@ with the textbook constraint matrix ``G = [I, -[X]x]`` in a bordered system (Koc
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy import stats
 
 ARCSEC = np.pi / 180 / 3600
+#: Baarda's delta0 for alpha0 = 0.1 %, power 80 % (SPEC section 7), from scipy directly.
+DELTA0 = stats.norm.ppf(1 - 0.001 / 2) + stats.norm.ppf(0.8)
 
 
 def _R(w, p, k):

@@ -11,6 +11,9 @@ chi-square band of its degrees of freedom for the noise actually drawn, ``noise_
 sigma_scale``; variance factors against theirs), and the design (a network with two or more
 stations a metre apart determines all its APs; a target network from one station cannot
 determine the rangefinder offset A0, whose effect the free targets absorb).
+
+Private import: ``angles_from_matrix`` turns the drawn rotations into the Cardan angles the
+public API takes.
 """
 
 from __future__ import annotations

@@ -6,6 +6,9 @@ leaves unchanged: the relative rotations ``R_i R_j^T`` of the scans, each scan's
 other stations ``R_i (S_j - S_i)``, the angles between plane normals and the scans' distances
 from the planes. The APs (10 mm, 180") are not in the approximate values, so they are good to
 about a centimetre and a fifth of a degree, not better.
+
+Private imports: the approximate values are a private algorithm (``_adjustment._approx``); its
+parts are tested directly, with ``rotation_matrix`` to build the poses.
 """
 
 import dataclasses

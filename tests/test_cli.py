@@ -1,4 +1,8 @@
-"""The command line and the result JSON contract (SPEC section 11)."""
+"""The command line and the result JSON contract (SPEC section 11).
+
+Private import: ``tlsjax._cli.main`` is the ``tlsjax`` console script's entry point
+(pyproject), called in process.
+"""
 
 import json
 import re
@@ -10,9 +14,6 @@ from strict_json import load_strict
 
 import tlsjax as tj
 from tlsjax._cli import main
-from tlsjax._inference._statistics import global_test
-from tlsjax._io._tables import read_observations, write_observations
-from tlsjax._stats import chi2_quantile
 
 ROOM = ["--room", "14x11x3", "--targets", "36"]
 CONTRACT = {
@@ -146,10 +147,12 @@ def test_vce_and_snooping_through_the_cli(simulated, tmp_path, capsys):
 def test_units_do_not_change_the_result(simulated, tmp_path, length_unit, angle_unit):
     d, obs, scans, _ = simulated
     other = tmp_path / "obs.csv"
-    write_observations(
-        other, read_observations(obs), length_unit=length_unit, angle_unit=angle_unit
+    tj.write_observations(
+        other, tj.read_observations(obs), length_unit=length_unit, angle_unit=angle_unit
     )
-    assert f"range_{length_unit}" in other.read_text().splitlines()[0]
+    comment, header = other.read_text().splitlines()[:2]
+    assert comment == "# tlsjax target observations: architecture=hybrid"  # recorded, read back
+    assert f"range_{length_unit}" in header
     a, b = tmp_path / "a.json", tmp_path / "b.json"
     assert main(["calibrate", str(obs), "--scans", str(scans), "--json", str(a)]) == 0
     assert main(["calibrate", str(other), "--scans", str(scans), "--json", str(b)]) == 0
@@ -229,12 +232,17 @@ def test_demo_writes_report_and_plots(tmp_path):
 
 def test_global_test_against_scipy():
     for dof in (3, 40, 1753):
-        for p in (0.025, 0.5, 0.975):
-            assert np.isclose(chi2_quantile(p, dof), scipy.stats.chi2.ppf(p, dof), rtol=1e-9)
-    g = global_test(1.05, 1000)
-    assert np.isclose(g["p_value"], 2 * scipy.stats.chi2.sf(1.05**2 * 1000, 1000), rtol=1e-8)
-    assert g["accepted"] == (g["lower"] <= g["statistic"] <= g["upper"])
-    assert global_test(1.5, 1000)["accepted"] is False
+        g = tj.global_test(1.0, dof, alpha=0.05)
+        assert np.isclose(g["lower"], scipy.stats.chi2.ppf(0.025, dof), rtol=1e-9)
+        assert np.isclose(g["upper"], scipy.stats.chi2.ppf(0.975, dof), rtol=1e-9)
+    # s0 = 1.05 with r = 1000: T = 1102.5 beyond the 97.5 % quantile 1089.5, rejected;
+    # s0 = 1.02: T = 1040.4 inside the interval [914.3, 1089.5], accepted.
+    g = tj.global_test(1.05, 1000)
+    assert np.isclose(g["statistic"], 1102.5)
+    assert np.isclose(g["p_value"], 2 * scipy.stats.chi2.sf(1102.5, 1000), rtol=1e-8)
+    assert g["accepted"] is False
+    assert tj.global_test(1.02, 1000)["accepted"] is True
+    assert tj.global_test(0.9, 1000)["accepted"] is False  # too small: two-sided
 
 
 def test_room_parse_of_the_default_room_is_the_default_room():

@@ -2,15 +2,24 @@
 
 The references are written out here: AP bases by hand, the box room's faces as coordinates,
 ray-board intersections by the textbook formula.
+
+Private import: ``simulate_point_observations``, the point model's simulation, as the reference
+for the simulated clouds.
 """
 
 import numpy as np
 import pytest
 
 import tlsjax  # noqa: F401  (x64)
-from tlsjax._io._tables import read_observations, write_observations
-from tlsjax._simulation._point_clouds import Board, CloudDesign, PointClouds, simulate_point_clouds
-from tlsjax._simulation._room import Room
+from tlsjax import (
+    Board,
+    CloudDesign,
+    PointClouds,
+    Room,
+    read_observations,
+    simulate_point_clouds,
+    write_observations,
+)
 
 DEG = np.pi / 180
 ARCSEC = DEG / 3600

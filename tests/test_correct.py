@@ -1,5 +1,11 @@
 """Applying a calibration to point clouds: round trip against the simulation's error-free points,
-every format through the CLI, attributes kept, chunking, and precision vs Monte Carlo."""
+every format through the CLI, attributes kept, chunking, and precision vs Monte Carlo.
+
+Private imports: ``tlsjax._cli.main`` is the ``tlsjax`` console script's entry point
+(pyproject), called in process; the chunk sizes of ``_correct``, ``_correct_files`` and
+``_las`` are set small to exercise chunking; geometry helpers and
+``observations_from_points``/``to_object`` build the reference points.
+"""
 
 import json
 
@@ -8,12 +14,17 @@ import pytest
 from pyquaternion import Quaternion
 
 import tlsjax as tj
+from tlsjax import (
+    Calibration,
+    CloudDesign,
+    correct_points,
+    read_point_clouds,
+    simulate_point_clouds,
+)
 from tlsjax._cli import main
 from tlsjax._io import _correct, _correct_files, _las
-from tlsjax._io._correct import Calibration, correct_points
-from tlsjax._io._point_clouds import observations_from_points, read_point_clouds, to_object
+from tlsjax._io._point_clouds import observations_from_points, to_object
 from tlsjax._model._geometry import cartesian_from_spherical, rotation_matrix
-from tlsjax._simulation._point_clouds import CloudDesign, simulate_point_clouds
 
 DEG = np.pi / 180
 APS = ("A0", "A3", "B6", "B7", "B8", "C0", "C6")

@@ -1,6 +1,11 @@
 """Network design (SPEC section 13): predicted covariance against calibrate, criterion gradient
 against finite differences, plane designs, the optimiser beats its start (checked by an
-independent calibrate), the CLI."""
+independent calibrate), the CLI.
+
+Private imports: ``tlsjax._cli.main`` is the ``tlsjax`` console script's entry point
+(pyproject), called in process; ``criterion_of_result``, the criterion of an independent
+calibration.
+"""
 
 import dataclasses
 import json

@@ -4,21 +4,25 @@
   with the scan as an axis) equal ``jacfwd`` of the whole point model; so do the plane
   family's (one instrument or two, away from the approximate values).
 * The grid layout of a family's sums (reshapes) gives the same adjustment as segment sums.
-* No second copy of the normal equations, the Schur reduction or the datum in the package.
+* One engine behind calibrate, the analysed adjustment and calibrate_and_test, and one
+  cofactor function behind the quality of an adjustment and the design's prediction.
+
+Private modules are imported for properties of private algorithms (the structured Jacobians,
+the grid layout, the cofactor function), compared with their general paths.
 """
 
 import dataclasses
-import pathlib
-import re
 
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import tlsjax as tj
+from tlsjax import Adjustment
 from tlsjax._adjustment import _families as F
-from tlsjax._adjustment._calibrate import Adjustment, _replace
+from tlsjax._adjustment._calibrate import _replace
 from tlsjax._adjustment._normal import Rows
+from tlsjax._adjustment._quality import pose_ap_cofactor
 
 
 @pytest.mark.parametrize("architecture", ["hybrid", "panoramic"])
@@ -120,29 +124,31 @@ def test_grid_layout_is_chosen_from_the_structure():
         assert (F.grid_layout(sub, 6) is not None) == grid
 
 
-SRC = pathlib.Path(tj.__file__).parent
-
-
-def _files_matching(pattern):
-    rx = re.compile(pattern)
-    return sorted(str(p.relative_to(SRC)) for p in SRC.rglob("*.py") if rx.search(p.read_text()))
-
-
-def test_one_copy_of_normal_equations_reduction_and_datum():
-    # The Schur complement of the primitives, the normal-equation sums, the factorisation of
-    # the reduced system and the datum's null space each live in one module.
-    assert _files_matching(r'"npr,npq->rq"') == ["_adjustment/_normal.py"]
-    assert _files_matching(r"outer\(J\w*, J\w*\)") == ["_adjustment/_normal.py"]
-    assert _files_matching(r"rank_revealing_cholesky\w*\(|linalg\.cholesky\(") == [
-        "_adjustment/_linalg.py",
-        "_adjustment/_normal.py",
-    ]
-    assert _files_matching(r"null_space_columns\(") == [
-        "_adjustment/_normal.py",
-        "_model/_datum.py",
-    ]
-    # Monte Carlo and the failure diagnosis call the engine; they do not re-implement it.
-    mc = (SRC / "_simulation/_montecarlo.py").read_text()
-    assert "estimate(" in mc and "spd_inverse" not in mc and "while_loop" not in mc
-    diag = (SRC / "_adjustment/_diagnose.py").read_text()
-    assert "reduce(" in diag and "spd_inverse" not in diag
+def test_one_engine_behind_every_entry_point():
+    """calibrate, the analysed adjustment re-solved with the network's own weights, and
+    calibrate_and_test with nothing to test give the same estimates, sigmas and redundancy: one
+    compiled adjustment behind them. (Monte Carlo against calibrate of the same realisation is
+    tests/test_montecarlo*.py; the design's predicted covariance against calibrate is
+    tests/test_design.py.) The quality path and the design path are one function: the
+    cofactor predicted at the converged estimates equals the calibration's covariance over
+    sigma0^2."""
+    sim = tj.simulate(tj.Room(n_targets=24), seed=5, scale_bars=1)
+    net = sim.network
+    model = tj.CalibrationModel(tj.Scanner(aps="A0 B6 B7 C0"))
+    res = tj.calibrate(net, model, tj.SolverOptions(full_covariance=True))
+    again = tj.analyze(net, model, tj.SolverOptions(full_covariance=True)).solve(
+        weights=1.0 / net.sigmas
+    )
+    testing = tj.TestingOptions(vce=False, screening=False, snooping=False)
+    tested = tj.calibrate_and_test(net, model, testing=testing).calibration
+    for other in (again, tested):
+        np.testing.assert_allclose(other.ap_values, res.ap_values, rtol=1e-10, atol=1e-15)
+        np.testing.assert_allclose(other.ap_sigmas, res.ap_sigmas, rtol=1e-8)
+        np.testing.assert_allclose(other.redundancy, res.redundancy, rtol=1e-8, atol=1e-12)
+        assert other.dof == res.dof
+    adj = Adjustment(net, model)
+    state, _ = adj.run()
+    Q = pose_ap_cofactor(adj.plan.spec, adj.plan.problem, state.params, -1.0)
+    r = 6 * len(res.scans) + len(res.ap_names)
+    want = np.asarray(res.covariance)[-r:, -r:] / res.sigma0**2
+    np.testing.assert_allclose(np.asarray(Q), want, rtol=1e-6, atol=1e-12 * np.abs(want).max())

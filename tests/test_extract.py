@@ -1,4 +1,9 @@
-"""Plane extraction and matching against the simulation's ground-truth plane labels."""
+"""Plane extraction and matching against the simulation's ground-truth plane labels.
+
+Private imports: ``tlsjax._cli.main`` is the ``tlsjax`` console script's entry point
+(pyproject), called in process and its parser; the poses file reader and the PTX/XYZ writers
+make the fixtures; geometry helpers build the reference points.
+"""
 
 import argparse
 import dataclasses
@@ -10,14 +15,22 @@ import open3d  # noqa: F401  (CI fails, not skips, without it)
 import pytest
 
 import tlsjax as tj
+from tlsjax import (
+    CloudDesign,
+    ExtractionConfig,
+    MatchingConfig,
+    extract_planes,
+    load_planes,
+    match_planes,
+    read_observations,
+    save_planes,
+    simulate_point_clouds,
+    write_observations,
+)
 from tlsjax._cli import main
 from tlsjax._cli._extract import add_extract_parser
-from tlsjax._clouds._extract import ExtractionConfig, extract_planes
-from tlsjax._clouds._match import MatchingConfig, match_planes
-from tlsjax._io._plane_files import load_planes, read_poses, save_planes
+from tlsjax._io._plane_files import read_poses
 from tlsjax._io._point_clouds import write_ptx
-from tlsjax._io._tables import read_observations, write_observations
-from tlsjax._simulation._point_clouds import CloudDesign, simulate_point_clouds
 
 DEG = np.pi / 180
 DATA = pathlib.Path(__file__).parent / "data"
@@ -156,7 +169,6 @@ def test_disjoint_coplanar_patches_and_overlap():
 
 def _patches(specs, rng, n=400):
     """ExtractedPlanes of one scan from (centre, normal) squares of 1 m, points exact."""
-    from tlsjax._clouds._extract import ExtractedPlanes
 
     obs, normals, dists, patch = [], [], [], []
     for p, (c, nrm) in enumerate(specs):
@@ -173,7 +185,7 @@ def _patches(specs, rng, n=400):
         dists.append(-abs(d))
         patch.append(np.full(n, p))
     P = len(specs)
-    return ExtractedPlanes(
+    return tj.ExtractedPlanes(
         scans=("S1",),
         patch_scan=np.zeros(P, dtype=np.int64),
         patch_normal=np.array(normals),

@@ -1,7 +1,11 @@
 """Reverse-mode derivatives of the converged adjustment (SPEC section 12): grad agrees with the
 forward mode and with finite differences of ``tj.calibrate``; ``vmap(grad)`` equals a loop of
 ``grad``; ``d AP / d l`` agrees with finite differences and with the quality pass's external
-reliability."""
+reliability.
+
+Private import: the compiled function behind ``differentiable_adjustment``, to count its
+compilations.
+"""
 
 import dataclasses
 

@@ -1,6 +1,9 @@
 """Non-estimable and weakly determined APs come back by name, never as numbers (SPEC 7, issue 2.9).
 
 Each case has an analytic reason for the defect, so the expected partner is known in advance.
+
+Private imports: the AP registry (every registered term is tried) and geometry helpers to build
+the designs.
 """
 
 import jax.numpy as jnp

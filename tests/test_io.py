@@ -1,4 +1,8 @@
-"""Observation and scan CSV files (SPEC section 11): units, round trips and error messages."""
+"""Observation and scan CSV files (SPEC section 11): units, round trips and error messages.
+
+Private imports: ``ObservationTable``, the table type the readers return, and the unit-suffix
+parser of the CSV grammar (``_io._csv``).
+"""
 
 import math
 import re
@@ -7,8 +11,9 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
+from tlsjax import read_observations, read_scans, write_observations
 from tlsjax._adjustment._network import ObservationTable
-from tlsjax._io._tables import parse_unit_column, read_observations, read_scans, write_observations
+from tlsjax._io._csv import parse_unit_column
 
 DEG = math.pi / 180.0
 GON = math.pi / 200.0

@@ -1,5 +1,9 @@
 """tlsjax's jit: the engine's XLA options at the top level, a plain nested jit inside a caller's
-transformation, the same numbers either way."""
+transformation, the same numbers either way.
+
+Private imports: tlsjax's jit wrapper is a private mechanism; its properties are tested
+directly.
+"""
 
 import functools
 

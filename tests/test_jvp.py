@@ -1,7 +1,10 @@
 """Forward-mode derivatives of the converged adjustment (SPEC section 12) against central finite
 differences of the full forward computation: ``tj.calibrate`` re-run on a perturbed network
 (new approximate values, new plan). Tolerance: 1e-4 of the largest component of each
-derivative (the re-run converges to 1e-6 of a sigma; FD steps of 1e-3 sigma)."""
+derivative (the re-run converges to 1e-6 of a sigma; FD steps of 1e-3 sigma).
+
+Private imports: the datum's null space and S-transformation, to compare tangents in one datum.
+"""
 
 import dataclasses
 
@@ -9,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import DELTA0
 
 import tlsjax as tj
 from tlsjax._adjustment._normal import null_space
@@ -38,7 +42,7 @@ def _calibrated(net, model):
     r = tj.calibrate(net, model)
     assert r.ok
     C = r.ap_covariance / np.outer(r.ap_sigmas, r.ap_sigmas)
-    mdb = 4.13 * net.sigmas / np.sqrt(r.redundancy)
+    mdb = DELTA0 * net.sigmas / np.sqrt(r.redundancy)
     return r, _summary(r.ap_values, r.ap_sigmas, r.sigma0, C, r.redundancy, mdb)
 
 

@@ -7,8 +7,14 @@ import pytest
 from scipy import stats
 
 import tlsjax as tj
-from tlsjax._inference._compat import APSet, CompatibilityOptions, compatibility_test
-from tlsjax._simulation._montecarlo import MonteCarloOptions, monte_carlo, monte_carlo_network
+from tlsjax import (
+    APSet,
+    CompatibilityOptions,
+    MonteCarloOptions,
+    compatibility_test,
+    monte_carlo,
+    monte_carlo_network,
+)
 
 ROOM = tj.Room(n_targets=30)
 N = 300

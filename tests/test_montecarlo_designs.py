@@ -7,14 +7,15 @@ visibility, control points, a scale bar and two instruments; a plane design; and
 one. The reference is the public calibrate started from its own approximate values, so the
 check covers the simulation (error-free observations of the truth, the fixed point with the
 true APs, noise on levelling, control and bar lengths) and the batched engine at once.
+
+Private imports: ``ap_corrections`` and the arc-second factor build the reference observations.
 """
 
 import numpy as np
 import pytest
 
 import tlsjax as tj
-from tlsjax._simulation._montecarlo import MonteCarloOptions, monte_carlo, monte_carlo_network
-from tlsjax._simulation._truth import SimulationTruth
+from tlsjax import MonteCarloOptions, SimulationTruth, monte_carlo, monte_carlo_network
 from tlsjax._units import ARCSEC
 
 DEG = np.pi / 180

@@ -1,5 +1,8 @@
 """The NIST geometric error model (Muralikrishnan et al. 2015, 2017) as registered APs, and the
-two-face design of one panoramic station."""
+two-face design of one panoramic station.
+
+Private import: ``ap_corrections``, compared with the NIST equations written out here.
+"""
 
 import numpy as np
 import pytest

@@ -1,6 +1,10 @@
 """Strict, atomic outputs (issue 13): NaN and infinities become null, a failed write leaves no
 half file, unwritable paths are refused before any work, a failed adjustment reports no
-numbers."""
+numbers.
+
+Private imports: the strict JSON writer and the result JSON's handling of undetermined
+parameters are private mechanisms; geometry helpers build a network.
+"""
 
 import json
 import math

@@ -4,6 +4,9 @@ The plane family of the solver (one whitened condition per point, planes elimina
 complement, the unit-normal constraint as a heavy pseudo-observation, inner constraints on the
 planes) is compared with a dense Gauss-Newton of the same conditions written out by hand,
 with the unit-normal constraints and the datum as hard constraints in a bordered system.
+
+Private imports: the plane family, the solver and the quality pass are compared with the dense
+oracle directly.
 """
 
 import jax

@@ -4,6 +4,10 @@ Independent sources: the simulation's truth (noiseless recovery, up to the free 
 motion), Gauss-Helmert identities (redundancy sums, 1/3 per plane observation), the a priori
 sigmas (sigma0 against its sampling scatter) and the target-only and plane-only adjustments of the
 same room (a combined network can only be better determined than either part).
+
+Private imports: ``tlsjax._cli.main`` is the ``tlsjax`` console script's entry point
+(pyproject), called in process; ``approximate_network`` (approximate values, a private
+algorithm); ``rotation_matrix`` for the reference motion.
 """
 
 import dataclasses
@@ -13,9 +17,9 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
+from tlsjax import write_observations
 from tlsjax._adjustment._approx import approximate_network
 from tlsjax._cli import main
-from tlsjax._io._tables import write_observations
 from tlsjax._model._geometry import rotation_matrix
 
 DEG = np.pi / 180

@@ -1,4 +1,8 @@
-"""The plane-based condition model (SPEC section 4) against independent references."""
+"""The plane-based condition model (SPEC section 4) against independent references.
+
+Private imports: the plane condition model and the datum's rigid-motion actions, tested against
+independent references.
+"""
 
 import jax
 import jax.numpy as jnp

@@ -1,18 +1,16 @@
-"""Point-cloud readers: round trips through files against the simulated observations."""
+"""Point-cloud readers: round trips through files against the simulated observations.
+
+Private imports: the PTX/XYZ writers and ``observations_from_points`` make the fixtures;
+geometry helpers build the reference points.
+"""
 
 import numpy as np
 import pytest
 
 import tlsjax  # noqa: F401  (x64)
-from tlsjax._io._point_clouds import (
-    PointCloudWarning,
-    observations_from_points,
-    read_point_clouds,
-    write_ptx,
-    write_xyz,
-)
+from tlsjax import CloudDesign, PointCloudWarning, read_point_clouds, simulate_point_clouds
+from tlsjax._io._point_clouds import observations_from_points, write_ptx, write_xyz
 from tlsjax._model._geometry import cartesian_from_spherical
-from tlsjax._simulation._point_clouds import CloudDesign, simulate_point_clouds
 
 DEG = np.pi / 180
 

@@ -1,16 +1,21 @@
 """Masked observations, w-tests and external reliability in the compiled quality (SPEC
-section 7), against the dense oracle of tests/helpers.py."""
+section 7), against the dense oracle of tests/helpers.py.
+
+Private imports: the compiled quality (MDB, w-tests, the re-weighted adjustment) is compared
+with the dense oracle element by element.
+"""
 
 import dataclasses
 
 import jax
 import numpy as np
 import pytest
-from helpers import dense_oracle, dense_residuals, perturbed_start
+from helpers import DELTA0, dense_oracle, dense_residuals, perturbed_start
 
 import tlsjax as tj
-from tlsjax._inference._statistics import minimal_detectable_bias, w_tests
-from tlsjax._inference._testing import _Reweighter
+from tlsjax._adjustment._quality import minimal_detectable_bias
+from tlsjax._inference._pipeline import Reweighter
+from tlsjax._inference._statistics import w_tests
 
 APS = ("A0", "B6", "B7", "C0")
 ROW, COL = 11, 1  # the masked observation
@@ -25,7 +30,7 @@ def small():
     sim = tj.simulate(tj.Room(n_targets=12), seed=7, aps=" ".join(APS), tilted=True)
     model = tj.CalibrationModel(tj.Scanner(aps=APS))
     net = sim.network
-    rw = _Reweighter(net, model, tj.SolverOptions())
+    rw = Reweighter(net, model, tj.SolverOptions())
     w = 1.0 / net.sigmas
     lw = np.where(np.isfinite(net.levelling_sigma), 1.0 / net.levelling_sigma, 0.0)
     full, _, _ = rw.run(w, lw, {})
@@ -80,7 +85,8 @@ def test_w_tests_and_mdb_match_dense_oracle(small):
     np.testing.assert_allclose(w[keep], w_ref[keep], rtol=1e-5, atol=1e-6)
     assert np.isnan(w[ROW, COL])  # removed: redundancy 0, not tested
     mdb = minimal_detectable_bias(net.sigmas, res.redundancy)
-    np.testing.assert_allclose(mdb[keep], (4.13 * net.sigmas / np.sqrt(r_ref))[keep], rtol=1e-6)
+    np.testing.assert_allclose(mdb[keep], (DELTA0 * net.sigmas / np.sqrt(r_ref))[keep], rtol=1e-6)
+    assert np.isinf(mdb[ROW, COL])  # no error of any size is detected
 
 
 def test_ap_influence_matches_dense_q_jt(small):

@@ -1,5 +1,10 @@
 """Point-cloud readers on public files written by other software, their broken variants, LAS/LAZ
-round trips with the scan pose, and the messages for missing libraries."""
+round trips with the scan pose, and the messages for missing libraries.
+
+Private imports: ``tlsjax._cli.main`` is the ``tlsjax`` console script's entry point
+(pyproject), called in process; the optional-library loader's messages; geometry helpers and
+``to_object`` build the reference points.
+"""
 
 import os
 import pathlib
@@ -9,13 +14,18 @@ import numpy as np
 import pytest
 
 import tlsjax  # noqa: F401  (x64)
+from tlsjax import (
+    CloudDesign,
+    PointCloudWarning,
+    read_point_clouds,
+    simulate_point_clouds,
+    write_las,
+    write_ply,
+)
 from tlsjax._cli import main
-from tlsjax._io._las import write_las
-from tlsjax._io._optional import missing_library_message, require
-from tlsjax._io._ply import write_ply
-from tlsjax._io._point_clouds import PointCloudWarning, read_point_clouds, to_object
+from tlsjax._io._point_clouds import to_object
 from tlsjax._model._geometry import cartesian_from_spherical
-from tlsjax._simulation._point_clouds import CloudDesign, simulate_point_clouds
+from tlsjax._optional import missing_library_message, require
 
 DATA = pathlib.Path(__file__).parent / "data"
 DEG = np.pi / 180

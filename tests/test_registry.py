@@ -1,6 +1,8 @@
 """The AP registry and compiled code: a re-registered basis is used at once, a bad basis is
-refused at registration (issue 13)."""
+refused at registration (issue 13), and a registration leaves the user's own compiled
+functions alone (issue 34)."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -32,7 +34,18 @@ def test_reregistered_basis_gives_the_new_result(net):
         assert abs(again.ap_values[-1] - first.ap_values[-1]) > 10 * b5.ap_sigmas[-1]
     old = tj.Scanner(aps="Xrereg")
     tj.register_ap("Xrereg", "hz", lambda r, t, a, s: jnp.sin(t), "rad", overwrite=True)
-    assert tj.Scanner(aps="Xrereg") != old  # the registration token is part of the key
+    # The registration token is part of the key; the compiled functions are keyed on the
+    # Scanner as registered now.
+    assert tj.Scanner(aps="Xrereg") != old and old.current() == tj.Scanner(aps="Xrereg")
+
+
+def test_registration_keeps_the_users_compiled_functions():
+    user = jax.jit(lambda x: jnp.sin(x) * 2.0)
+    user(jnp.ones(3))
+    assert user._cache_size() == 1
+    tj.register_ap("Xkeep", "el", lambda r, t, a, s: jnp.sin(t), "rad", overwrite=True)
+    tj.register_ap("Xkeep", "el", lambda r, t, a, s: jnp.cos(t), "rad", overwrite=True)
+    assert user._cache_size() == 1
 
 
 @pytest.mark.parametrize(

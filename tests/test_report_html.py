@@ -1,7 +1,12 @@
 """The HTML calibration report: contents from the result JSON, "not computed" where the run did
-not compute a field, provenance hashes, and a render in a real headless browser."""
+not compute a field, provenance hashes, and a render in a real headless browser.
+
+Private import: ``tlsjax._cli.main`` is the ``tlsjax`` console script's entry point
+(pyproject), called in process.
+"""
 
 import hashlib
+import html.parser
 import json
 import os
 import shutil
@@ -47,11 +52,21 @@ def test_report_holds_every_section(calibrated):
         assert f">{heading}" in page, heading
     # A1 has no independent scale: named as not estimable, never given a number.
     assert "not estimable" in page and "A1</b>: scale is undefined" in page
-    # Every AP's sigma as in the JSON, in report units (mm and arc seconds).
-    for name, a in doc["aps"].items():
-        if a["sigma"] is not None:
-            f = 1e3 if a["unit"] == "m" else 180 * 3600 / np.pi
-            assert f"{a['sigma'] * f:.3f}" in page, name
+    # The AP table, parsed: one row per AP of the JSON, value and sigma in report units (mm
+    # and arc seconds, converted here), |t| and the correlation partner; A1 without numbers.
+    table = _tables(page)["aps"]
+    assert [r[0] for r in table[1:]] == list(doc["aps"])
+    for row in table[1:]:
+        a = doc["aps"][row[0]]
+        if a["value"] is None:
+            assert row[2] == row[3] == "\u2013" and row[8] == "not estimable", row
+            continue
+        f = 1e3 if a["unit"] == "m" else 180 * 3600 / np.pi
+        assert float(row[2]) == pytest.approx(a["value"] * f, abs=1e-3), row
+        assert float(row[3]) == pytest.approx(a["sigma"] * f, abs=1e-3), row
+        assert row[4] == ("mm" if a["unit"] == "m" else '"')
+        assert float(row[5]) == pytest.approx(abs(a["t"]), abs=0.05)
+        assert row[7] == a["max_corr_with"]
     assert NOT_COMPUTED_OUTLIERS not in page
     assert "not computed" not in page.split("Outliers")[1].split("Plots")[0]
     # Provenance: the SHA-256 of the observation file, computed here independently.
@@ -60,6 +75,43 @@ def test_report_holds_every_section(calibrated):
 
 
 NOT_COMPUTED_OUTLIERS = "data snooping: not computed"
+
+
+class _TableParser(html.parser.HTMLParser):
+    """The text of every cell of every ``<table class=...>``, by class: {class: [rows]}."""
+
+    def __init__(self):
+        super().__init__()
+        self.tables, self.cls, self.row, self.cell = {}, None, None, None
+
+    def handle_starttag(self, tag, attrs):
+        if tag == "table":
+            self.cls = dict(attrs).get("class", "")
+            self.tables.setdefault(self.cls, [])
+        elif tag == "tr" and self.cls is not None:
+            self.row = []
+        elif tag in ("td", "th") and self.row is not None:
+            self.cell = ""
+
+    def handle_endtag(self, tag):
+        if tag in ("td", "th") and self.cell is not None:
+            self.row.append(self.cell.strip())
+            self.cell = None
+        elif tag == "tr" and self.row is not None:
+            self.tables[self.cls].append(self.row)
+            self.row = None
+        elif tag == "table":
+            self.cls = None
+
+    def handle_data(self, data):
+        if self.cell is not None:
+            self.cell += data
+
+
+def _tables(page):
+    parser = _TableParser()
+    parser.feed(page)
+    return parser.tables
 
 
 def test_report_from_plain_json_says_not_computed(calibrated, capsys):
@@ -105,16 +157,26 @@ def test_report_renders_in_headless_chromium(calibrated, tmp_path):
         f"--screenshot={shot}",
         (calibrated / "report.html").as_uri(),
     ]
-    subprocess.run(cmd, capture_output=True, timeout=120, check=False)
+    # Chromium writes its own temporary folders under TMPDIR: keep them in tmp_path too.
+    env = {**os.environ, "TMPDIR": str(tmp_path)}
+    subprocess.run(cmd, capture_output=True, timeout=120, check=False, env=env)
     assert shot.exists() and shot.stat().st_size > 20_000
     from PIL import Image
 
-    img = np.asarray(Image.open(shot).convert("L"), dtype=float)
-    assert img.shape == (3000, 1200)
-    # Text and plots, not a blank or error page: many dark pixels, spread down the page.
-    dark = img < 128
-    assert dark.mean() > 0.01
-    rows_with_ink = np.flatnonzero(dark.any(axis=1))
-    assert rows_with_ink.max() - rows_with_ink.min() > 2000
+    rgb = np.asarray(Image.open(shot).convert("RGB"), dtype=float)
+    assert rgb.shape == (3000, 1200, 3)
+    gray = rgb.mean(axis=2)
+    # Not a blank or an error page: text lines down the whole page (rows with dark ink,
+    # separated by white ones: many separate runs of ink) ...
+    ink = (gray < 128).any(axis=1)
+    runs = np.count_nonzero(ink[1:] & ~ink[:-1])
+    assert runs > 60, runs
+    assert np.flatnonzero(ink).max() - np.flatnonzero(ink).min() > 2000
+    # ... and the two embedded plots drawn: coloured pixels (the text is black on white; the
+    # residual and correlation plots are in colour) in at least two separate bands of rows.
+    colour = (rgb.max(axis=2) - rgb.min(axis=2)) > 60
+    bands = colour.sum(axis=1) > 20
+    starts = np.count_nonzero(bands[1:] & ~bands[:-1])
+    assert colour.sum() > 20_000 and starts >= 2, (colour.sum(), starts)
     if os.environ.get("TLSJAX_KEEP_SCREENSHOT"):
         shutil.copy(shot, os.environ["TLSJAX_KEEP_SCREENSHOT"])

@@ -1,5 +1,10 @@
 """Outlier screening of plane networks (IGG-III on the Gauss-Helmert conditions), checked
-against the blunders put into simulated data and the simulated truth."""
+against the blunders put into simulated data and the simulated truth.
+
+Private imports: ``tlsjax._cli.main`` is the ``tlsjax`` console script's entry point
+(pyproject), called in process; the IGG-III weight function; ``ObservationTable`` to build a
+plane table.
+"""
 
 import dataclasses
 
@@ -59,9 +64,9 @@ def test_clean_planes_lose_almost_nothing(clouds):
 def test_cli_screens_plane_points_by_default(clouds, tmp_path, capsys):
     import json
 
+    from tlsjax import write_observations
     from tlsjax._adjustment._network import ObservationTable
     from tlsjax._cli import main
-    from tlsjax._io._tables import write_observations
 
     pc, _, net, bad = clouds
     table = ObservationTable(

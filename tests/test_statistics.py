@@ -1,5 +1,10 @@
 """VCE, data snooping, reliability and AP tests (SPEC sections 5, 7) against independent
-references: the dense oracle, direct re-adjustment with an injected bias, counting."""
+references: the dense oracle, direct re-adjustment with an injected bias, counting.
+
+Private imports: the compile cache of the adjustment (no recompilation), the re-weighted
+adjustment and the rule for targets left without redundancy (private steps of the pipeline),
+the residual plot's AP curves.
+"""
 
 import dataclasses
 
@@ -7,10 +12,11 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
+from tlsjax import TestingOptions as Opts
+from tlsjax import calibrate_and_test
 from tlsjax._adjustment._calibrate import _run
+from tlsjax._inference._pipeline import Reweighter, _undetermined_targets
 from tlsjax._inference._statistics import critical_value
-from tlsjax._inference._testing import TestingOptions as Opts
-from tlsjax._inference._testing import _Reweighter, _undetermined_targets, calibrate_and_test
 from tlsjax._stats import non_centrality
 
 APS = ("A0", "B6", "B7", "C0")
@@ -116,15 +122,14 @@ def test_snooping_finds_blunders_without_false_removals(seed):
 
 def test_target_removal_and_undetermined_target(sim):
     net = sim.network
-    rw = _Reweighter(net, MODEL, tj.SolverOptions(full_covariance=False))
+    rw = Reweighter(net, MODEL, tj.SolverOptions(full_covariance=False))
     w = 1.0 / net.sigmas
     lw = np.where(np.isfinite(net.levelling_sigma), 1.0 / net.levelling_sigma, 0.0)
     full, _, _ = rw.run(w, lw, {})
     mask = np.ones_like(w, dtype=bool)
     rows = np.flatnonzero(net.target_index == 0)
     mask[rows[:-1]] = False  # target 0 is left in one scan only
-    pinned = {}
-    extra = _undetermined_targets(net, full, mask, pinned, 1, np.zeros_like(w))
+    extra, mask, pinned = _undetermined_targets(net, full, mask, {}, 1)
     assert len(extra) == 3 and 0 in pinned and not mask[rows].any()
     res, _, _ = rw.run(np.where(mask, w, 0.0), lw, pinned)
     assert res.ok, res.message
@@ -146,7 +151,7 @@ def test_ap_t_tests_and_insignificant_term():
 
 
 def test_checkpoints_noiseless_identity_and_improvement():
-    from tlsjax._inference._checkpoints import assess_checkpoints
+    from tlsjax import assess_checkpoints
 
     for noise in (False, True):
         s = tj.simulate(
@@ -186,7 +191,7 @@ def test_json_fields_are_strict_json(sim):
 
 
 def test_stepwise_selection_adds_the_true_term_and_rejects_a_spurious_one():
-    from tlsjax._inference._selection import SelectionOptions, select_aps
+    from tlsjax import SelectionOptions, select_aps
 
     s = tj.simulate(tj.Room(n_targets=24), seed=5, aps="A0")
     sel = select_aps(
@@ -205,7 +210,8 @@ def test_stepwise_selection_adds_the_true_term_and_rejects_a_spurious_one():
 
 
 def test_residual_plot_ap_curves(sim, tmp_path):
-    from tlsjax._report._plots import _ap_curves, plot_residuals
+    from tlsjax import plot_residuals
+    from tlsjax._report._plots import _ap_curves
 
     res = tj.calibrate(sim.network, MODEL)
     curves = _ap_curves(res, tj.Scanner())

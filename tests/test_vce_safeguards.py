@@ -1,5 +1,10 @@
 """Issue 13: the default statistics cannot hide a blunder, and VCE converges or stops with a
-result code and its reason (scaled sigmas, noise-free data), never a NaN."""
+result code and its reason (scaled sigmas, noise-free data), never a NaN.
+
+Private imports: the VCE step's safeguards are exercised through its module (a fake variance
+estimate, a lower factor limit); the statistics' pure functions and the strict JSON writer
+directly.
+"""
 
 import dataclasses
 import json
@@ -9,14 +14,14 @@ import pytest
 import scipy.stats
 
 import tlsjax as tj
-from tlsjax._inference import _testing
+from tlsjax import TestingOptions as Opts
+from tlsjax import VCEResult, calibrate_and_test
+from tlsjax._inference import _steps
 from tlsjax._inference._statistics import (
     group_variance_test,
     implausible_factor,
     suspected_units,
 )
-from tlsjax._inference._testing import TestingOptions as Opts
-from tlsjax._inference._testing import VCEResult, calibrate_and_test
 from tlsjax._io._json import dumps_strict
 
 APS = "A0 B6 B7 C0"
@@ -141,7 +146,7 @@ def test_safeguards_stop_with_their_codes(sim, monkeypatch):
         _scaled(net, 2.0), MODEL, testing=Opts(snooping=False, vce_max_iterations=1)
     )
     assert r.vce_result == VCEResult.MAX_ITERATIONS and not r.ok and r.calibration.ok
-    monkeypatch.setattr(_testing, "VCE_FACTOR_LIMIT", 100.0)
+    monkeypatch.setattr(_steps, "VCE_FACTOR_LIMIT", 100.0)
     r = calibrate_and_test(
         _scaled(net, 1 / 40), MODEL, testing=Opts(snooping=False, screening=False)
     )
@@ -154,14 +159,14 @@ def test_oscillating_factors_are_damped_and_reported(sim, monkeypatch):
     """A fake VCE step that alternates between s^2 = 4 and 1/4: the damping halves every
     change of direction, so the factors stay between 1/4 and 4 and the stop says why."""
     calls = {"n": 0}
-    real = _testing._Session.group_factors
+    real = _steps.group_statistics
 
-    def alternating(self):
-        s2, r_g, n_g = real(self)
+    def alternating(ctx, state):
+        s2, r_g, n_g = real(ctx, state)
         calls["n"] += 1
         return np.where(np.arange(4) < 3, 4.0 if calls["n"] % 2 else 0.25, s2), r_g, n_g
 
-    monkeypatch.setattr(_testing._Session, "group_factors", alternating)
+    monkeypatch.setattr(_steps, "group_statistics", alternating)
     r = calibrate_and_test(
         sim.network, MODEL, testing=Opts(snooping=False, screening=False, vce_max_iterations=8)
     )

@@ -10,8 +10,7 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
-from tlsjax._inference._compat import APSet, CompatibilityOptions, compatibility_test
-from tlsjax._simulation._montecarlo import MonteCarloOptions, monte_carlo
+from tlsjax import APSet, CompatibilityOptions, MonteCarloOptions, compatibility_test, monte_carlo
 
 ROOM = tj.Room(n_targets=24)
 RUNS = 10
@@ -22,8 +21,7 @@ SCRIPT = textwrap.dedent("""
     import jax
     import numpy as np
     import tlsjax as tj
-    from tlsjax._inference._compat import APSet, CompatibilityOptions, compatibility_test
-    from tlsjax._simulation._montecarlo import MonteCarloOptions, monte_carlo
+    from tlsjax import APSet, CompatibilityOptions, MonteCarloOptions, compatibility_test, monte_carlo
     assert len(jax.devices()) == 2, jax.devices()
     sim = tj.simulate(tj.Room(n_targets=24), seed=2)
     r = monte_carlo(sim, options=MonteCarloOptions(runs=%d, chunk_size=4, seed=9, progress=False))

@@ -1,4 +1,24 @@
-"""tlsjax: terrestrial laser scanner self-calibration in JAX."""
+"""tlsjax: terrestrial laser scanner self-calibration in JAX.
+
+This module only re-exports the public API. The implementation sits in private subpackages,
+one per layer. Imports run one way, down this list: a module imports only from the layers
+below its own (and from modules of its own subpackage, without circles); nothing imports this
+module except the command line.
+
+1. ``_units``, ``_stats``, ``_jit``, ``_optional``, ``_version``: units and display factors,
+   quantiles and the constants derived from them (scipy.stats), the compiler settings, the
+   optional libraries, the version. They import nothing of tlsjax.
+2. ``_model``: the mathematics of one observation (geometry, the AP registry, the scanner, the
+   point and plane models, levelling, the datum).
+3. ``_adjustment``: one adjustment of a network (data and boundary checks, index plan,
+   normal equations, solver, quality, result, approximate values, implicit differentiation).
+4. ``_simulation`` (networks with a known truth, Monte Carlo) and ``_io`` (files): on
+   layers 1-3.
+5. ``_inference`` (tests, VCE, snooping, selection, compatibility), ``_design`` (network
+   design) and ``_clouds`` (planes and targets from point clouds): on layers 1-4.
+6. ``_report``: text, JSON, plots and the HTML report.
+7. this module (the public API), then ``_cli`` (the command line), which may use everything.
+"""
 
 import jax as _jax
 
@@ -21,11 +41,17 @@ from ._adjustment._network import make_plane_network as make_plane_network
 from ._adjustment._result import RESULT_MESSAGES as RESULT_MESSAGES
 from ._adjustment._result import CalibrationResult as CalibrationResult
 from ._adjustment._result import ResultCode as ResultCode
-from ._clouds._extract import ExtractedPlanes as ExtractedPlanes
 from ._clouds._extract import ExtractionConfig as ExtractionConfig
 from ._clouds._extract import extract_planes as extract_planes
 from ._clouds._match import MatchingConfig as MatchingConfig
 from ._clouds._match import match_planes as match_planes
+from ._clouds._target_match import TargetMatching as TargetMatching
+from ._clouds._target_match import TargetMatchingOptions as TargetMatchingOptions
+from ._clouds._target_match import match_targets as match_targets
+from ._clouds._targets import ExtractedTargets as ExtractedTargets
+from ._clouds._targets import TargetExtractionOptions as TargetExtractionOptions
+from ._clouds._targets import extract_targets as extract_targets
+from ._clouds._targets import extract_targets_from_files as extract_targets_from_files
 from ._design._criteria import DesignCriterion as DesignCriterion
 from ._design._criteria import design_criterion as design_criterion
 from ._design._criteria import predicted_cofactor as predicted_cofactor
@@ -36,7 +62,9 @@ from ._design._optimize import DesignOptimisation as DesignOptimisation
 from ._design._optimize import DesignSpace as DesignSpace
 from ._design._optimize import optimize_design as optimize_design
 from ._inference._checkpoints import CheckpointReport as CheckpointReport
+from ._inference._checkpoints import TargetCheck as TargetCheck
 from ._inference._checkpoints import assess_checkpoints as assess_checkpoints
+from ._inference._checkpoints import check_targets as check_targets
 from ._inference._compat import APSet as APSet
 from ._inference._compat import CompatibilityOptions as CompatibilityOptions
 from ._inference._compat import CompatibilityResult as CompatibilityResult
@@ -51,14 +79,15 @@ from ._inference._sensitivity import Sensitivity as Sensitivity
 from ._inference._sensitivity import ap_sensitivity as ap_sensitivity
 from ._inference._statistics import ap_t_tests as ap_t_tests
 from ._inference._statistics import global_test as global_test
-from ._inference._testing import TestedCalibration as TestedCalibration
-from ._inference._testing import TestingOptions as TestingOptions
-from ._inference._testing import VCEResult as VCEResult
+from ._inference._tested import TestedCalibration as TestedCalibration
+from ._inference._tested import TestingOptions as TestingOptions
+from ._inference._tested import VCEResult as VCEResult
 from ._inference._testing import calibrate_and_test as calibrate_and_test
 from ._io._correct import Calibration as Calibration
 from ._io._correct import correct_points as correct_points
 from ._io._correct_files import CorrectedScan as CorrectedScan
 from ._io._correct_files import correct_point_cloud as correct_point_cloud
+from ._io._extracted import ExtractedPlanes as ExtractedPlanes
 from ._io._las import write_las as write_las
 from ._io._plane_files import load_planes as load_planes
 from ._io._plane_files import save_planes as save_planes
@@ -71,6 +100,9 @@ from ._io._tables import read_observations as read_observations
 from ._io._tables import read_planes as read_planes
 from ._io._tables import read_scans as read_scans
 from ._io._tables import write_observations as write_observations
+from ._io._target_files import write_target_table as write_target_table
+from ._io._target_lists import read_reference as read_reference
+from ._io._target_lists import read_target_list as read_target_list
 from ._model._aps import PRESETS as PRESETS
 from ._model._aps import register_ap as register_ap
 from ._model._aps import registered_aps as registered_aps
@@ -84,6 +116,7 @@ from ._report._plots import plot_ap_correlations as plot_ap_correlations
 from ._report._plots import plot_monte_carlo as plot_monte_carlo
 from ._report._plots import plot_residuals as plot_residuals
 from ._report._plots import plot_sensitivity as plot_sensitivity
+from ._report._target_plots import plot_targets as plot_targets
 from ._report._text import ap_table as ap_table
 from ._simulation._design import DesignPlane as DesignPlane
 from ._simulation._design import DesignSimulation as DesignSimulation
@@ -95,16 +128,13 @@ from ._simulation._montecarlo import monte_carlo as monte_carlo
 from ._simulation._montecarlo import monte_carlo_network as monte_carlo_network
 from ._simulation._point_clouds import Board as Board
 from ._simulation._point_clouds import CloudDesign as CloudDesign
+from ._simulation._point_clouds import PlanarTarget as PlanarTarget
 from ._simulation._point_clouds import PointClouds as PointClouds
+from ._simulation._point_clouds import SphereTarget as SphereTarget
+from ._simulation._point_clouds import place_targets as place_targets
 from ._simulation._point_clouds import simulate_point_clouds as simulate_point_clouds
 from ._simulation._room import Room as Room
 from ._simulation._room import Simulation as Simulation
 from ._simulation._room import simulate as simulate
 from ._simulation._truth import SimulationTruth as SimulationTruth
-
-try:
-    from importlib.metadata import version as _version
-
-    __version__ = _version("tlsjax")
-except Exception:  # pragma: no cover - running from a source tree without metadata
-    __version__ = "0.1.0"
+from ._version import __version__ as __version__

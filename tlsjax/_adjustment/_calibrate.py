@@ -25,15 +25,7 @@ from ._families import Params, grid_layout, on_grid
 from ._network import Network, check_calibration_arguments
 from ._plan import UNIT_NORMAL_STRENGTH, build_plan, initial_params
 from ._quality import quality_from, summary_from
-from ._result import (
-    MAX_ITERATIONS,
-    NONFINITE,
-    NOT_ESTIMABLE,
-    RANK_DEFICIENT,
-    SUCCESS,
-    CalibrationResult,
-    assemble,
-)
+from ._result import CalibrationResult, assemble, result_code_of
 from ._solver import adjust_linearised
 
 
@@ -69,16 +61,16 @@ def estimate(spec, problem, params0, options):
 
 
 def result_code(spec, problem, state, s):
-    """:class:`ResultCode` of an adjustment as a traced integer, in the order of the host-side
-    assembly (:mod:`._result`): non-finite, rank defect of the poses, no convergence, APs not
-    estimable, success."""
+    """:class:`ResultCode` of an adjustment as a traced integer (:func:`._result.result_code_of`,
+    the one order of precedence of the codes)."""
     n6 = 6 * spec.n_scans
     free_dep = s.dependent & ~problem.fixed
-    code = jnp.where(jnp.any(free_dep[n6:]), NOT_ESTIMABLE, SUCCESS)
-    code = jnp.where(state.converged, code, MAX_ITERATIONS)
-    code = jnp.where(jnp.any(free_dep[:n6]), RANK_DEFICIENT, code)
-    code = jnp.where(state.finite & jnp.isfinite(s.vtpv), code, NONFINITE)
-    return code.astype(jnp.int32)
+    return result_code_of(
+        finite=state.finite & jnp.isfinite(s.vtpv),
+        rank_deficient=jnp.any(free_dep[:n6]),
+        converged=state.converged,
+        not_estimable=jnp.any(free_dep[n6:]),
+    )
 
 
 def _replace(module, **changes):

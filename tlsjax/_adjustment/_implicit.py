@@ -56,7 +56,7 @@ from .._model._planes import plane_condition
 from ._families import Params, PlaneFamily, Problem, Spec, cost
 from ._linalg import cholesky_solve
 from ._normal import linearise, null_space, reduce
-from ._quality import quality
+from ._quality import minimal_detectable_bias, quality
 from ._solver import adjust
 
 #: Iterative-refinement steps with the exact Hessian after the Gauss-Newton solve. Each step
@@ -186,9 +186,6 @@ def _solve_implicit_jvp(spec, steps, primals, tangents):
 
 # --- The differentiable calibration: inputs theta in network row order -> estimates -----------
 
-#: Noncentrality of the MDB (alpha0 = 0.1 %, power 80 %), as in :mod:`tlsjax._inference._statistics`.
-DELTA0 = 4.13
-
 
 class NetworkInputs(eqx.Module):
     """The float inputs theta of one analysed network, in the network's row order (SI units).
@@ -255,7 +252,9 @@ class Estimates(eqx.Module):
     covariance of the scan poses and APs in the datum (inner constraints on the primitives);
     ``residuals``, ``redundancy``, ``mdb`` (n, 3) of the target rows and ``plane_residuals``,
     ``plane_redundancy``, ``plane_mdb`` (m, 3) of the plane rows, in network row order (MDB:
-    ``delta0 sigma_i / sqrt(r_i)`` with the a priori sigma, 0 where r_i = 0); ``ap_influence``
+    ``delta0 sigma_i / sqrt(r_i)`` with the a priori sigma and delta0 = 4.13,
+    :func:`._quality.minimal_detectable_bias`; inf where an observation is not controlled,
+    e.g. removed); ``ap_influence``
     (n, 3, a): external reliability, the change of each AP caused by a one-sigma error of each
     observation, in a priori AP sigmas (:mod:`._quality`); ``estimable`` (a,): False for APs held
     fixed or not determined (their value, sigma and derivatives are 0).
@@ -311,10 +310,9 @@ def estimates_from_solution(spec, problem, state, rank_tolerance, rows, plane_fa
     n, m = sizes
 
     def mdb(fi):
-        fam = problem.families[fi]
-        r = q.redundancy[fi]
-        sigma = jnp.where(fam.weight > 0, 1.0 / jnp.where(fam.weight > 0, fam.weight, 1.0), 0.0)
-        return jnp.where(r > 0, DELTA0 * sigma / safe_sqrt(jnp.where(r > 0, r, 1.0)), 0.0)
+        w = problem.families[fi].weight
+        sigma = jnp.where(w > 0, 1.0 / jnp.where(w > 0, w, 1.0), 0.0)
+        return minimal_detectable_bias(sigma, q.redundancy[fi])
 
     pr = [rows[fi] for fi in point_fams]
     plane = [plane_family] if plane_family is not None else []

@@ -28,6 +28,9 @@ class ObservationTable:
 
     ``sigmas`` is None when the file has no sigma column; a sigma column or cell that is absent
     is NaN (the caller fills the defaults). ``rows`` holds the 1-based line number of each row.
+    ``architecture``: the scanner architecture the observations are expressed in (SPEC section
+    1), when the file records it (None: not recorded); ``notes``: what a reader decided (layout,
+    units and the rule that chose them) for the user to check.
     """
 
     kind: str
@@ -39,6 +42,8 @@ class ObservationTable:
     incidence: np.ndarray | None
     instruments: tuple[str, ...] | None
     rows: np.ndarray
+    architecture: str | None = None
+    notes: tuple = ()
 
     def __len__(self) -> int:
         return len(self.scans)
@@ -220,7 +225,9 @@ def check_angles(obs, architecture, where, what) -> None:
             (
                 past_zenith,
                 "el",
-                "is beyond 90 deg: a hybrid scanner observes el in [-90, 90] deg",
+                "is beyond 90 deg: a hybrid scanner observes el in [-90, 90] deg (only the "
+                "second face of a panoramic scanner looks past the zenith: architecture "
+                "'panoramic', CLI --architecture panoramic)",
             )
         )
     elif architecture == "panoramic":
@@ -312,6 +319,248 @@ def _check_plane_duplicates(p_scans, p_names, p_obs, p_where) -> None:
         seen[key] = i
 
 
+@dataclasses.dataclass(frozen=True)
+class _Rows:
+    """Validated rows of one kind (targets or plane points): the scan, primitive and instrument
+    of each row, observations and sigmas (n, 3) in SI units, and ``where(i)``, the file and
+    line of row i for messages."""
+
+    kind: str
+    scans: list
+    names: list
+    instruments: list
+    obs: np.ndarray
+    sig: np.ndarray
+    where: object
+    source: str
+
+    def keep(self, mask) -> _Rows:
+        pick = lambda seq: [x for x, k in zip(seq, mask) if k]
+        return dataclasses.replace(
+            self,
+            scans=pick(self.scans),
+            names=pick(self.names),
+            instruments=pick(self.instruments),
+            obs=self.obs[mask],
+            sig=self.sig[mask],
+        )
+
+
+def _checked_rows(table: ObservationTable, defaults, architecture) -> _Rows:
+    """The rows of a target or plane table, checked: finite values and sigmas (defaults where
+    a sigma is missing, ``sec(incidence)`` on the range), angle ranges, no observation twice
+    (:func:`_check_target_duplicates`, :func:`_check_plane_duplicates`)."""
+    scans, names, obs, src = (
+        list(table.scans),
+        list(table.primitives),
+        table.observations,
+        table.source,
+    )
+    where = _where(src, np.asarray(table.rows))
+    what = lambda i: f"scan {scans[i]}, {table.kind} {names[i]}"
+    sig = _check_rows(obs, table.sigmas, table.incidence, defaults, where, what, src)
+    check_angles(obs, architecture, where, what)
+    if table.kind == "target":
+        _check_target_duplicates(scans, names, obs, where)
+    else:
+        _check_plane_duplicates(scans, names, obs, where)
+    inst = ["default"] * len(scans) if table.instruments is None else list(table.instruments)
+    return _Rows(table.kind, scans, names, inst, obs, sig, where, src)
+
+
+def _second_face(obs) -> np.ndarray:
+    # A panoramic scanner may see a target in both faces of one scan (the two-face design):
+    # the face (elevation beyond 90 deg) is part of what makes an observation unique.
+    return obs[:, 2] > np.pi / 2
+
+
+def _check_target_duplicates(scans, targets, obs, where) -> None:
+    seen: dict[tuple, int] = {}
+    for i, key in enumerate(zip(scans, targets, _second_face(obs).tolist())):
+        if key in seen:
+            raise ValueError(
+                f"{where(i)}: duplicate observation of target {key[1]} in scan {key[0]} (also {where(seen[key])})"
+            )
+        seen[key] = i
+
+
+def _plane_rows(planes, defaults, architecture, targets, source) -> _Rows | None:
+    """The plane rows of a plane :class:`ObservationTable`, checked like the target rows, plus:
+    no name shared with a target, no point twice, enough points per plane."""
+    if planes is None:
+        return None
+    if getattr(planes, "kind", None) != "plane":
+        raise ValueError(
+            f"{source}: planes must be a plane ObservationTable (read_observations of a file with a "
+            f"'plane' column, ExtractedPlanes.to_table() or PointClouds.to_table())"
+        )
+    p_src = planes.source
+    scans = [str(s) for s in planes.scans]
+    names = [str(k) for k in planes.primitives]
+    obs = np.asarray(planes.observations, dtype=np.float64).reshape(-1, 3)
+    if not (len(scans) == len(names) == obs.shape[0]):
+        raise ValueError(
+            f"{p_src}: {obs.shape[0]} plane observations but {len(scans)} scan names and {len(names)} plane names"
+        )
+    if obs.shape[0] == 0:
+        raise ValueError(f"{p_src}: no plane observations")
+    table = dataclasses.replace(
+        planes,
+        scans=tuple(scans),
+        primitives=tuple(names),
+        observations=obs,
+        instruments=None if planes.instruments is None else tuple(map(str, planes.instruments)),
+    )
+    rows = _checked_rows(table, defaults, architecture)
+    clash = sorted(set(names) & set(targets))
+    if clash:
+        raise ValueError(
+            f"{p_src}: {clash[0]} names both a target and a plane; give planes and targets distinct names"
+        )
+    return rows
+
+
+def _assign_instruments(rows: _Rows, scan_instrument: dict) -> dict:
+    """``scan_instrument`` (scan -> instrument) completed with ``rows``; one instrument per
+    scan."""
+    for i, (s, ins) in enumerate(zip(rows.scans, rows.instruments)):
+        if scan_instrument.setdefault(s, ins) != ins:
+            raise ValueError(
+                f"{rows.where(i)}: scan {s} is assigned to instruments {scan_instrument[s]} and {ins}; one scan, one instrument"
+            )
+    return scan_instrument
+
+
+def _check_plane_points(planes: _Rows) -> None:
+    counts: dict[str, int] = defaultdict(int)
+    for k in planes.names:
+        counts[k] += 1
+    few = [k for k, c in counts.items() if c < MIN_PLANE_POINTS]
+    if few:
+        raise ValueError(
+            f"{planes.source}: plane {few[0]} has {counts[few[0]]} point(s); at least {MIN_PLANE_POINTS} are needed "
+            "to determine a plane with redundancy"
+        )
+
+
+def _drop_single_targets(targets: _Rows, p_scans, control, bars, drop: bool, source):
+    """Targets seen in one scan only add three unknowns and three observations: no redundancy.
+    Refused, or (``drop``) dropped; returns the rows kept and the names dropped."""
+    scans_of_target: dict[str, set] = defaultdict(set)
+    for s, t, f in zip(targets.scans, targets.names, _second_face(targets.obs).tolist()):
+        scans_of_target[t].add((s, f))  # both faces of one scan also give redundancy
+    bar_targets = {a for a, _, _, _ in bars} | {b for _, b, _, _ in bars}
+    single = sorted(
+        t
+        for t, ss in scans_of_target.items()
+        if len(ss) < 2 and t not in control and t not in bar_targets
+    )
+    if not single:
+        return targets, ()
+    if not drop:
+        raise ValueError(
+            f"{source}: target(s) {', '.join(single[:10])}{' ...' if len(single) > 10 else ''} are seen in one scan only; "
+            "they give no redundancy. Pass drop_single_targets=True (CLI: --drop-single-targets) to drop them."
+        )
+    keep = np.array([t not in set(single) for t in targets.names])
+    _check_left_after_dropping(targets.scans, keep, p_scans, tuple(single), source)
+    return targets.keep(keep), tuple(single)
+
+
+def _codes(names) -> dict:
+    return {x: i for i, x in enumerate(names)}
+
+
+@dataclasses.dataclass(frozen=True)
+class _IndexPlan:
+    """Names in order of first appearance and the integer codes of every row."""
+
+    scans: tuple
+    targets: tuple
+    planes: tuple
+    scan_index: np.ndarray
+    target_index: np.ndarray
+    plane_scan_index: np.ndarray
+    plane_index: np.ndarray
+
+    @classmethod
+    def of(cls, tg: _Rows, p_scans, p_names) -> _IndexPlan:
+        scans = tuple(dict.fromkeys(tg.scans + p_scans))
+        targets, planes = tuple(dict.fromkeys(tg.names)), tuple(dict.fromkeys(p_names))
+        s_code, t_code, k_code = _codes(scans), _codes(targets), _codes(planes)
+        index = lambda code, seq: np.array([code[x] for x in seq], dtype=np.int32)
+        return cls(
+            scans,
+            targets,
+            planes,
+            index(s_code, tg.scans),
+            index(t_code, tg.names),
+            index(s_code, p_scans),
+            index(k_code, p_names),
+        )
+
+
+def _check_scan_primitives(
+    scan_names, scan_index, plane_scan_index, plane_index, minimum, source, plane_source
+) -> None:
+    """A scan's pose needs 4 targets (3 determine it), or 3 planes (their normals must also be
+    independent, which the approximate values check), or a mix of at least 3."""
+    n_t_scan = np.bincount(scan_index, minlength=len(scan_names))
+    n_p_scan = np.array(
+        [len(set(plane_index[plane_scan_index == j].tolist())) for j in range(len(scan_names))],
+        dtype=int,
+    )
+    for j, s in enumerate(scan_names):
+        if n_p_scan[j] == 0 and n_t_scan[j] < minimum:
+            raise ValueError(
+                f"{source}: scan {s} observes {n_t_scan[j]} target(s); at least {minimum} are needed to determine its pose"
+            )
+        if n_p_scan[j] and n_t_scan[j] + n_p_scan[j] < 3:
+            raise ValueError(
+                f"{source if n_t_scan[j] else plane_source}: scan {s} observes {n_t_scan[j]} target(s) and "
+                f"{n_p_scan[j]} plane(s); at least 3 primitives are needed to determine its pose"
+            )
+
+
+def _levelling_arrays(lev_entries, s_code, source):
+    """Levelling readings and sigmas (s, 2) in scan order; inf sigma: not levelled."""
+    lev = np.zeros((len(s_code), 2))
+    lev_sigma = np.full((len(s_code), 2), np.inf)
+    for s, (values, sg) in lev_entries.items():
+        if s not in s_code:
+            raise ValueError(f"{source}: levelling given for scan {s}, which has no observations")
+        lev[s_code[s]] = values
+        lev_sigma[s_code[s]] = sg
+    return lev, lev_sigma
+
+
+def _control_arrays(control, t_code, source):
+    c_idx, c_xyz, c_sig = [], [], []
+    for t, (xyz, sg) in control.items():
+        if t not in t_code:
+            raise ValueError(f"{source}: control point {t} is not observed in any scan")
+        c_idx.append(t_code[t])
+        c_xyz.append(xyz)
+        c_sig.append(sg)
+    return (
+        np.array(c_idx, dtype=np.int32),
+        np.array(c_xyz).reshape(-1, 3),
+        np.array(c_sig).reshape(-1, 3),
+    )
+
+
+def _scale_bar_arrays(bars, t_code, source):
+    b_idx, b_len, b_sig = [], [], []
+    for a, b, length, sg in bars:
+        for t in (a, b):
+            if t not in t_code:
+                raise ValueError(f"{source}: scale bar end {t} is not observed in any scan")
+        b_idx.append((t_code[a], t_code[b]))
+        b_len.append(length)
+        b_sig.append(sg)
+    return np.array(b_idx, dtype=np.int32).reshape(-1, 2), np.array(b_len), np.array(b_sig)
+
+
 def make_network(
     scans: Sequence[str],
     targets: Sequence[str],
@@ -351,226 +600,91 @@ def make_network(
     :meth:`~tlsjax.PointClouds.to_table`); their sigmas default to the same group sigmas. With
     ``planes`` the target rows may be empty (a plane network) or not (a combined network).
     See :func:`make_plane_network`.
+
+    The checks, in order, each a small validator of this module: the options; the target rows
+    and the plane rows (names, finite values and sigmas, angle ranges, duplicates); one
+    instrument per scan; the levelling, control and scale-bar entries; targets seen in one scan
+    only; enough primitives per scan; a connected network. (The signature and this docstring
+    are most of this function's length; its body is that sequence.)
     """
     _check_options(architecture, sigma_range, sigma_hz, sigma_el, min_targets_per_scan)
+    defaults = (sigma_range, sigma_hz, sigma_el)
     obs = _as_observations(observations, source)
     n = obs.shape[0]
-    scans = _names(scans, "scans", "scan", n, source)
-    targets = _names(targets, "targets", "target", n, source)
+    scans = tuple(_names(scans, "scans", "scan", n, source))
+    targets = tuple(_names(targets, "targets", "target", n, source))
     if n == 0 and planes is None:
         raise ValueError(f"{source}: no observations")
     rows = np.arange(n) if rows is None else np.asarray(rows)
-    where = _where(source, rows)
-
-    sig = _check_rows(
-        obs,
-        sigmas,
-        incidence,
-        (sigma_range, sigma_hz, sigma_el),
-        where,
-        lambda i: f"scan {scans[i]}, target {targets[i]}",
-        source,
-    )
-    check_angles(obs, architecture, where, lambda i: f"scan {scans[i]}, target {targets[i]}")
-    seen: dict[tuple, int] = {}
-    # A panoramic scanner may see a target in both faces of one scan (the two-face design):
-    # the face (elevation beyond 90 deg) is part of what makes an observation unique.
-    face2 = obs[:, 2] > np.pi / 2
-    for i, key in enumerate(zip(scans, targets, face2.tolist())):
-        if key in seen:
-            raise ValueError(
-                f"{where(i)}: duplicate observation of target {key[1]} in scan {key[0]} (also {where(seen[key])})"
-            )
-        seen[key] = i
-
-    inst_rows = (
-        ["default"] * n
-        if instruments is None
-        else _names(instruments, "instruments", "instrument", n, source)
-    )
-    scan_instrument: dict[str, str] = {}
-    for i, (s, ins) in enumerate(zip(scans, inst_rows)):
-        if scan_instrument.setdefault(s, ins) != ins:
-            raise ValueError(
-                f"{where(i)}: scan {s} is assigned to instruments {scan_instrument[s]} and {ins}; one scan, one instrument"
-            )
-
-    # Plane rows: validated the same way; each plane needs enough points to be determined.
-    p_scans: list[str] = []
-    p_names: list[str] = []
-    p_obs = np.zeros((0, 3))
-    p_sig = np.zeros((0, 3))
-    if planes is not None:
-        if getattr(planes, "kind", None) != "plane":
-            raise ValueError(
-                f"{source}: planes must be a plane ObservationTable (read_observations of a file with a "
-                f"'plane' column, ExtractedPlanes.to_table() or PointClouds.to_table())"
-            )
-        p_src = planes.source
-        p_where = _where(p_src, np.asarray(planes.rows))
-        p_scans = [str(s) for s in planes.scans]
-        p_names = [str(k) for k in planes.primitives]
-        p_obs = np.asarray(planes.observations, dtype=np.float64).reshape(-1, 3)
-        if not (len(p_scans) == len(p_names) == p_obs.shape[0]):
-            raise ValueError(
-                f"{p_src}: {p_obs.shape[0]} plane observations but {len(p_scans)} scan names and {len(p_names)} plane names"
-            )
-        if p_obs.shape[0] == 0:
-            raise ValueError(f"{p_src}: no plane observations")
-        p_sig = _check_rows(
-            p_obs,
-            planes.sigmas,
-            planes.incidence,
-            (sigma_range, sigma_hz, sigma_el),
-            p_where,
-            lambda i: f"scan {p_scans[i]}, plane {p_names[i]}",
-            p_src,
+    table = ObservationTable("target", source, scans, targets, obs, sigmas, incidence, None, rows)
+    tg = _checked_rows(table, defaults, architecture)
+    if instruments is not None:
+        tg = dataclasses.replace(
+            tg, instruments=_names(instruments, "instruments", "instrument", n, source)
         )
-        check_angles(
-            p_obs, architecture, p_where, lambda i: f"scan {p_scans[i]}, plane {p_names[i]}"
-        )
-        _check_plane_duplicates(p_scans, p_names, p_obs, p_where)
-        clash = sorted(set(p_names) & set(targets))
-        if clash:
-            raise ValueError(
-                f"{p_src}: {clash[0]} names both a target and a plane; give planes and targets distinct names"
-            )
-        p_inst = (
-            ["default"] * len(p_scans)
-            if planes.instruments is None
-            else [str(x) for x in planes.instruments]
-        )
-        for i, (s, ins) in enumerate(zip(p_scans, p_inst)):
-            if scan_instrument.setdefault(s, ins) != ins:
-                raise ValueError(
-                    f"{p_where(i)}: scan {s} is assigned to instruments {scan_instrument[s]} and {ins}; one scan, one instrument"
-                )
-        counts: dict[str, int] = defaultdict(int)
-        for k in p_names:
-            counts[k] += 1
-        few = [k for k, c in counts.items() if c < MIN_PLANE_POINTS]
-        if few:
-            raise ValueError(
-                f"{p_src}: plane {few[0]} has {counts[few[0]]} point(s); at least {MIN_PLANE_POINTS} are needed "
-                "to determine a plane with redundancy"
-            )
-
+    scan_instrument = _assign_instruments(tg, {})
+    pl = _plane_rows(planes, defaults, architecture, tg.names, source)
+    p_scans, p_names, p_source = [], [], source
+    if pl is not None:
+        _assign_instruments(pl, scan_instrument)
+        _check_plane_points(pl)
+        p_scans, p_names, p_source = pl.scans, pl.names, pl.source
     lev_entries = _levelling_entries(levelling, source)
     control = _control_entries(control, source)
     bars = _scale_bar_entries(scale_bars, source)
+    tg, dropped = _drop_single_targets(tg, p_scans, control, bars, drop_single_targets, source)
 
-    # Targets seen in one scan only add three unknowns and three observations: no redundancy.
-    scans_of_target: dict[str, set] = defaultdict(set)
-    for s, t, f in zip(scans, targets, face2.tolist()):
-        scans_of_target[t].add((s, f))  # both faces of one scan also give redundancy
-    bar_targets = {a for a, _, _, _ in bars} | {b for _, b, _, _ in bars}
-    single = sorted(
-        t
-        for t, ss in scans_of_target.items()
-        if len(ss) < 2 and t not in control and t not in bar_targets
+    ip = _IndexPlan.of(tg, p_scans, p_names)
+    _check_scan_primitives(
+        ip.scans,
+        ip.scan_index,
+        ip.plane_scan_index,
+        ip.plane_index,
+        min_targets_per_scan,
+        source,
+        p_source,
     )
-    dropped: tuple[str, ...] = ()
-    if single:
-        if not drop_single_targets:
-            raise ValueError(
-                f"{source}: target(s) {', '.join(single[:10])}{' ...' if len(single) > 10 else ''} are seen in one scan only; "
-                "they give no redundancy. Pass drop_single_targets=True (CLI: --drop-single-targets) to drop them."
-            )
-        keep = np.array([t not in set(single) for t in targets])
-        dropped = tuple(single)
-        _check_left_after_dropping(scans, keep, p_scans, dropped, source)
-        obs, sig = obs[keep], sig[keep]
-        scans = [s for s, k in zip(scans, keep) if k]
-        targets = [t for t, k in zip(targets, keep) if k]
-        inst_rows = [x for x, k in zip(inst_rows, keep) if k]
-
-    scan_names = tuple(dict.fromkeys(scans + p_scans))
-    target_names = tuple(dict.fromkeys(targets))
-    plane_names = tuple(dict.fromkeys(p_names))
-    s_code = {s: i for i, s in enumerate(scan_names)}
-    t_code = {t: i for i, t in enumerate(target_names)}
-    k_code = {k: i for i, k in enumerate(plane_names)}
-    scan_index = np.array([s_code[s] for s in scans], dtype=np.int32)
-    target_index = np.array([t_code[t] for t in targets], dtype=np.int32)
-    plane_scan_index = np.array([s_code[s] for s in p_scans], dtype=np.int32)
-    plane_index = np.array([k_code[k] for k in p_names], dtype=np.int32)
-
-    # A scan's pose needs 4 targets (3 determine it), or 3 planes (their normals must also be
-    # independent, which the approximate values check), or a mix of at least 3.
-    n_t_scan = np.bincount(scan_index, minlength=len(scan_names))
-    n_p_scan = np.array(
-        [len(set(plane_index[plane_scan_index == j].tolist())) for j in range(len(scan_names))],
-        dtype=int,
-    )
-    for j, s in enumerate(scan_names):
-        if n_p_scan[j] == 0 and n_t_scan[j] < min_targets_per_scan:
-            raise ValueError(
-                f"{source}: scan {s} observes {n_t_scan[j]} target(s); at least {min_targets_per_scan} are needed to determine its pose"
-            )
-        if n_p_scan[j] and n_t_scan[j] + n_p_scan[j] < 3:
-            raise ValueError(
-                f"{source if n_t_scan[j] else planes.source}: scan {s} observes {n_t_scan[j]} target(s) and "
-                f"{n_p_scan[j]} plane(s); at least 3 primitives are needed to determine its pose"
-            )
-
     # Connectivity through shared primitives: targets and planes count alike (codes offset).
-    prim_scan = np.concatenate([scan_index, plane_scan_index])
-    prim_index = np.concatenate([target_index, plane_index + len(target_names)])
-    _check_connected(scan_names, scan_names, prim_scan, prim_index, source)
+    prim_scan = np.concatenate([ip.scan_index, ip.plane_scan_index])
+    prim_index = np.concatenate([ip.target_index, ip.plane_index + len(ip.targets)])
+    _check_connected(ip.scans, ip.scans, prim_scan, prim_index, source)
 
-    instrument_names = tuple(dict.fromkeys(scan_instrument[s] for s in scan_names))
-    i_code = {x: i for i, x in enumerate(instrument_names)}
-    instrument_of_scan = np.array([i_code[scan_instrument[s]] for s in scan_names], dtype=np.int32)
+    return _network(tg, pl, ip, scan_instrument, (lev_entries, control, bars), dropped, source)
 
-    lev = np.zeros((len(scan_names), 2))
-    lev_sigma = np.full((len(scan_names), 2), np.inf)
-    for s, (values, sg) in lev_entries.items():
-        if s not in s_code:
-            raise ValueError(f"{source}: levelling given for scan {s}, which has no observations")
-        lev[s_code[s]] = values
-        lev_sigma[s_code[s]] = sg
 
-    c_idx, c_xyz, c_sig = [], [], []
-    for t, (xyz, sg) in control.items():
-        if t not in t_code:
-            raise ValueError(f"{source}: control point {t} is not observed in any scan")
-        c_idx.append(t_code[t])
-        c_xyz.append(xyz)
-        c_sig.append(sg)
-
-    b_idx, b_len, b_sig = [], [], []
-    for a, b, length, sg in bars:
-        for t in (a, b):
-            if t not in t_code:
-                raise ValueError(f"{source}: scale bar end {t} is not observed in any scan")
-        b_idx.append((t_code[a], t_code[b]))
-        b_len.append(length)
-        b_sig.append(sg)
-
+def _network(tg: _Rows, pl, ip: _IndexPlan, scan_instrument, entries, dropped, source) -> Network:
+    """The :class:`Network` of validated rows, their index plan and the levelling, control
+    and scale-bar entries (each checked against the names observed)."""
+    lev_entries, control, bars = entries
+    instrument_names = tuple(dict.fromkeys(scan_instrument[s] for s in ip.scans))
+    i_code, s_code, t_code = _codes(instrument_names), _codes(ip.scans), _codes(ip.targets)
+    lev, lev_sigma = _levelling_arrays(lev_entries, s_code, source)
+    c_idx, c_xyz, c_sig = _control_arrays(control, t_code, source)
+    b_idx, b_len, b_sig = _scale_bar_arrays(bars, t_code, source)
     return Network(
-        scans=scan_names,
-        targets=target_names,
+        scans=ip.scans,
+        targets=ip.targets,
         instruments=instrument_names,
-        observations=obs,
-        sigmas=sig,
-        target_index=target_index,
-        scan_index=scan_index,
-        instrument_of_scan=instrument_of_scan,
+        observations=tg.obs,
+        sigmas=tg.sig,
+        target_index=ip.target_index,
+        scan_index=ip.scan_index,
+        instrument_of_scan=np.array([i_code[scan_instrument[s]] for s in ip.scans], dtype=np.int32),
         levelling=lev,
         levelling_sigma=lev_sigma,
-        control_index=np.array(c_idx, dtype=np.int32),
-        control_xyz=np.array(c_xyz).reshape(-1, 3),
-        control_sigma=np.array(c_sig).reshape(-1, 3),
-        scale_bar_targets=np.array(b_idx, dtype=np.int32).reshape(-1, 2),
-        scale_bar_length=np.array(b_len),
-        scale_bar_sigma=np.array(b_sig),
+        control_index=c_idx,
+        control_xyz=c_xyz,
+        control_sigma=c_sig,
+        scale_bar_targets=b_idx,
+        scale_bar_length=b_len,
+        scale_bar_sigma=b_sig,
         source=source,
         dropped=dropped,
-        planes=plane_names,
-        plane_observations=p_obs,
-        plane_sigmas=p_sig,
-        plane_index=plane_index,
-        plane_scan_index=plane_scan_index,
+        planes=ip.planes,
+        plane_observations=pl.obs if pl is not None else np.zeros((0, 3)),
+        plane_sigmas=pl.sig if pl is not None else np.zeros((0, 3)),
+        plane_index=ip.plane_index,
+        plane_scan_index=ip.plane_scan_index,
     )
 
 

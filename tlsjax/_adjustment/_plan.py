@@ -64,7 +64,8 @@ def _scanner_for(model: CalibrationModel, instrument: str) -> Scanner:
 
 def _ap_blocks(net: Network, model: CalibrationModel):
     """Scanners, AP names and slices per instrument, AP labels and units."""
-    scanners = tuple(_scanner_for(model, ins) for ins in net.instruments)
+    # As registered now (Scanner.current): the static spec keys the compiled adjustment.
+    scanners = tuple(_scanner_for(model, ins).current() for ins in net.instruments)
     ap_names, ap_slices, labels, units = [], [], [], []
     off = 0
     for ins, sc in zip(net.instruments, scanners):

@@ -17,15 +17,26 @@
   one a priori sigma in observation i, ``dx_a = Q_(a, u_i) J_i^T P_i sigma_i`` over the
   unknowns u_i that observation touches (its target, its scan, the APs), in units of the AP's
   a priori sigma ``sqrt(Q_aa)``; gathered from the Qpz/Qzz blocks, never a whole Jacobian.
+* Internal reliability (Baarda 1968): the minimal detectable bias ``MDB_i = delta0 sigma_i /
+  sqrt(r_i)`` (:func:`minimal_detectable_bias`) and Baarda's external reliability factor
+  ``sqrt((1 - r_i) / r_i) delta0`` (:func:`external_reliability_factor`), with ``delta0`` from
+  :mod:`tlsjax._stats` (4.13 for alpha0 = 0.1 %, power 80 %). An observation whose redundancy
+  number is at most :data:`MIN_TESTABLE_REDUNDANCY` is not controlled: no error of any size is
+  detected (MDB infinite) and its w-test is not computed.
+* The cofactor matrix of the scan poses and APs predicted from one linearisation, without
+  iterations or rank test (:func:`pose_ap_cofactor`; network design, SPEC section 13).
 """
 
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from .._model._datum import inner_constraint_cofactor
+from .._stats import DELTA0
 from ._families import (
     Params,
     Problem,
@@ -37,8 +48,37 @@ from ._families import (
     on_grid,
 )
 from ._linalg import cholesky_inverse, forward_substitution
-from ._normal import linearise_rows, linearised_cost, null_space, reduce
+from ._normal import linearise, linearise_rows, linearised_cost, null_space, reduce
 from ._solver import Linearisation
+
+#: Redundancy number at or below which an observation is not controlled by the tests: its
+#: w-test is not computed and its minimal detectable bias is infinite. Redundancy numbers of
+#: uncontrolled observations are zero in exact arithmetic and rounding (about 1e-12 here)
+#: in the computed ``Q_vv P``; 1e-6 (an MDB of 4,000 sigma) is well above both.
+MIN_TESTABLE_REDUNDANCY = 1e-6
+
+
+def _xp(*arrays):
+    return jnp if any(isinstance(a, jax.Array) for a in arrays) else np
+
+
+def minimal_detectable_bias(sigmas, redundancy, delta0: float = DELTA0):
+    """Internal reliability (Baarda 1968): ``MDB_i = delta0 sigma_i / sqrt(r_i)``, in the units
+    of the sigmas; inf where ``r_i <= MIN_TESTABLE_REDUNDANCY`` (not controlled). numpy or jax
+    (traceable, with a finite derivative everywhere)."""
+    xp = _xp(sigmas, redundancy)
+    ok = redundancy > MIN_TESTABLE_REDUNDANCY
+    return xp.where(ok, delta0 * sigmas / xp.sqrt(xp.where(ok, redundancy, 1.0)), xp.inf)
+
+
+def external_reliability_factor(redundancy, delta0: float = DELTA0):
+    """Baarda's external reliability factor ``sqrt((1 - r_i) / r_i) delta0``: the effect of an
+    undetected MDB-sized error on the unknowns, in units of their sigmas (the largest over all
+    linear functions of them); inf where ``r_i <= MIN_TESTABLE_REDUNDANCY``."""
+    xp = _xp(redundancy)
+    ok = redundancy > MIN_TESTABLE_REDUNDANCY
+    r = xp.where(ok, redundancy, 1.0)
+    return xp.where(ok, xp.sqrt(xp.maximum(1.0 - r, 0.0) / r) * delta0, xp.inf)
 
 
 class Quality(eqx.Module):
@@ -147,9 +187,7 @@ def quality_from(spec, problem, grid, params, lin, full_covariance: bool = False
     ``problem`` on its grid (the per-observation results come back in ``problem``'s order)."""
     red, Hp, Hz = lin.reduced, lin.Hp, lin.Hz
     dep = red.dependent
-    Qs = cholesky_inverse(red.L)
-    Qs = jnp.where(dep[:, None] | dep[None, :], 0.0, Qs)
-    Qzz = Qs * red.scale[:, None] * red.scale[None, :]
+    Qzz = reduced_cofactor(red)
     ns = spec.n_scans
 
     fams = [
@@ -195,6 +233,33 @@ def quality_from(spec, problem, grid, params, lin, full_covariance: bool = False
         K_over_N=K_over_N,
         ap_influence=back("influence"),
     )
+
+
+def reduced_cofactor(red):
+    """Cofactor matrix ``Q_zz`` of the scan poses and APs in the datum the reduced system was
+    closed with: the inverse of the scaled reduced matrix (its Cholesky factor), scaled back,
+    zero in the rows and columns of dependent (held or not estimable) parameters."""
+    dep = red.dependent
+    Qs = cholesky_inverse(red.L)
+    Qs = jnp.where(dep[:, None] | dep[None, :], 0.0, Qs)
+    return Qs * red.scale[:, None] * red.scale[None, :]
+
+
+def pose_ap_cofactor(spec: Spec, problem: Problem, params: Params, rank_tolerance):
+    """Cofactor matrix (sigma0 = 1) of the scan poses and APs, (6s + a, 6s + a), from one
+    linearisation at ``params`` (no iteration): segment-sum assembly, Schur elimination of the
+    primitives, Cholesky of the reduced system (:mod:`._normal`), in the inner-constraint
+    datum on the primitives (S-transformed, :func:`tlsjax._model._datum.inner_constraint_cofactor`)
+    when the spec says so, else in the problem's datum. A negative ``rank_tolerance`` declares
+    no parameter dependent: the result is then a smooth function of the inputs (design
+    optimisation), and a parameter the network cannot determine gets a huge variance."""
+    blocks = linearise(spec, problem, params)
+    Hp, Hz = null_space(spec, problem.families, params)
+    red = reduce(spec, problem, blocks, Hz, jnp.asarray(0.0), jnp.asarray(rank_tolerance))
+    Q = reduced_cofactor(red)
+    if spec.inner and Hz.shape[1]:
+        _, _, Q = inner_constraint_cofactor(Hp, Hz, red.Npp_inv, red.Y, Q)
+    return Q
 
 
 def _closure(red, Hz):

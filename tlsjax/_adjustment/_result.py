@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 
+import jax.numpy as jnp
 import numpy as np
 
 from ._diagnose import confounded_partners, failure_diagnosis
@@ -40,6 +41,18 @@ _MESSAGES = {
 #: Code -> message, for users who keep codes as plain integers.
 RESULT_MESSAGES = {int(c): c.message for c in ResultCode}
 SUCCESS, MAX_ITERATIONS, NOT_ESTIMABLE, RANK_DEFICIENT, NONFINITE = (int(c) for c in ResultCode)
+
+
+def result_code_of(*, finite, rank_deficient, converged, not_estimable):
+    """The :class:`ResultCode` of an adjustment from what it found, in the one order of
+    precedence (the first that applies): non-finite values, a rank defect of the scan poses,
+    no convergence, APs not estimable; success otherwise. Traceable (``jnp.where`` on booleans
+    or traced booleans), so the host-side assembly of a result and the compiled batch of a
+    Monte Carlo (:func:`._calibrate.result_code`) share it; an int32 code."""
+    code = jnp.where(not_estimable, NOT_ESTIMABLE, SUCCESS)
+    code = jnp.where(converged, code, MAX_ITERATIONS)
+    code = jnp.where(rank_deficient, RANK_DEFICIENT, code)
+    return jnp.where(finite, code, NONFINITE).astype(jnp.int32)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -104,6 +117,12 @@ class CalibrationResult:
     # What a person can act on when the adjustment fails (largest normalised misclosures,
     # sigma0 per scan and per primitive, suspicious plane matches); see _diagnose.
     diagnosis: dict = dataclasses.field(default_factory=dict)
+    # (t, 3, 3) a posteriori covariance of each target [m^2] in the datum used (the diagonal
+    # blocks the quality pass computes anyway): confidence ellipsoids at no extra cost.
+    target_covariance: np.ndarray | None = dataclasses.field(default=None, repr=False)
+    # The CalibrationModel adjusted (scanner architecture, unit lengths, datum): what a result
+    # file must record so that the calibration is applied as it was estimated.
+    model: object = dataclasses.field(default=None, repr=False)
 
     @property
     def ok(self) -> bool:
@@ -231,16 +250,13 @@ def _max_correlations(plan: Plan, q, skip):
 
 
 def _result_code(state, q, rank_def, not_est):
-    finite = bool(state.finite) and np.isfinite(float(q.vtpv))
-    if not finite:
-        return ResultCode.NONFINITE
-    if rank_def:
-        return ResultCode.RANK_DEFICIENT
-    if not bool(state.converged):
-        return ResultCode.MAX_ITERATIONS
-    if not_est:
-        return ResultCode.NOT_ESTIMABLE
-    return ResultCode.SUCCESS
+    code = result_code_of(
+        finite=bool(state.finite) and bool(np.isfinite(float(q.vtpv))),
+        rank_deficient=bool(rank_def),
+        converged=bool(state.converged),
+        not_estimable=bool(not_est),
+    )
+    return ResultCode(int(code))
 
 
 def _message(code, rank_def, not_est, state, diagnosis):
@@ -256,6 +272,14 @@ def _message(code, rank_def, not_est, state, diagnosis):
     return msg
 
 
+def _point_blocks(cof):
+    """The 3x3 diagonal blocks of per-primitive cofactors (n, 3k, 3k), one per point, in the
+    order of the primitives' points (a scale bar carries k = 2 points)."""
+    k = cof.shape[-1] // 3
+    idx = np.arange(k)
+    return cof.reshape(-1, k, 3, k, 3)[:, idx, :, idx, :].transpose(1, 0, 2, 3).reshape(-1, 3, 3)
+
+
 def _observation_arrays(net: Network, plan: Plan, q, state, s0sq):
     """Residuals, redundancy numbers and used masks in network row order; target and plane
     estimates with a posteriori sigmas (datum blocks of the cofactor matrix)."""
@@ -263,7 +287,7 @@ def _observation_arrays(net: Network, plan: Plan, q, state, s0sq):
     resid, redund = np.zeros((n_obs, 3)), np.zeros((n_obs, 3))
     used = np.ones((n_obs, 3), dtype=bool)
     txyz = np.zeros((len(net.targets), 3))
-    tsig = np.full((len(net.targets), 3), np.nan)
+    tcov = np.full((len(net.targets), 3, 3), np.nan)
     sig_of = lambda fi: np.sqrt(
         np.clip(np.diagonal(np.asarray(q.prim_cofactor[fi]), axis1=1, axis2=2) * s0sq, 0, None)
     )
@@ -273,7 +297,8 @@ def _observation_arrays(net: Network, plan: Plan, q, state, s0sq):
         redund[rows] = np.asarray(q.redundancy[fi])
         used[rows] = np.asarray(plan.problem.families[fi].weight) > 0
         txyz[tg.reshape(-1)] = np.asarray(state.params.prims[fi]).reshape(-1, 3)
-        tsig[tg.reshape(-1)] = sig_of(fi).reshape(-1, 3)
+        tcov[tg.reshape(-1)] = _point_blocks(np.asarray(q.prim_cofactor[fi])) * s0sq
+    tsig = np.sqrt(np.clip(np.diagonal(tcov, axis1=1, axis2=2), 0, None))
     planes = {}
     fp = plan.plane_family
     if fp is not None:
@@ -285,12 +310,16 @@ def _observation_arrays(net: Network, plan: Plan, q, state, s0sq):
             plane_redundancy=np.asarray(q.redundancy[fp]),
             plane_used=np.asarray(plan.problem.families[fp].weight) > 0,
         )
-    return resid, redund, used, txyz, tsig, planes
+    return resid, redund, used, txyz, tsig, tcov, planes
 
 
 def assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
     """The arrays of one adjustment (state, quality) as a :class:`CalibrationResult` with
-    names, units, result code and message."""
+    names, units, result code and message.
+
+    Long because a result holds some forty named fields, set here in one place; the computations
+    are the helpers of this module.
+    """
     spec = plan.spec
     ns = spec.n_scans
     dof = float(q.dof)
@@ -314,7 +343,7 @@ def assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
     diagnosis = failure_diagnosis(net, plan, q) if code != ResultCode.SUCCESS else {}
     if code == ResultCode.MAX_ITERATIONS:
         _name_nearly_absorbed(plan, q, ap_dep | ap_fixed, diagnosis)
-    resid, redund, used, txyz, tsig, plane_out = _observation_arrays(
+    resid, redund, used, txyz, tsig, tcov, plane_out = _observation_arrays(
         net, plan, q, state, s0sq_scale
     )
     eop_sig = np.sqrt(np.clip(np.diag(np.asarray(q.Qzz))[: 6 * ns] * s0sq_scale, 0, None)).reshape(
@@ -363,6 +392,8 @@ def assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
         used=used,
         ap_fixed=tuple(plan.ap_labels[i] for i in np.flatnonzero(ap_fixed)),
         diagnosis=diagnosis,
+        target_covariance=tcov,
+        model=model,
         **plane_out,
     )
 

@@ -1,5 +1,5 @@
-"""Command line: ``tlsjax demo | simulate | calibrate | extract-planes | correct | report |
-montecarlo | compare | design``.
+"""Command line: ``tlsjax demo | simulate | calibrate | extract-planes | extract-targets |
+correct | report | montecarlo | compare | design | import-targets | check-targets``.
 
 Every subcommand is a thin layer over the public API. Bad input is reported as one line
 naming the file, line, scan, target or parameter (exit code 2), and so is every file-system
@@ -20,9 +20,11 @@ from ._compare import add_compare_parser
 from ._correct import add_correct_parser
 from ._design import add_design_parser
 from ._extract import add_extract_parser
+from ._extract_targets import add_targets_parser
 from ._montecarlo import add_montecarlo_parser
 from ._report import add_report_parser
 from ._simulate import add_demo_parser, add_simulate_parser
+from ._targets import add_check_targets_parser, add_import_targets_parser
 
 
 def _enable_compilation_cache():
@@ -52,11 +54,14 @@ def build_parser() -> argparse.ArgumentParser:
         add_simulate_parser,
         add_calibrate_parser,
         add_extract_parser,
+        add_targets_parser,
         add_correct_parser,
         add_report_parser,
         add_montecarlo_parser,
         add_compare_parser,
         add_design_parser,
+        add_import_targets_parser,
+        add_check_targets_parser,
     ):
         add(sub)
     return ap

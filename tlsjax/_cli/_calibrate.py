@@ -12,6 +12,8 @@ from ._common import EXIT_FAILED, EXIT_OK, scanner_args
 
 
 def add_calibrate_parser(sub):
+    """The options of ``tlsjax calibrate``, declared one after another (long because there are many
+    of them; there is no logic here)."""
     c = sub.add_parser("calibrate", help="self-calibrate from target and/or plane observations")
     c.add_argument(
         "observations",
@@ -134,20 +136,33 @@ def add_calibrate_parser(sub):
         default=0.9,
         help="a candidate more correlated than this with the model is not added (default 0.9)",
     )
-    scanner_args(c)
+    c.add_argument(
+        "--targets-out",
+        metavar="CSV",
+        help="write the adjusted target coordinates with sigmas and ellipsoid axes here (in "
+        "the datum of the adjustment; the JSON has them too)",
+    )
+    scanner_args(
+        c, default=None, default_help="the one recorded in the observation file, else hybrid"
+    )
     c.set_defaults(func=_calibrate)
     return c
 
 
 def _calibrate(args) -> int:
+    """Run ``tlsjax calibrate``: read, adjust (or adjust and test), print and write. A little over
+    60 lines: one sequence of steps of the command, each a call."""
     from .._adjustment._calibrate import calibrate
     from .._adjustment._config import CalibrationModel, SolverOptions
+    from .._io._json import check_output_file
     from .._io._tables import read_network
     from .._model._scanner import Scanner
 
     if args.observations is None and args.planes is None:
         raise ValueError("give an observation CSV, --planes FILE, or both")
     check_outputs(args.json, args.plots, args.report)  # before any work: fails in a second
+    check_output_file(args.targets_out, "--targets-out ")
+    args.architecture = file_architecture(args.architecture, args.observations, args.planes)
     scanner = Scanner(architecture=args.architecture, aps=args.aps, unit_length=args.unit_length)
     net = read_network(
         args.observations,
@@ -204,10 +219,52 @@ def _calibrate(args) -> int:
     report(res, after_vce=tested is not None and tested.weights_fitted)
     extra.update(_report_fields(res, scanner, args, mask, mdb))
     write_outputs(res, args.json, args.plots, extra=extra, scanner=scanner, mask=mask)
+    if args.targets_out:
+        write_targets(res, args.targets_out)
     if args.report:
         _write_report(res, args.report, extra, scanner, mask)
     ok = res.ok and (tested is None or tested.ok)
     return EXIT_OK if ok else EXIT_FAILED
+
+
+def file_architecture(given, *paths) -> str:
+    """``given``, else the architecture recorded in the first observation CSV that records
+    one (files tlsjax writes), else hybrid; a mismatch is refused by ``read_network``."""
+    from .._io._tables import recorded_architecture
+
+    if given is not None:
+        return given
+    for p in paths:
+        if p is not None and str(p).lower().endswith(".csv") and os.path.isfile(p):
+            arch = recorded_architecture(p)
+            if arch is not None:
+                print(f"{p}: {arch} scanner (recorded in the file)")
+                return arch
+    return "hybrid"
+
+
+def write_targets(res, path):
+    """The adjusted targets as CSV (``--targets-out``); none for a failed adjustment."""
+    from .._io._target_lists import write_target_csv
+    from .._report._json import datum_text, target_ellipsoids, target_scan_counts
+
+    if not res.ok:
+        print(f"--targets-out {path}: not written (the adjustment failed: no estimates)")
+        return
+    if not len(res.targets):
+        print(f"--targets-out {path}: not written (no targets in this network)")
+        return
+    axes, _ = target_ellipsoids(res.target_covariance)
+    write_target_csv(
+        path,
+        res.targets,
+        res.target_xyz,
+        res.target_sigmas,
+        axes,
+        target_scan_counts(res),
+        datum_text(res),
+    )
+    print(f"wrote {path}")
 
 
 def _select(args, net, model, scanner, extra):

@@ -7,12 +7,12 @@ import os
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERNAL = 0, 1, 2, 3
 
 
-def scanner_args(p):
+def scanner_args(p, default="hybrid", default_help="hybrid"):
     p.add_argument(
         "--architecture",
         choices=("hybrid", "panoramic"),
-        default="hybrid",
-        help="scanner architecture (default: hybrid)",
+        default=default,
+        help=f"scanner architecture (default: {default_help})",
     )
     p.add_argument(
         "--unit-length",
@@ -42,16 +42,19 @@ def devices_arg(p):
 
 
 def use_host_devices(n: int) -> None:
-    """Ask XLA for ``n`` CPU devices. XLA reads the count when JAX's backend starts, so this
-    must run before the first computation; later (tests calling ``main`` in-process) nothing is
-    changed. A batch of realisations is sharded over every device (``_simulation._batch``):
-    on a CPU without another device, each core then runs its own share."""
+    """Ask XLA for ``n`` CPU devices (JAX's public ``jax_num_cpu_devices`` option). The count
+    is read when JAX's backend starts, so this must run before the first computation; later
+    (tests calling ``main`` in-process) JAX refuses the change and nothing is changed. A batch
+    of realisations is sharded over every device (``_simulation._batch``): on a CPU without
+    another device, each core then runs its own share."""
     if n <= 1 or "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", ""):
         return
+    import jax
+
     try:
-        from jax._src.xla_bridge import backends_are_initialized
-    except ImportError:  # pragma: no cover - JAX moved it; the flag is then left alone
-        return
-    if not backends_are_initialized():
+        jax.config.update("jax_num_cpu_devices", int(n))
+    except RuntimeError:  # the backend has started: the device count is fixed
+        pass
+    except AttributeError:  # pragma: no cover - a JAX before the option: its XLA flag
         flag = f"--xla_force_host_platform_device_count={int(n)}"
         os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " " + flag).strip()

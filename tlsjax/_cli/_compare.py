@@ -20,7 +20,12 @@ def add_compare_parser(subparsers):
     p.add_argument("--room", default="14x11x3", help="room LxWxH in metres (default 14x11x3)")
     p.add_argument("--runs", type=int, default=1000, help="number of simulations N (default 1000)")
     p.add_argument("--alpha", type=float, default=0.05, help="significance level (default 0.05)")
-    p.add_argument("--architecture", default="hybrid", choices=("hybrid", "panoramic"))
+    p.add_argument(
+        "--architecture",
+        default=None,
+        choices=("hybrid", "panoramic"),
+        help="scanner architecture (default: the one stored in the JSONs, else hybrid)",
+    )
     p.add_argument("--unit-length", type=float, default=1.2, help="unit length U of A3/A4 [m]")
     p.add_argument("--sigma-range-mm", type=float, default=DEFAULT_SIGMA_RANGE * 1e3)
     p.add_argument("--sigma-angle-arcsec", type=float, default=20.0)
@@ -32,12 +37,32 @@ def add_compare_parser(subparsers):
     return p
 
 
+def _stored_architecture(args) -> str:
+    """``--architecture``, else the architecture both JSONs store (their ``scanner``
+    section), else hybrid; two sets of different architectures are refused."""
+    from .._io._json import read_result_json
+
+    if args.architecture is not None:
+        return args.architecture
+    found = {}
+    for path in (args.set1, args.set2):
+        sc = read_result_json(path).get("scanner")
+        if isinstance(sc, dict) and sc.get("architecture"):
+            found[path] = sc["architecture"]
+    if len(set(found.values())) > 1:
+        raise ValueError(
+            f"the AP sets calibrate different architectures ({found}); give --architecture"
+        )
+    return next(iter(found.values()), "hybrid")
+
+
 def cli_compare(args) -> int:
     """CLI handler: prints the report; exit code 0 compatible, 1 not compatible."""
     from .._io._json import check_output_file, write_json_file
 
     check_output_file(args.json, "--json ")  # before the simulations run
     s1, s2 = APSet.from_json(args.set1), APSet.from_json(args.set2)
+    args.architecture = _stored_architecture(args)
     room = Room.parse(args.room)
     sc = Scanner(architecture=args.architecture, aps=(), unit_length=args.unit_length)
     res = compatibility_test(

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 import numpy as np
 
@@ -71,7 +72,10 @@ def read_scan_files(paths, architecture, poses_path=None, *, out=None):
 
 
 def cli_extract(args) -> int:
-    """Run ``tlsjax extract-planes``; returns the exit code."""
+    """Run ``tlsjax extract-planes``; returns the exit code.
+
+    (A little over 60 lines: one sequence of steps of the command, each a call.)
+    """
     import sys
 
     from .._clouds._extract import ExtractionConfig, extract_planes
@@ -113,7 +117,8 @@ def cli_extract(args) -> int:
         planes = match_planes(planes, poses)
     save_planes(args.out, planes)
     if args.csv:
-        write_observations(args.csv, planes.to_table())
+        table = dataclasses.replace(planes.to_table(), architecture=args.architecture)
+        write_observations(args.csv, table)
     matched = (
         "not matched (no scan poses: give --poses)"
         if planes.planes is None

@@ -76,16 +76,22 @@ def _write_simulation(
         if p:
             make_parent(p)
     write_observations(
-        obs_path, table_from_network(sim.network), length_unit=length_unit, angle_unit=angle_unit
+        obs_path,
+        table_from_network(sim.network, sim.scanner.architecture),
+        length_unit=length_unit,
+        angle_unit=angle_unit,
     )
     write_scans(scans_path, levelling_of_network(sim.network))
     if truth_path:
+        from .._report._json import scanner_settings
+
         net = sim.network
         write_json_file(
             truth_path,
             {
                 "units": "SI: metres, radians",
                 "architecture": sim.scanner.architecture,
+                "scanner": scanner_settings(sim.scanner),
                 "aps": {k: float(v) for k, v in sim.true_aps.items()},
                 "targets": {t: sim.true_targets[i].tolist() for i, t in enumerate(net.targets)},
                 "eops": {s: sim.true_eops[j].tolist() for j, s in enumerate(net.scans)},

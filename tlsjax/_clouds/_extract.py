@@ -32,9 +32,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .._adjustment._network import ObservationTable
-from .._io._optional import require
-from .._model._geometry import cartesian_from_spherical
+from .._io._extracted import ExtractedPlanes
+from .._model._geometry import cartesian_from_spherical, fit_plane
+from .._optional import require
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,86 +97,9 @@ class ExtractionConfig:
             )
 
 
-@dataclasses.dataclass(frozen=True, eq=False)
-class ExtractedPlanes:
-    """Plane patches of a set of scans and the points kept on them.
-
-    Per patch p: ``patch_scan[p]`` (scan index), ``patch_normal[p]`` and ``patch_distance[p]``
-    in scanner space (``n . x = d``), ``patch_rms[p]`` [m] of the orthogonal distances,
-    ``patch_inliers[p]`` (points after refinement, before the budget), ``patch_plane[p]`` (global
-    plane index, -1 before matching). Per kept point i: ``point_patch[i]``, ``point_index[i]``
-    (row in its scan's input), ``observations[i]`` (rho, theta, alpha) and ``incidence[i]``
-    [rad]. After matching: ``poses`` (s, 6) and ``planes`` (g, 4) = (n, d) in object space,
-    fitted to all points of each global plane.
-    """
-
-    scans: tuple
-    patch_scan: np.ndarray
-    patch_normal: np.ndarray
-    patch_distance: np.ndarray
-    patch_rms: np.ndarray
-    patch_inliers: np.ndarray
-    patch_plane: np.ndarray
-    point_patch: np.ndarray
-    point_index: np.ndarray
-    observations: np.ndarray
-    incidence: np.ndarray
-    poses: np.ndarray | None = None
-    planes: np.ndarray | None = None
-
-    @property
-    def point_plane(self) -> np.ndarray:
-        """Global plane index of every kept point (-1 before matching)."""
-        return self.patch_plane[self.point_patch]
-
-    @property
-    def point_scan(self) -> np.ndarray:
-        return self.patch_scan[self.point_patch]
-
-    def summary(self) -> list[dict]:
-        """Per global plane: scans, patches and points supporting it, RMS [m] of the points
-        from it, largest patch angle [rad] (:func:`~tlsjax._clouds._match.plane_summary`)."""
-        from ._match import plane_summary
-
-        return plane_summary(self)
-
-    def to_table(self) -> ObservationTable:
-        """Plane observations (SPEC section 11): one row per kept point of a matched plane.
-
-        Planes are named ``P1``, ``P2``, ... in the order of ``planes``.
-        """
-        if self.planes is None:
-            raise ValueError(
-                "planes are not matched across scans yet: call match_planes(planes, poses) first"
-            )
-        plane = self.point_plane
-        keep = plane >= 0
-        scans = tuple(self.scans[s] for s in self.point_scan[keep])
-        prims = tuple(f"P{g + 1}" for g in plane[keep])
-        return ObservationTable(
-            kind="plane",
-            source="<extracted planes>",
-            scans=scans,
-            primitives=prims,
-            observations=self.observations[keep],
-            sigmas=None,
-            incidence=self.incidence[keep],
-            instruments=None,
-            rows=np.arange(2, int(keep.sum()) + 2, dtype=np.int64),
-        )
-
-
 def _require_open3d():
     # A missing system library (libusb, libGL, libgomp) is named with its Debian package.
     return require("open3d", "plane extraction")
-
-
-def fit_plane(x):
-    """Least-squares plane of points x (n, 3): unit normal, d, eigenvalues (ascending)."""
-    c = x.mean(axis=0)
-    w, V = np.linalg.eigh(np.cov((x - c).T, bias=True))
-    n = V[:, 0]
-    return n, float(n @ c), w
 
 
 def _refine(x, rejection, max_iter=20):
@@ -197,7 +120,11 @@ def _refine(x, rejection, max_iter=20):
 
 def _extract_scan(o3d, obs, config: ExtractionConfig, seed_seq, bar=None):
     """Patches of one scan: list of (indices, n, d, rms); ``bar`` (tqdm) counts the points
-    assigned to patches or left over."""
+    assigned to patches or left over.
+
+    (A little over 60 lines: the RANSAC rounds, clustering and refit of one scan as one loop,
+    which reads best in one place.)
+    """
     x = cartesian_from_spherical(np.asarray(obs, dtype=np.float64), xp=np)
     rho = np.linalg.norm(x, axis=1)
     u = x / rho[:, None]
@@ -275,6 +202,9 @@ def extract_planes(
     panoramic (both faces map to the same scanner-space point). ``names``: scan names (default
     S1, S2, ...). ``seed`` makes RANSAC and the budget sampling repeatable. ``progress``: a
     progress bar over the points of all scans.
+
+    (Long because of its validation of the inputs and the progress bar; the work is
+    :func:`_extract_scan`.)
     """
     from tqdm.auto import tqdm
 

@@ -2,12 +2,12 @@
 
 The covariance of a design needs no noise draws: it is the inverse of the normal matrix of the
 linearisation at the true (error-free) parameters, which depends only on the geometry and the
-sigmas. :func:`predicted_cofactor` computes it with the engine's structured blocks
-(:func:`tlsjax._adjustment._normal.linearise` and :func:`~tlsjax._adjustment._normal.reduce`:
-segment sums, Schur elimination of the targets or planes, Cholesky of the reduced system,
-the inner-constraint S-transformation of :mod:`tlsjax._model._datum`), with no iteration and
-no rank test, so it is a smooth, differentiable function of the design arrays: a design that
-cannot determine an AP gets a huge (or non-finite) sigma, never a masked zero.
+sigmas. :func:`predicted_cofactor` computes it with the engine's own quality function
+(:func:`tlsjax._adjustment._quality.pose_ap_cofactor`: segment sums, Schur elimination of the
+targets or planes, Cholesky of the reduced system, the inner-constraint S-transformation of
+:mod:`tlsjax._model._datum`), with no iteration and no rank test, so it is a smooth,
+differentiable function of the design arrays: a design that cannot determine an AP gets a huge
+(or non-finite) sigma, never a masked zero.
 
 Criteria (a priori, sigma0 = 1; ``tol_k`` the stated tolerance of AP k, in its SI unit):
 
@@ -29,10 +29,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._adjustment._implicit import frozen_problem, problem_from_inputs
-from .._adjustment._linalg import cholesky_inverse
-from .._adjustment._normal import linearise, null_space, reduce
+from .._adjustment._quality import pose_ap_cofactor
 from .._model._aps import get_ap
-from .._model._datum import inner_constraint_cofactor
 from .._units import ARCSEC
 
 CRITERIA = ("max_sigma", "trace", "max_correlation")
@@ -65,18 +63,9 @@ def predicted_cofactor(dn, design, information=None):
         )
     problem = problem_from_inputs(plan.problem, rows, plan.plane_family, inputs)
     x = dn.truth(design)
-    fp = frozen_problem(spec, problem, x)
-    blocks = linearise(spec, fp, x)
-    Hp, Hz = null_space(spec, fp.families, x)
     # rank_tolerance -1: no parameter is declared dependent (a rank test would hand the
-    # optimiser a zero sigma for an AP the design cannot determine).
-    red = reduce(spec, fp, blocks, Hz, jnp.asarray(0.0), jnp.asarray(-1.0))
-    Q = cholesky_inverse(red.L) * red.scale[:, None] * red.scale[None, :]
-    fixed = jnp.asarray(plan.problem.fixed)
-    Q = jnp.where(fixed[:, None] | fixed[None, :], 0.0, Q)
-    if spec.inner and Hz.shape[1]:
-        _, _, Q = inner_constraint_cofactor(Hp, Hz, red.Npp_inv, red.Y, Q)
-    return Q
+    # optimiser a zero sigma for an AP the design cannot determine); only the held ones are.
+    return pose_ap_cofactor(spec, frozen_problem(spec, problem, x), x, -1.0)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -42,7 +42,7 @@ from .._adjustment._families import Params
 from .._adjustment._implicit import NetworkInputs
 from .._adjustment._network import ObservationTable, make_network, make_plane_network
 from .._model._aps import ap_corrections
-from .._model._geometry import TWO_PI, rotation_matrix, spherical_from_cartesian
+from .._model._geometry import TWO_PI, rotation_matrix, second_face, spherical_from_cartesian
 from .._model._levelling import compensator_reading
 from .._model._points import distorted_observations
 from .._model._scanner import Scanner
@@ -115,7 +115,7 @@ def _observe(X, eop, aps, noise, scanner: Scanner):
     x = rotation_matrix(eop[3], eop[4], eop[5]) @ (X - eop[:3])
     face2 = None
     if scanner.architecture == "panoramic":
-        face2 = spherical_from_cartesian(jax.lax.stop_gradient(x))[1] >= np.pi
+        face2 = second_face(spherical_from_cartesian(jax.lax.stop_gradient(x))[1])
     base = spherical_from_cartesian(x, face2) + noise
     return distorted_observations(base, lambda l: ap_corrections(aps, scanner.aps, l, scanner))
 
@@ -201,7 +201,7 @@ class DesignNetwork:
             e = clouds.eops[j]
             x = (rotation_matrix(*e[3:], xp=np) @ (X - e[:3]).T).T
             sph = spherical_from_cartesian(x, xp=np)
-            for k in np.unique(ids):
+            for k in np.unique(ids[ids >= 0]):  # -1: a sphere target, not a plane
                 rows = np.sort(rng.permutation(np.flatnonzero(ids == k))[:max_points])
                 si += [j] * len(rows)
                 pi += [int(k)] * len(rows)

@@ -214,6 +214,9 @@ def optimize_design(
     ``steps`` Adam steps each, all starts in one vmapped compiled step; ``progress`` shows a bar
     with the best value so far. Returns a :class:`DesignOptimisation`; verify its design with an
     independent :func:`tlsjax.calibrate` of ``design_network.network(result.design, seed=...)``.
+
+    (Long because the compiled descent step is defined inside it, closed over the design and the
+    criterion, so that it compiles once per call.)
     """
     dn = design_network
     criterion = criterion or DesignCriterion()

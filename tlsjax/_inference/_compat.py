@@ -406,7 +406,7 @@ def compatibility_test(
     t0 = time.perf_counter()
     b = _compiled(
         names,
-        sc,
+        sc.current(),
         room,
         float(sigma_range),
         float(sigma_angle),

@@ -9,7 +9,7 @@ conditions, one condition per point:
 * the normalised residual of point i is the w-test of its condition,
   ``w_i = e_i / (s sqrt(r_i))``, with ``e_i = g_i / sqrt(m_i)`` the whitened condition,
   ``r_i = 1 - (a Q a^T)_i`` its redundancy number (the sum of its three observations' shares)
-  and ``s`` a robust scale of the w's (1.4826 times their median absolute value), so that a
+  and ``s`` a robust scale of the w's (``median |w| / 0.6745``, :func:`._statistics.robust_scale`), so that a
   priori sigmas that are too large or too small by any factor neither hide nor invent outliers;
 * the point's weight is multiplied by the IGG-III factor ``1`` for ``|w| <= k0``,
   ``(k0 / |w|) ((k1 - |w|) / (k1 - k0))^2`` for ``k0 < |w| <= k1`` and ``0`` beyond ``k1``,
@@ -34,6 +34,7 @@ from .._adjustment._config import CalibrationModel, SolverOptions
 from .._adjustment._network import Network
 from .._adjustment._result import CalibrationResult
 from .._stats import normal_critical_value
+from ._statistics import robust_scale
 
 
 @dataclasses.dataclass(frozen=True)
@@ -143,7 +144,7 @@ def screen_planes(
         e = np.asarray(q.misclosure[adj.plan.plane_family])[:, 0]
         w = _normalised(res, e / np.sqrt(np.maximum(factor, 1e-300)), factor > 0)
         good = np.isfinite(w)
-        scale = float(1.4826 * np.median(np.abs(w[good]))) if good.any() else 1.0
+        scale = robust_scale(w, good, 1) if good.any() else 1.0
         new = np.where(good, igg3(w / max(scale, 1e-300), k0, k1), factor)
         done = np.max(np.abs(new - factor)) < 1e-3
         factor = new

@@ -22,7 +22,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy import stats as _sps
 
 from .._adjustment._calibrate import calibrate
 from .._adjustment._config import CalibrationModel, SolverOptions
@@ -30,6 +29,7 @@ from .._adjustment._network import Network
 from .._adjustment._result import CalibrationResult
 from .._model._aps import resolve_aps
 from .._model._scanner import Scanner
+from .._stats import t_critical_value
 from .._units import ARCSEC
 
 
@@ -129,6 +129,99 @@ def _max_ap_corr(res: CalibrationResult) -> float:
     return float(m.max()) if m.size else 0.0
 
 
+class _Fits:
+    """The fits of stepwise selection. Every candidate set is the same parameter vector (the
+    union of all terms) with the terms outside the set held at zero, so one compiled adjustment
+    serves every fit; each set is fitted once."""
+
+    def __init__(self, network, model, universe, solver):
+        self.network, self.universe, self.solver = network, universe, solver
+        self.wide = dataclasses.replace(
+            model, scanner=dataclasses.replace(model.scanner, aps=universe)
+        )
+        self.cache: dict = {}
+
+    def __call__(self, aps) -> CalibrationResult:
+        key = tuple(aps)
+        if key not in self.cache:
+            fixed = tuple(a for a in self.universe if a not in key)
+            res = calibrate(
+                self.network, dataclasses.replace(self.wide, fixed_aps=fixed), self.solver
+            )
+            self.cache[key] = _restrict(res, key)
+        return self.cache[key]
+
+
+def _record(action, term, aps, res, reason) -> SelectionStep:
+    if term and term in res.ap_names:
+        i = res.ap_names.index(term)
+        t, c, w = float(res.ap_t[i]), float(res.ap_max_abs_corr[i]), res.ap_max_corr_with[i]
+    else:
+        t, c, w = np.nan, np.nan, ""
+    return SelectionStep(
+        action, term, tuple(aps), float(res.sigma0), _rms(res), t, c, w, _max_ap_corr(res), reason
+    )
+
+
+def _backward(fit, current, res, removed, alpha, steps):
+    """Backward elimination: drop a non-estimable term, else the least significant one
+    (``|t|`` below Student's critical value), refit, and repeat; returns the last fit."""
+    while current:
+        k = t_critical_value(alpha, res.dof)
+        t = np.abs(res.ap_t)
+        bad = [i for i in range(len(current)) if not np.isfinite(t[i])]
+        if bad:
+            i = bad[0]
+            why = "not estimable: " + next(
+                (r for n, _, r in res.not_estimable if n == current[i]), "no finite sigma"
+            )
+        elif t.size and t.min() < k:
+            i = int(np.argmin(t))
+            why = f"|t| = {t[i]:.2f} < {k:.2f}: not significant"
+        else:
+            break
+        term = current.pop(i)
+        removed.add(term)
+        res = fit(current)
+        steps.append(_record("remove", term, current, res, why))
+    return res
+
+
+def _admissible(r, c, options: SelectionOptions):
+    """Whether candidate ``c`` in the trial fit ``r`` may be added: estimable, significant and
+    not too correlated; (ok, |t|, reason)."""
+    i = r.ap_names.index(c)
+    t, corr = abs(float(r.ap_t[i])), float(r.ap_max_abs_corr[i])
+    k = t_critical_value(options.alpha, r.dof)
+    if not np.isfinite(t):
+        return False, t, "not estimable"
+    if t <= k:
+        return False, t, f"|t| = {t:.2f} <= {k:.2f}"
+    if corr > options.max_correlation:
+        return (
+            False,
+            t,
+            f"|corr| = {corr:.2f} with {r.ap_max_corr_with[i]} > {options.max_correlation}",
+        )
+    return True, t, f"|t| = {t:.2f}, max |corr| = {corr:.2f} with {r.ap_max_corr_with[i]}"
+
+
+def _forward(fit, current, removed, candidates, options, steps):
+    """Every remaining candidate tried on top of the current set; the admissible one with the
+    largest ``|t|`` as (term, |t|, fit, reason), or None."""
+    best = None
+    for c in candidates:
+        if c in current or c in removed:
+            continue
+        trial = current + [c]
+        r = fit(trial)
+        ok, t, why = _admissible(r, c, options)
+        steps.append(_record("try", c, trial, r, why + ("" if ok else ": not admissible")))
+        if ok and (best is None or t > best[1]):
+            best = (c, t, r, why)
+    return best
+
+
 def select_aps(
     network: Network,
     model: CalibrationModel | None = None,
@@ -153,118 +246,26 @@ def select_aps(
         )
     start = resolve_aps(start)
     candidates = resolve_aps(candidates)
-    n_fits = 0
-    cache: dict = {}
-
-    # Every candidate set is the same parameter vector (the union of all terms) with the
-    # terms outside the set held at zero: one compiled adjustment serves every fit.
-    universe = tuple(dict.fromkeys(start + candidates))
-    wide = dataclasses.replace(model, scanner=dataclasses.replace(model.scanner, aps=universe))
-
-    def fit(aps):
-        nonlocal n_fits
-        key = tuple(aps)
-        if key not in cache:
-            res = calibrate(
-                network,
-                dataclasses.replace(wide, fixed_aps=tuple(a for a in universe if a not in key)),
-                solver,
-            )
-            cache[key] = _restrict(res, key)
-            n_fits += 1
-        return cache[key]
-
-    def crit(res):
-        return float(_sps.t.ppf(1.0 - options.alpha / 2.0, max(res.dof, 1.0)))
-
-    def step_record(action, term, aps, res, reason):
-        if term and term in res.ap_names:
-            i = res.ap_names.index(term)
-            t, c, w = float(res.ap_t[i]), float(res.ap_max_abs_corr[i]), res.ap_max_corr_with[i]
-        else:
-            t, c, w = np.nan, np.nan, ""
-        return SelectionStep(
-            action,
-            term,
-            tuple(aps),
-            float(res.sigma0),
-            _rms(res),
-            t,
-            c,
-            w,
-            _max_ap_corr(res),
-            reason,
-        )
-
-    steps = []
+    fit = _Fits(network, model, tuple(dict.fromkeys(start + candidates)), solver)
     current = list(start)
     res = fit(current)
-    steps.append(step_record("start", "", current, res, "initial set"))
+    steps = [_record("start", "", current, res, "initial set")]
     removed: set = set()
     for _ in range(options.max_steps):
-        # Backward: drop non-estimable, then the least significant term.
-        changed = True
-        while changed and current:
-            changed = False
-            k = crit(res)
-            t = np.abs(res.ap_t)
-            bad = [i for i in range(len(current)) if not np.isfinite(t[i])]
-            if bad:
-                i = bad[0]
-                why = "not estimable: " + next(
-                    (r for n, _, r in res.not_estimable if n == current[i]), "no finite sigma"
-                )
-            elif t.size and t.min() < k:
-                i = int(np.argmin(t))
-                why = f"|t| = {t[i]:.2f} < {k:.2f}: not significant"
-            else:
-                break
-            term = current.pop(i)
-            removed.add(term)
-            res = fit(current)
-            steps.append(step_record("remove", term, current, res, why))
-            changed = True
-        # Forward: best admissible candidate.
-        best = None
-        for c in candidates:
-            if c in current or c in removed:
-                continue
-            trial = current + [c]
-            r = fit(trial)
-            i = r.ap_names.index(c)
-            t, corr = abs(float(r.ap_t[i])), float(r.ap_max_abs_corr[i])
-            k = crit(r)
-            if not np.isfinite(t):
-                why, ok = "not estimable", False
-            elif t <= k:
-                why, ok = f"|t| = {t:.2f} <= {k:.2f}", False
-            elif corr > options.max_correlation:
-                why, ok = (
-                    f"|corr| = {corr:.2f} with {r.ap_max_corr_with[i]} > {options.max_correlation}",
-                    False,
-                )
-            else:
-                why, ok = (
-                    f"|t| = {t:.2f}, max |corr| = {corr:.2f} with {r.ap_max_corr_with[i]}",
-                    True,
-                )
-            steps.append(step_record("try", c, trial, r, why + ("" if ok else ": not admissible")))
-            if ok and (best is None or t > best[1]):
-                best = (c, t, r, why)
+        res = _backward(fit, current, res, removed, options.alpha, steps)
+        best = _forward(fit, current, removed, candidates, options, steps)
         if best is None:
             break
         current.append(best[0])
         res = best[2]
-        steps.append(
-            step_record(
-                "add", best[0], current, res, "most significant admissible candidate: " + best[3]
-            )
-        )
-    steps.append(step_record("final", "", current, res, "no admissible candidate left"))
+        why = "most significant admissible candidate: " + best[3]
+        steps.append(_record("add", best[0], current, res, why))
+    steps.append(_record("final", "", current, res, "no admissible candidate left"))
     # The chosen set once more as a model of its own, so the result carries only its terms.
     final = calibrate(
         network,
         dataclasses.replace(model, scanner=dataclasses.replace(model.scanner, aps=tuple(current))),
         solver,
     )
-    return SelectionResult(tuple(current), final, tuple(steps), n_fits, crit(res))
+    crit = t_critical_value(options.alpha, res.dof)
+    return SelectionResult(tuple(current), final, tuple(steps), len(fit.cache), crit)

@@ -1,10 +1,21 @@
-"""Tests and reliability of an adjustment (SPEC section 7), host side on its results.
+"""Tests, reliability and variance components of an adjustment (SPEC sections 5 and 7): pure
+functions, host side, on the arrays of its results. The pipeline of :func:`tlsjax.calibrate_and_test`
+(:mod:`._steps`) decides when to call them; nothing here holds state.
 
 * Global test: ``T = v^T P v = s0^2 r ~ chi^2(r)`` when the a priori stochastic model is right
-  (Koch 1999, sec. 4.2.2).
-* Baarda (1968) w-test ``w_i = v_i / (sigma_i sqrt(r_i))`` and the internal reliability
-  ``MDB_i = delta0 sigma_i / sqrt(r_i)``, ``delta0 = N^-1(1 - alpha0/2) + N^-1(power)``.
+  (Koch 1999, sec. 4.2.2); the same test per observation group, ``Omega_g = v_g^T P_g v_g ~
+  chi^2(r_g)`` (the group variance-factor test JAG3D reports).
+* Baarda (1968) w-test ``w_i = v_i / (sigma_i sqrt(r_i))`` and its critical value; the robust
+  scale of a group's w's, ``median |w| / 0.6745`` (Koch 1999, sec. 3.8), for screening.
+* Reliability (Baarda 1968; Förstner 1987): the internal one, ``MDB_i = delta0 sigma_i /
+  sqrt(r_i)`` (:func:`tlsjax._adjustment._quality.minimal_detectable_bias`), and the external
+  one, the change of each AP caused by an MDB-sized error, ``delta0 / sqrt(r_i)`` times the AP
+  influence of :mod:`tlsjax._adjustment._quality`, in AP sigmas.
+* Variance components (Förstner 1979; Koch 1999, sec. 3.6): ``s_g^2 = v_g^T P_g v_g / r_g``,
+  ``r_g`` the sum of the group's redundancy numbers, and the bounded step in log space that VCE
+  takes towards it.
 * t-tests of the APs: ``t = x_a / s_a`` against Student's t with the adjustment's dof.
+* Implausible variance factors named with the unit mix-up they suggest.
 """
 
 from __future__ import annotations
@@ -13,12 +24,24 @@ import dataclasses
 
 import numpy as np
 
-from .._stats import chi2_cdf, chi2_quantile, normal_critical_value, t_critical_value
+from .._adjustment._quality import MIN_TESTABLE_REDUNDANCY
+from .._stats import MAD_TO_SIGMA, chi2_cdf, chi2_quantile, normal_critical_value, t_critical_value
 
 
 def critical_value(alpha: float) -> float:
     """Two-sided standard-normal critical value ``N^-1(1 - alpha/2)`` (3.29 for alpha = 0.001)."""
     return normal_critical_value(alpha)
+
+
+def snooping_critical_value(
+    alpha: float, n_tested: int, *, bonferroni: bool = False, given: float | None = None
+) -> float:
+    """Critical value of data snooping: ``given`` if set, else ``N^-1(1 - alpha'/2)`` with
+    ``alpha' = alpha / n_tested`` (Bonferroni: the family-wise level over the tested
+    observations) or ``alpha`` per test."""
+    if given is not None:
+        return float(given)
+    return critical_value(alpha / max(n_tested, 1) if bonferroni else alpha)
 
 
 def global_test(sigma0: float, dof: float, alpha: float = 0.05) -> dict:
@@ -67,26 +90,16 @@ def w_tests(
     sigmas: np.ndarray,
     redundancy: np.ndarray,
     *,
-    min_redundancy: float = 1e-6,
+    min_redundancy: float = MIN_TESTABLE_REDUNDANCY,
 ) -> np.ndarray:
-    """Baarda's ``w_i = v_i / (sigma_i sqrt(r_i))`` (Baarda 1968); NaN where ``r_i`` is below
-    ``min_redundancy`` (an observation with no redundancy cannot be tested)."""
+    """Baarda's ``w_i = v_i / (sigma_i sqrt(r_i))`` (Baarda 1968); NaN where ``r_i`` is at most
+    ``min_redundancy`` (an observation with no redundancy cannot be tested; the minimal
+    detectable bias is infinite there, :func:`tlsjax._adjustment._quality.minimal_detectable_bias`)."""
     r = np.asarray(redundancy, dtype=float)
     ok = r > min_redundancy
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(
             ok, np.asarray(residuals) / (np.asarray(sigmas) * np.sqrt(np.where(ok, r, 1.0))), np.nan
-        )
-
-
-def minimal_detectable_bias(
-    sigmas: np.ndarray, redundancy: np.ndarray, delta0: float = 4.13
-) -> np.ndarray:
-    """Internal reliability ``MDB_i = delta0 sigma_i / sqrt(r_i)`` [units of sigma]; inf where r_i = 0."""
-    r = np.asarray(redundancy, dtype=float)
-    with np.errstate(divide="ignore"):
-        return np.where(
-            r > 0, delta0 * np.asarray(sigmas) / np.sqrt(np.where(r > 0, r, 1.0)), np.inf
         )
 
 
@@ -171,3 +184,51 @@ def implausible_factor(group: str, factor: float) -> str | None:
     if units:
         text += f"; a factor of {max(ratio, 1 / ratio):.4g} in sigma suggests a unit mix-up ({' or '.join(units)})"
     return text
+
+
+# --- Variance components and robust scales -------------------------------------------------
+
+
+def variance_factor(whitened_sq: np.ndarray, redundancy: np.ndarray) -> tuple[float, float]:
+    """One group's variance factor ``s_g^2 = sum e_i^2 / r_g`` (Förstner 1979) from the squared
+    whitened residuals ``e_i^2 = (v_i / sigma_i)^2`` and redundancy numbers of its used
+    observations (zeros elsewhere), with ``r_g = sum r_i``; ``s_g^2 = 1`` when ``r_g = 0``
+    (nothing to estimate). Returns ``(s_g^2, r_g)``."""
+    r_g = float(np.sum(redundancy))
+    return (float(np.sum(whitened_sq)) / r_g if r_g > 0 else 1.0), r_g
+
+
+def bounded_log_step(value: np.ndarray, ok: np.ndarray, max_step: float, power: float = 1.0):
+    """``clip(power log(value), -max_step, max_step)`` where ``ok``, 0 elsewhere: the step of a
+    variance factor in log space towards ``value**power`` (VCE and the robust balancing of the
+    groups), bounded so that one far-off group cannot move its factor by more than
+    ``exp(max_step)`` at once."""
+    return np.where(ok, np.clip(power * np.log(np.where(ok, value, 1.0)), -max_step, max_step), 0.0)
+
+
+def robust_scale(u: np.ndarray, keep: np.ndarray, min_count: int) -> float:
+    """Robust scale of standardised residuals: ``median |u| / 0.6745`` over ``keep``
+    (:data:`tlsjax._stats.MAD_TO_SIGMA`; a few blunders do not move a median), NaN with fewer
+    than ``min_count`` of them."""
+    if keep.sum() < min_count:
+        return float("nan")
+    return MAD_TO_SIGMA * float(np.median(np.abs(u[keep])))
+
+
+def external_reliability(influence, redundancy, mask, delta0: float, ap_names):
+    """Baarda's external reliability of every observation: the largest change of an AP caused
+    by an undetected MDB-sized error, ``delta0 / sqrt(r_i)`` times the AP influence of a
+    one-sigma error (:mod:`tlsjax._adjustment._quality`), in a priori AP sigmas, and the name of
+    that AP. ``influence`` (n, 3, a), ``redundancy`` and ``mask`` (n, 3). Inf where an observation
+    has no redundancy (no error of any size is detected), NaN where it is not used."""
+    n = mask.shape[0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = np.where(
+            redundancy > 0, delta0 / np.sqrt(np.where(redundancy > 0, redundancy, 1.0)), np.inf
+        )
+    if not influence.shape[-1]:
+        return np.zeros((n, 3)), np.full((n, 3), "", dtype=object)
+    ext_all = np.abs(influence) * np.where(np.isfinite(scale), scale, 0.0)[..., None]
+    ext = np.where(mask & np.isfinite(scale), ext_all.max(axis=-1), np.where(mask, np.inf, np.nan))
+    ext_ap = np.array(ap_names, dtype=object)[ext_all.argmax(axis=-1)]
+    return ext, ext_ap

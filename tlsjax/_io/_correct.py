@@ -33,7 +33,11 @@ import numpy as np
 
 from .._jit import jit
 from .._model._aps import ap_corrections, get_ap
-from .._model._geometry import TWO_PI, cartesian_from_spherical, rotation_matrix
+from .._model._geometry import (
+    cartesian_from_spherical,
+    rotation_matrix,
+    scanner_observations,
+)
 from .._model._scanner import ARCHITECTURES, Scanner
 from ._json import read_result_json
 from ._point_clouds import MAP_SCALE_RANGE
@@ -86,9 +90,14 @@ class Calibration:
         return _calibration_from_json(os.fspath(path), architecture, instrument)
 
 
-def _scanner_from_doc(doc, source, architecture, names):
+def _scanner_from_doc(doc, source, architecture, names, instrument=None):
+    """The Scanner of a result JSON: its ``scanner`` section (per instrument when it has
+    ``instruments``), else the top-level ``architecture`` of a simulation's truth JSON."""
     settings = doc.get("scanner") if isinstance(doc.get("scanner"), dict) else {}
-    arch = architecture or settings.get("architecture")
+    per = settings.get("instruments")
+    if instrument is not None and isinstance(per, dict) and isinstance(per.get(instrument), dict):
+        settings = per[instrument]
+    arch = architecture or settings.get("architecture") or doc.get("architecture")
     notes = []
     if arch is None:
         arch = "hybrid"
@@ -122,10 +131,12 @@ def _calibration_from_json(source, architecture, instrument) -> Calibration:
             get_ap(n)
         except ValueError as err:
             raise ValueError(f"{source}: {err}") from None
-    scanner, notes = _scanner_from_doc(doc, source, architecture, names)
+    scanner, notes = _scanner_from_doc(doc, source, architecture, names, instrument)
     values = []
     for k in keys:
-        entry = aps[k] if isinstance(aps[k], dict) else {}
+        # A result JSON has {"value": ..., "sigma": ...} per AP; a simulation's truth JSON the
+        # plain true value.
+        entry = aps[k] if isinstance(aps[k], dict) else {"value": aps[k]}
         v = entry.get("value")
         if v is None:
             notes.append(f"{source}: AP {k} is not estimable (no value): applied as zero")
@@ -142,7 +153,9 @@ def _covariance(doc, keys, source):
     names = doc.get("ap_covariance_names")
     rows = doc.get("ap_covariance")
     if not names or rows is None:
-        sig = [(doc["aps"][k] or {}).get("sigma") for k in keys]
+        sig = [
+            (doc["aps"][k] if isinstance(doc["aps"][k], dict) else {}).get("sigma") for k in keys
+        ]
         if any(s is None for s in sig):
             return None
         return np.diag(np.square(np.asarray(sig, dtype=np.float64)))
@@ -155,25 +168,12 @@ def _covariance(doc, keys, source):
     return np.nan_to_num(C, nan=0.0)  # a non-estimable AP: applied as zero, no variance
 
 
-def _observations(x, architecture):
-    """(rho, theta, alpha) of scanner-space points in jax, as the readers compute them."""
-    rho = jnp.sqrt(jnp.sum(x * x, axis=-1))
-    theta = jnp.mod(jnp.arctan2(x[..., 1], x[..., 0]), TWO_PI)
-    theta = jnp.where(theta >= TWO_PI, 0.0, theta)
-    alpha = jnp.arctan2(x[..., 2], jnp.hypot(x[..., 0], x[..., 1]))
-    if architecture == "panoramic":
-        face2 = theta >= np.pi
-        theta = jnp.where(face2, theta - np.pi, theta)
-        alpha = jnp.where(face2, np.pi - alpha, alpha)
-    return jnp.stack([rho, theta, alpha], axis=-1)
-
-
 @functools.partial(jit, static_argnames=("scanner", "with_sigma"))
 def _correct_chunk(x, coeffs, cov, scanner: Scanner, with_sigma: bool):
     """Corrected scanner-space points of one chunk and, if asked, their sigma [m]."""
 
     def corrected(c, xi):
-        l = _observations(xi, scanner.architecture)
+        l = scanner_observations(xi, scanner.architecture)
         return cartesian_from_spherical(l - ap_corrections(c, scanner.aps, l, scanner))
 
     out = jax.vmap(corrected, in_axes=(None, 0))(coeffs, x)
@@ -221,7 +221,9 @@ def correct_points(
         part = x[i : i + size]
         pad = size - len(part)
         block = np.concatenate([part, np.repeat(part[:1], pad, axis=0)]) if pad else part
-        c, s = _correct_chunk(jnp.asarray(block), coeffs, cov, calibration.scanner, precision)
+        c, s = _correct_chunk(
+            jnp.asarray(block), coeffs, cov, calibration.scanner.current(), precision
+        )
         out_x[i : i + len(part)] = np.asarray(c)[: len(part)]
         sig[i : i + len(part)] = np.asarray(s)[: len(part)]
         if on_chunk is not None:

@@ -17,8 +17,8 @@ import os
 
 import numpy as np
 
-from ._optional import require
-from ._point_clouds import RawScan, _pose_from_transform
+from .._optional import require
+from ._raw_scan import RawScan, pose_from_transform
 
 #: Points read per call into libE57 (the reader's memory is a few arrays of this length).
 E57_CHUNK = 1 << 20
@@ -64,7 +64,7 @@ def open_e57(source: str, mode: str = "r"):
 def _scan_pose(header):
     if not header.has_pose():
         return None
-    return _pose_from_transform(header.rotation_matrix, header.translation)
+    return pose_from_transform(header.rotation_matrix, header.translation)
 
 
 def iter_e57_chunks(e57, source: str, k: int, fields, chunk: int = E57_CHUNK):

@@ -20,8 +20,8 @@ import struct
 
 import numpy as np
 
-from ._optional import require
-from ._point_clouds import RawScan
+from .._optional import require
+from ._raw_scan import RawScan
 
 #: Points per chunk when reading or correcting a LAS/LAZ file.
 LAS_CHUNK = 1 << 20

@@ -12,8 +12,8 @@ import io
 
 import numpy as np
 
-from ._optional import require
-from ._point_clouds import RawScan
+from .._optional import require
+from ._raw_scan import RawScan
 
 _KEYS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS")
 _TYPES = {("F", 4): "f4", ("F", 8): "f8", ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4",

@@ -6,9 +6,9 @@ import os
 
 import numpy as np
 
-from .._clouds._extract import ExtractedPlanes
 from .._units import UNITS
-from ._tables import _Located, _number, _read_rows, parse_unit_column
+from ._csv import Located, number, parse_unit_column, read_rows
+from ._extracted import ExtractedPlanes
 
 _NPZ_ARRAYS = (
     "patch_scan",
@@ -69,8 +69,8 @@ def read_poses(path) -> dict[str, np.ndarray]:
     kappa_<ang>`` (units as in SPEC section 11, e.g. ``x_m``, ``omega_deg``), meaning
     ``x = R3(kappa) R2(phi) R1(omega) (X - S)``. Returns scan -> (Xs, Ys, Zs, omega, phi, kappa)."""
     source = os.fspath(path)
-    loc = _Located(source)
-    header_line, names, data = _read_rows(path, loc)
+    loc = Located(source)
+    header_line, names, data = read_rows(path, loc)
     columns = {}
     for i, name in enumerate(names):
         if name.lower() == "scan":
@@ -114,7 +114,7 @@ def read_poses(path) -> dict[str, np.ndarray]:
             raise loc.error(f"duplicate scan '{scan}'", line, name)
         poses[scan] = np.array(
             [
-                _number(fields[columns[q][0]], line, columns[q][1], loc, True) * columns[q][2]
+                number(fields[columns[q][0]], line, columns[q][1], loc, True) * columns[q][2]
                 for q in _POSE_NUMERIC
             ]
         )

@@ -8,8 +8,8 @@ import io
 
 import numpy as np
 
-from ._optional import require
-from ._point_clouds import RawScan
+from .._optional import require
+from ._raw_scan import RawScan
 
 _XYZ = ("x", "y", "z")
 

@@ -43,8 +43,9 @@ import warnings
 
 import numpy as np
 
-from .._model._geometry import TWO_PI, angles_from_matrix, rotation_matrix, spherical_from_cartesian
+from .._model._geometry import rotation_matrix, scanner_observations
 from .._model._scanner import ARCHITECTURES
+from ._raw_scan import RawScan, pose_from_transform
 
 #: A median range beyond this [m] is not a terrestrial laser scan in its own frame: the
 #: coordinates are in a map or project frame and the scan's pose is missing or wrong.
@@ -79,44 +80,11 @@ class PointCloudScan:
     frame: str = "scanner"
 
 
-@dataclasses.dataclass
-class RawScan:
-    """What a format reader hands on: coordinates in the file's frame, as stored (n, 3), the
-    pose stored in the file (or None), whether the coordinates are object space, and notes."""
-
-    name: str
-    points: np.ndarray
-    pose: np.ndarray | None = None
-    object_frame: bool = False
-    notes: list = dataclasses.field(default_factory=list)
-    index: np.ndarray | None = None  # row of each point in the file's scan (None: 0..n-1)
-    n_stored: int | None = None
-
-
 def observations_from_points(points, architecture: str = "hybrid") -> np.ndarray:
     """(rho, theta, alpha) of scanner-space points (n, 3) in the convention of ``architecture``."""
     if architecture not in ARCHITECTURES:
         raise ValueError(f"scanner architecture {architecture!r} is not one of {ARCHITECTURES}")
-    x = np.asarray(points, dtype=np.float64)
-    hyb = spherical_from_cartesian(x, xp=np)
-    hyb[:, 1] = np.where(hyb[:, 1] >= TWO_PI, 0.0, hyb[:, 1])
-    if architecture == "hybrid":
-        return hyb
-    face2 = hyb[:, 1] >= np.pi
-    out = hyb.copy()
-    out[:, 1] = np.where(face2, hyb[:, 1] - np.pi, hyb[:, 1])
-    out[:, 2] = np.where(face2, np.pi - hyb[:, 2], hyb[:, 2])
-    return out
-
-
-def _pose_from_transform(R_obj_from_scanner, translation) -> np.ndarray:
-    """EOP (S, omega, phi, kappa) of ``X = A x + t``: ``R = A^T``, ``S = t``."""
-    return np.concatenate(
-        [
-            np.asarray(translation, dtype=np.float64),
-            angles_from_matrix(np.asarray(R_obj_from_scanner).T),
-        ]
-    )
+    return scanner_observations(np.asarray(points, dtype=np.float64), architecture, xp=np)
 
 
 def to_scanner(X, pose) -> np.ndarray:
@@ -246,6 +214,8 @@ def _read_xyz(path, source, stem):
 
 
 def _read_ptx(path, source, stem):
+    """Scans of a PTX file (several may follow one another), each after its 10-line header. A
+    little over 60 lines: the header's fields are checked one by one, each with its own message."""
     lines = _read_text(path, source)
     scans = []
     i = 0
@@ -298,7 +268,7 @@ def _read_ptx(path, source, stem):
                 f"({cols} x {rows}), the file has {len(lines) - first}"
             )
         pts = _numeric_block(lines[first : first + n], first + 1, source)
-        scans.append((pts, _pose_from_transform(A, M[3, :3])))
+        scans.append((pts, pose_from_transform(A, M[3, :3])))
         i = first + n
     if not scans:
         raise ValueError(f"{source}: no PTX scan in the file")
@@ -354,6 +324,20 @@ def _raw_scans(path, source, kind, stem):
     return read_ply(source, stem)
 
 
+def checked_source(path) -> tuple[str, str, str]:
+    """(path as text, format, stem) of a point-cloud file that exists and is not empty; a
+    folder, an empty file or an unknown extension is a one-line ValueError."""
+    source = os.fspath(path)
+    kind = point_cloud_format(source)
+    if os.path.isdir(source):
+        raise ValueError(f"{source}: is a folder, not a point-cloud file")
+    if not os.path.isfile(source):
+        raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), source)
+    if os.path.getsize(source) == 0:
+        raise ValueError(f"{source}: the file is empty")
+    return source, kind, os.path.splitext(os.path.basename(source))[0]
+
+
 def read_point_clouds(
     path, *, architecture: str = "hybrid", poses=None
 ) -> tuple[PointCloudScan, ...]:
@@ -369,15 +353,7 @@ def read_point_clouds(
     """
     if architecture not in ARCHITECTURES:
         raise ValueError(f"scanner architecture {architecture!r} is not one of {ARCHITECTURES}")
-    source = os.fspath(path)
-    kind = point_cloud_format(source)
-    if os.path.isdir(source):
-        raise ValueError(f"{source}: is a folder, not a point-cloud file")
-    if not os.path.isfile(source):
-        raise FileNotFoundError(errno.ENOENT, os.strerror(errno.ENOENT), source)
-    if os.path.getsize(source) == 0:
-        raise ValueError(f"{source}: the file is empty")
-    stem = os.path.splitext(os.path.basename(source))[0]
+    source, kind, stem = checked_source(path)
     poses = poses or {}
     try:
         raws = _raw_scans(path, source, kind, stem)

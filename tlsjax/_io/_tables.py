@@ -12,190 +12,29 @@ import csv
 import dataclasses
 import math
 import os
+import re
 
 import numpy as np
 
 from .._adjustment._network import ObservationTable
+from .._model._scanner import ARCHITECTURES
 from .._units import UNITS
-
-#: Numeric quantity -> dimension, for both file kinds.
-QUANTITIES: dict[str, str] = {
-    "range": "length",
-    "hz": "angle",
-    "el": "angle",
-    "sigma_range": "length",
-    "sigma_hz": "angle",
-    "sigma_el": "angle",
-    "incidence": "angle",
-    "omega": "angle",
-    "phi": "angle",
-    "sigma_omega": "angle",
-    "sigma_phi": "angle",
-}
+from ._csv import (
+    COMMENT,
+    Located,
+    accepted_units,
+    number,
+    open_text,
+    parse_header,
+    read_rows,
+    row_cells,
+)
 
 _OBS_NUMERIC = ("range", "hz", "el", "sigma_range", "sigma_hz", "sigma_el", "incidence")
 _OBS_TEXT = ("scan", "target", "plane", "instrument")
 _SCAN_NUMERIC = ("omega", "phi", "sigma_omega", "sigma_phi")
 _SCAN_TEXT = ("scan",)
 _TWO_PI = 2.0 * math.pi
-
-
-def _accepted(dimension: str | None = None) -> str:
-    return ", ".join("_" + u for u, (d, _) in UNITS.items() if dimension in (None, d))
-
-
-def _split_unit(header: str) -> tuple[str, str, float]:
-    """Split ``header`` into (quantity, unit, factor); raise ValueError without location."""
-    # Longest known quantity first, so that "sigma_range_mm" is not read as "sigma" + "range_mm".
-    for q in sorted(QUANTITIES, key=len, reverse=True):
-        if header == q:
-            dim = QUANTITIES[q]
-            raise ValueError(f"missing unit suffix; accepted for {dim}s: {_accepted(dim)}")
-        if header.startswith(q + "_"):
-            unit, dim = header[len(q) + 1 :], QUANTITIES[q]
-            if unit not in UNITS:
-                raise ValueError(
-                    f"unknown unit suffix '_{unit}'; accepted for {dim}s: {_accepted(dim)}"
-                )
-            if UNITS[unit][0] != dim:
-                raise ValueError(
-                    f"'{q}' is a{'n' if dim == 'angle' else ''} {dim} but '_{unit}' is a unit of "
-                    f"{UNITS[unit][0]}; accepted for {dim}s: {_accepted(dim)}"
-                )
-            return q, unit, UNITS[unit][1]
-    # Not a tlsjax quantity: still usable for any "<name>_<unit>" header.
-    name, sep, unit = header.rpartition("_")
-    if not sep or not name:
-        raise ValueError(f"missing unit suffix; accepted: {_accepted()}")
-    if unit not in UNITS:
-        raise ValueError(f"unknown unit suffix '_{unit}'; accepted: {_accepted()}")
-    return name, unit, UNITS[unit][1]
-
-
-def parse_unit_column(header: str) -> tuple[str, str, float]:
-    """``"hz_deg"`` -> ``("hz", "deg", pi/180)``: quantity, unit and the factor to SI units.
-
-    Raises ValueError for a missing or unknown suffix, or a unit of the wrong dimension
-    (``range_deg``).
-    """
-    try:
-        return _split_unit(header.strip())
-    except ValueError as err:
-        raise ValueError(f"column {header}: {err}") from None
-
-
-class _Located:
-    """Formats error messages as ``file, line L, column C: message``."""
-
-    def __init__(self, source: str):
-        self.source = source
-
-    def error(self, message: str, line: int | None = None, column: str | None = None) -> ValueError:
-        where = [self.source]
-        if line is not None:
-            where.append(f"line {line}")
-        if column is not None:
-            where.append(f"column {column}")
-        return ValueError(", ".join(where) + ": " + message)
-
-
-def open_text(path, what: str = "CSV file"):
-    """``open(path)`` for reading text; a directory, a missing or unreadable file is one
-    ``ValueError`` naming the path (FileNotFoundError stays one: it is the usual mistake)."""
-    source = os.fspath(path)
-    if os.path.isdir(source):
-        raise ValueError(f"{source}: is a directory, not a {what}")
-    try:
-        # utf-8-sig: spreadsheet programs often write a byte-order mark before the header.
-        return open(source, newline="", encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise
-    except OSError as err:
-        raise ValueError(f"{source}: cannot be read ({err.strerror or err})") from None
-
-
-def _read_rows(path, loc: _Located):
-    """Header (list of (line, names)) and data rows as (line, fields), blank lines skipped."""
-    with open_text(path) as fh:
-        reader = csv.reader(fh, delimiter=",", strict=True)
-        records = []
-        last = 0
-        try:
-            for fields in reader:
-                start, last = last + 1, reader.line_num
-                if not fields or all(not f.strip() for f in fields):
-                    continue
-                records.append((start, fields))
-        except csv.Error as err:
-            raise loc.error(f"malformed CSV: {err}", last + 1) from None
-        except UnicodeDecodeError:
-            raise loc.error("not a text CSV file (it is not UTF-8 text)", last + 1) from None
-    if not records:
-        raise loc.error("empty file: no header", 1)
-    (header_line, header), data = records[0], records[1:]
-    names = [h.strip() for h in header]
-    if len(names) == 1 and any(c in names[0] for c in ";\t"):
-        raise loc.error("only one column in the header: the delimiter must be ','", header_line)
-    for i, name in enumerate(names):
-        if not name:
-            raise loc.error(f"header field {i + 1} is empty", header_line)
-    return header_line, names, data
-
-
-def _parse_header(names, header_line, loc, text_cols, numeric_cols):
-    """Map each column to (name, quantity, factor); quantity == name for text columns."""
-    columns = []
-    seen: dict[str, str] = {}
-    unknown = []
-    for name in names:
-        key = name.lower()
-        if key in text_cols:
-            q, factor = key, None
-        elif any(key == q or key.startswith(q + "_") for q in numeric_cols):
-            try:
-                q, _, factor = _split_unit(key)
-            except ValueError as err:
-                raise loc.error(str(err), header_line, name) from None
-            if q not in numeric_cols:
-                unknown.append(name)
-                continue
-        else:
-            unknown.append(name)
-            continue
-        if q in seen:
-            raise loc.error(
-                f"'{q}' given twice, as columns '{seen[q]}' and '{name}'", header_line, name
-            )
-        seen[q] = name
-        columns.append((name, q, factor))
-    if unknown:
-        accepted = ", ".join(list(text_cols) + [q + "_<unit>" for q in numeric_cols])
-        listed = ", ".join(f"'{u}'" for u in unknown)
-        raise loc.error(f"unknown column(s) {listed}; accepted columns: {accepted}", header_line)
-    return columns, seen
-
-
-def _number(text, line, column, loc, required):
-    text = text.strip()
-    if not text:
-        if required:
-            raise loc.error("empty value", line, column)
-        return math.nan
-    try:
-        value = float(text)
-    except ValueError:
-        raise loc.error(f"{text!r} is not a number", line, column) from None
-    if not math.isfinite(value):
-        raise loc.error(f"{text!r} is not a finite number", line, column)
-    return value
-
-
-def _cells(data, columns, loc):
-    """Yield (line, {quantity: stripped text}) for each data row, checking the field count."""
-    for line, fields in data:
-        if len(fields) != len(columns):
-            raise loc.error(f"expected {len(columns)} fields, found {len(fields)}", line)
-        yield line, {q: (f.strip(), name, factor) for (name, q, factor), f in zip(columns, fields)}
 
 
 def _check_directions(row, cells, line, loc) -> None:
@@ -219,18 +58,42 @@ def _check_directions(row, cells, line, loc) -> None:
             )
 
 
-def read_observations(path) -> ObservationTable:
-    """Read a target or plane observation CSV (SPEC section 11) into SI units.
+_ARCH_KEY = re.compile(r"architecture\s*[=:]\s*([A-Za-z]+)")
 
-    The kind comes from the presence of a ``target`` or a ``plane`` column; hz is wrapped into
-    [0, 2pi), el is left as given (panoramic elevations reach past pi/2).
-    """
-    _check_path(path, "path")
+
+def recorded_architecture(path) -> str | None:
+    """The scanner architecture recorded in the comment lines before the header of an
+    observation CSV (``# tlsjax ...: architecture=panoramic``), or None."""
     source = os.fspath(path)
-    loc = _Located(source)
-    header_line, names, data = _read_rows(path, loc)
-    columns, seen = _parse_header(names, header_line, loc, _OBS_TEXT, _OBS_NUMERIC)
+    found = None
+    with open_text(source) as fh:
+        try:
+            for line in fh:
+                text = line.strip()
+                if not text:
+                    continue
+                if not text.startswith(COMMENT):
+                    break
+                m = _ARCH_KEY.search(text)
+                if m:
+                    found = m.group(1).lower()
+        except UnicodeDecodeError:
+            return None  # not text: the reader says so, with the line
+    if found is not None and found not in ARCHITECTURES:
+        raise ValueError(
+            f"{source}: the recorded scanner architecture {found!r} is not one of {ARCHITECTURES}"
+        )
+    return found
 
+
+def architecture_comment(kind: str, architecture: str) -> str:
+    """The comment line that records the architecture (read back by
+    :func:`recorded_architecture`)."""
+    return f"# tlsjax {kind} observations: architecture={architecture}"
+
+
+def _observation_kind(seen, header_line, loc, data) -> str:
+    """ "target" or "plane" from the header; every required column present, data rows too."""
     if "target" in seen and "plane" in seen:
         raise loc.error(
             "a file may not mix targets and planes: it has both a 'target' and a 'plane' column",
@@ -250,55 +113,80 @@ def read_observations(path) -> ObservationTable:
             raise loc.error(f"missing required column{extra}", header_line, what)
     if not data:
         raise loc.error("no data rows after the header", header_line + 1)
+    return kind
 
-    sigma_qs = ("sigma_range", "sigma_hz", "sigma_el")
-    has_sigma = any(q in seen for q in sigma_qs)
+
+_SIGMAS = ("sigma_range", "sigma_hz", "sigma_el")
+
+
+def _observation_row(cells, line, loc, kind):
+    """One row's names checked, observations (3,), sigmas (3,; NaN where empty or absent) and
+    incidence (NaN where absent), in SI units."""
+    for q in ("scan", kind) + (("instrument",) if "instrument" in cells else ()):
+        text, name, _ = cells[q]
+        if not text:
+            raise loc.error(f"empty {q} name", line, name)
+    obs = np.empty(3)
+    for j, q in enumerate(("range", "hz", "el")):
+        text, name, factor = cells[q]
+        obs[j] = number(text, line, name, loc, required=True) * factor
+    if obs[0] <= 0.0:
+        raise loc.error(
+            f"range must be positive, got {cells['range'][0]!r}", line, cells["range"][1]
+        )
+    _check_directions(obs, cells, line, loc)
+    sig = np.full(3, np.nan)
+    for j, q in enumerate(_SIGMAS):
+        if q in cells:
+            text, name, factor = cells[q]
+            sig[j] = number(text, line, name, loc, required=False) * factor
+            if sig[j] <= 0.0:
+                raise loc.error(f"sigma must be positive, got {text!r}", line, name)
+    inc = np.nan
+    if "incidence" in cells:
+        text, name, factor = cells["incidence"]
+        inc = number(text, line, name, loc, required=False) * factor
+    return obs, sig, inc
+
+
+def read_observations(path) -> ObservationTable:
+    """Read a target or plane observation CSV (SPEC section 11) into SI units.
+
+    The kind comes from the presence of a ``target`` or a ``plane`` column; hz is wrapped into
+    [0, 2pi), el is left as given (panoramic elevations reach past pi/2). The architecture
+    recorded in a comment line before the header (files tlsjax writes) is in
+    ``table.architecture``.
+    """
+    _check_path(path, "path")
+    source = os.fspath(path)
+    loc = Located(source)
+    architecture = recorded_architecture(source)
+    header_line, names, data = read_rows(path, loc)
+    columns, seen = parse_header(names, header_line, loc, _OBS_TEXT, _OBS_NUMERIC)
+    kind = _observation_kind(seen, header_line, loc, data)
     scans, prims, instruments, lines = [], [], [], []
     obs = np.empty((len(data), 3))
     sig = np.full((len(data), 3), np.nan)
     inc = np.full(len(data), np.nan)
     first_line: dict[tuple[str, str], int] = {}
-
-    for i, (line, cells) in enumerate(_cells(data, columns, loc)):
-        for q in ("scan", kind) + (("instrument",) if "instrument" in seen else ()):
-            text, name, _ = cells[q]
-            if not text:
-                raise loc.error(f"empty {q} name", line, name)
+    for i, (line, cells) in enumerate(row_cells(data, columns, loc)):
+        obs[i], sig[i], inc[i] = _observation_row(cells, line, loc, kind)
         scan, prim = cells["scan"][0], cells[kind][0]
-        for j, q in enumerate(("range", "hz", "el")):
-            text, name, factor = cells[q]
-            obs[i, j] = _number(text, line, name, loc, required=True) * factor
-        if obs[i, 0] <= 0.0:
-            raise loc.error(
-                f"range must be positive, got {cells['range'][0]!r}", line, cells["range"][1]
-            )
-        _check_directions(obs[i], cells, line, loc)
-        for j, q in enumerate(sigma_qs):
-            if q in cells:
-                text, name, factor = cells[q]
-                sig[i, j] = _number(text, line, name, loc, required=False) * factor
-                if sig[i, j] <= 0.0:
-                    raise loc.error(f"sigma must be positive, got {text!r}", line, name)
-        if "incidence" in cells:
-            text, name, factor = cells["incidence"]
-            inc[i] = _number(text, line, name, loc, required=False) * factor
         # Planes carry many points per (scan, plane); a target is observed once per scan.
         if kind == "target":
-            key = (scan, prim)
-            if key in first_line:
+            if (scan, prim) in first_line:
                 raise loc.error(
                     f"duplicate observation of target '{prim}' in scan '{scan}' "
-                    f"(lines {first_line[key]} and {line})",
+                    f"(lines {first_line[scan, prim]} and {line})",
                     line,
                     cells["target"][1],
                 )
-            first_line[key] = line
+            first_line[scan, prim] = line
         scans.append(scan)
         prims.append(prim)
         if "instrument" in cells:
             instruments.append(cells["instrument"][0])
         lines.append(line)
-
     hz = np.mod(obs[:, 1], _TWO_PI)
     # np.mod returns 2pi itself for tiny negative inputs; the contract is the half-open interval.
     obs[:, 1] = np.where(hz >= _TWO_PI, 0.0, hz)
@@ -308,10 +196,11 @@ def read_observations(path) -> ObservationTable:
         scans=tuple(scans),
         primitives=tuple(prims),
         observations=obs,
-        sigmas=sig if has_sigma else None,
+        sigmas=sig if any(q in seen for q in _SIGMAS) else None,
         incidence=inc if "incidence" in seen else None,
         instruments=tuple(instruments) if "instrument" in seen else None,
         rows=np.asarray(lines, dtype=np.int64),
+        architecture=architecture,
     )
 
 
@@ -322,12 +211,14 @@ def read_scans(path) -> dict[str, dict[str, float]]:
     ``sigma_phi_<u>``. A scan is levelled when both its sigma cells are filled; scans with both
     empty are left out of the result. Levelling angles in a file without sigma columns are
     refused (they could not be weighted, and dropping them would go unnoticed).
+
+    (A little over 60 lines: each column's rule has its own message.)
     """
     _check_path(path, "path")
     source = os.fspath(path)
-    loc = _Located(source)
-    header_line, names, data = _read_rows(path, loc)
-    columns, seen = _parse_header(names, header_line, loc, _SCAN_TEXT, _SCAN_NUMERIC)
+    loc = Located(source)
+    header_line, names, data = read_rows(path, loc)
+    columns, seen = parse_header(names, header_line, loc, _SCAN_TEXT, _SCAN_NUMERIC)
     if "scan" not in seen:
         raise loc.error("missing required column", header_line, "scan")
     # A lone sigma column could only describe half a levelling observation.
@@ -339,7 +230,7 @@ def read_scans(path) -> dict[str, dict[str, float]]:
 
     result: dict[str, dict[str, float]] = {}
     first_line: dict[str, int] = {}
-    for line, cells in _cells(data, columns, loc):
+    for line, cells in row_cells(data, columns, loc):
         scan, scan_col = cells["scan"][0], cells["scan"][1]
         if not scan:
             raise loc.error("empty scan name", line, scan_col)
@@ -352,7 +243,7 @@ def read_scans(path) -> dict[str, dict[str, float]]:
         for q in _SCAN_NUMERIC:
             if q in cells:
                 text, name, factor = cells[q]
-                values[q] = _number(text, line, name, loc, required=False) * factor
+                values[q] = number(text, line, name, loc, required=False) * factor
                 if q.startswith("sigma") and values[q] <= 0.0:
                     raise loc.error(f"sigma must be positive, got {text!r}", line, name)
             else:
@@ -394,7 +285,8 @@ def write_observations(path, table: ObservationTable, *, length_unit="m", angle_
     """Write ``table`` as a CSV that :func:`read_observations` reads back to the same numbers.
 
     Lengths go out in ``length_unit`` (m, mm), angles in ``angle_unit`` (rad, deg, gon, arcsec),
-    with 17 significant digits.
+    with 17 significant digits; the table's architecture, when known, in a comment line before
+    the header (the units are in the column names).
     """
     for unit, dim in ((length_unit, "length"), (angle_unit, "angle")):
         if unit not in UNITS or UNITS[unit][0] != dim:
@@ -433,6 +325,8 @@ def write_observations(path, table: ObservationTable, *, length_unit="m", angle_
         raise ValueError("table columns have different lengths")
 
     with open(path, "w", newline="", encoding="utf-8") as fh:
+        if table.architecture is not None:
+            fh.write(architecture_comment(table.kind, table.architecture) + "\n")
         writer = csv.writer(fh, delimiter=",", lineterminator="\n")
         writer.writerow(header)
         for i in range(n):
@@ -450,7 +344,7 @@ def write_scans(path, levelling: dict, *, angle_unit="arcsec") -> None:
     """
     if angle_unit not in UNITS or UNITS[angle_unit][0] != "angle":
         raise ValueError(
-            f"angle_unit {angle_unit!r} is not an angle unit; accepted: {_accepted('angle')}"
+            f"angle_unit {angle_unit!r} is not an angle unit; accepted: {accepted_units('angle')}"
         )
     f = UNITS[angle_unit][1]
     with open(path, "w", newline="", encoding="utf-8") as fh:
@@ -460,9 +354,9 @@ def write_scans(path, levelling: dict, *, angle_unit="arcsec") -> None:
             writer.writerow([scan] + [_format(float(d[q]) / f) for q in _SCAN_NUMERIC])
 
 
-def table_from_network(net) -> ObservationTable:
+def table_from_network(net, architecture: str | None = None) -> ObservationTable:
     """The target observations of a :class:`~tlsjax.Network` as a table (sigmas as used, i.e.
-    with the incidence scaling of the range already applied)."""
+    with the incidence scaling of the range already applied), recording ``architecture``."""
     inst = None
     if len(net.instruments) > 1:
         inst = tuple(net.instruments[net.instrument_of_scan[j]] for j in net.scan_index)
@@ -476,6 +370,7 @@ def table_from_network(net) -> ObservationTable:
         incidence=None,
         instruments=inst,
         rows=np.arange(2, len(net.scan_index) + 2),
+        architecture=architecture,
     )
 
 
@@ -537,19 +432,23 @@ def read_network(
     """Read observation files (and the optional scans CSV) into a validated Network.
 
     ``observations_path``: a target or a plane observation CSV (told apart by its ``target`` or
-    ``plane`` column). ``planes``: a plane CSV or an extracted-planes ``.npz`` besides a target
+    ``plane`` column), or a table already read (e.g. :func:`~tlsjax.read_target_list` of vendor
+    target lists). ``planes``: a plane CSV or an extracted-planes ``.npz`` besides a target
     file (a combined network), or instead of it. Missing sigma cells take the group defaults of
     :func:`~tlsjax.make_network` (or the ``sigma_range``/``sigma_hz``/``sigma_el`` given here);
-    errors name the file and line.
+    errors name the file and line. The architecture a file records is checked against
+    ``architecture`` (and used for the angle checks when that is None).
     """
     from .._adjustment._network import make_network
 
     for value, name in ((observations_path, "observations_path"), (scans_path, "scans_path")):
-        if value is not None:
+        if value is not None and not isinstance(value, ObservationTable):
             _check_path(value, name)
     if observations_path is None and planes is None:
         raise ValueError("give an observation file, a planes file, or both")
-    table = read_observations(observations_path) if observations_path is not None else None
+    table = observations_path
+    if table is not None and not isinstance(table, ObservationTable):
+        table = read_observations(observations_path)
     plane_table = read_planes(planes) if planes is not None else None
     if table is not None and table.kind == "plane":
         if plane_table is not None:
@@ -557,6 +456,7 @@ def read_network(
                 f"{table.source}: a plane file; a combined network takes one target file and one plane file"
             )
         table, plane_table = None, table
+    kwargs["architecture"] = _agreed_architecture(kwargs.get("architecture"), table, plane_table)
     levelling = read_scans(scans_path) if scans_path is not None else None
     if table is None:
         return make_network(
@@ -582,3 +482,21 @@ def read_network(
         planes=plane_table,
         **kwargs,
     )
+
+
+def _agreed_architecture(architecture, *tables):
+    """``architecture``, or the one the tables record; a table recorded for another
+    architecture is refused (its elevations and directions would be misread)."""
+    for t in tables:
+        rec = getattr(t, "architecture", None) if t is not None else None
+        if rec is None:
+            continue
+        if architecture is None:
+            architecture = rec
+        elif rec != architecture:
+            raise ValueError(
+                f"{t.source}: the observations are recorded for a {rec} scanner, but the "
+                f"architecture given is {architecture}; give --architecture {rec} (or "
+                f"architecture='{rec}'), or convert the file again"
+            )
+    return architecture

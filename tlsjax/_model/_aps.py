@@ -7,10 +7,13 @@ user-registered terms go through the same table, so they behave identically.
 
 Compiled code and the registry: basis functions are looked up here when a model is traced, so a
 compiled function depends on the registry. Every registration gets a fresh ``token``; a
-:class:`~tlsjax.Scanner` keeps the tokens of its terms (part of its equality and hash, hence of
-every cache key it enters), and replacing a term (``overwrite=True``) clears JAX's compilation
-caches and every cache registered with :func:`on_reregistration`, so no compiled function can
-return a result of a replaced basis.
+:class:`~tlsjax.Scanner` keeps the tokens of its terms (part of its equality and hash), and
+tlsjax keys its compiled functions on :meth:`Scanner.current`, the Scanner with the tokens the
+registry holds at the call (the static spec of an adjustment is built from it). After a term
+is replaced (``overwrite=True``) every Scanner that uses it, made before or after, is a new key
+and the next call traces with the new basis. Nothing of JAX's own caches is cleared, so a
+user's compiled functions survive a registration. The few caches of tlsjax that are keyed on
+AP names without a Scanner register a clearing function with :func:`on_reregistration`.
 """
 
 from __future__ import annotations
@@ -62,10 +65,8 @@ def on_reregistration(clear: Callable[[], None]) -> Callable[[], None]:
 
 
 def _invalidate_compiled() -> None:
-    # A replaced basis was traced into every function compiled with its name; JAX's caches key
-    # them on static arguments that may not change (an old Scanner object, a tuple of names),
-    # so they are emptied: the next call re-traces with the registry as it is now.
-    jax.clear_caches()
+    # Only tlsjax's caches keyed on AP names without the Scanner's tokens are emptied; JAX's
+    # caches are keyed on the tokens (module docstring) and stay.
     for clear in _CACHE_CLEARERS:
         clear()
 
@@ -85,8 +86,9 @@ def register_ap(
     traced and differentiated; it is checked here (called on sample observations of both
     architectures, traced with :func:`jax.eval_shape` and differentiated), so a wrong basis is
     refused at registration rather than deep inside an adjustment. Replacing a term
-    (``overwrite=True``) empties the caches of compiled code (see the module docstring): the
-    next adjustment uses the new basis.
+    (``overwrite=True``) takes effect at the next call for every :class:`Scanner` that uses it,
+    made before or after (see the module docstring); no compiled function of the user's is
+    thrown away.
     """
     if not isinstance(name, str) or not name.strip() or any(c.isspace() for c in name):
         raise ValueError(f"AP name {name!r} must be a non-empty string without spaces")
@@ -125,6 +127,19 @@ _SAMPLE_THETA = np.array([0.0, 0.9, 2.1, 3.3, 4.6, 6.1])
 _SAMPLE_ALPHA = np.array([-1.2, -0.6, -0.1, 0.3, 0.8, 1.3])
 
 
+@dataclasses.dataclass(frozen=True)
+class _ProbeScanner:
+    """The settings a basis reads from its scanner argument (those of :class:`Scanner`, with
+    its defaults), for probing a basis at registration without the Scanner class, which itself
+    resolves names in this registry."""
+
+    architecture: str
+    aps: tuple = ()
+    unit_length: float = 1.2
+    unit_length_2: float = 0.6
+    ap_tokens: tuple = ()
+
+
 def _probe_basis(basis, scanner):
     """The basis at the samples, its abstract output for a (2, 3) batch, and its gradients."""
     args = tuple(jnp.asarray(a) for a in (_SAMPLE_RHO, _SAMPLE_THETA, _SAMPLE_ALPHA))
@@ -143,8 +158,6 @@ def check_basis(name: str, basis: Callable) -> None:
     :func:`jax.eval_shape` for a 2-d batch), for both architectures, and be differentiable by
     JAX with finite derivatives (the adjustment differentiates the corrections).
     """
-    from ._scanner import Scanner  # _scanner imports this module
-
     try:
         inspect.signature(basis).bind(1.0, 2.0, 3.0, None)
     except TypeError:
@@ -156,7 +169,7 @@ def check_basis(name: str, basis: Callable) -> None:
     for arch in ("hybrid", "panoramic"):
         what = f"AP {name}: basis(rho, theta, alpha, scanner) for a {arch} scanner"
         try:
-            out, shaped, grads = _probe_basis(basis, Scanner(architecture=arch, aps=()))
+            out, shaped, grads = _probe_basis(basis, _ProbeScanner(arch))
         except Exception as err:  # any failure of user code is reported the same way
             first = str(err).splitlines()[0] if str(err) else ""
             raise ValueError(

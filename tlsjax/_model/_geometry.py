@@ -1,8 +1,12 @@
-"""Rotations, spherical observations and the two scanner architectures (SPEC section 1).
+"""Rotations, spherical observations, the two scanner architectures (SPEC section 1), and the
+two closed-form fits every part of tlsjax uses: the rotation between two point sets (Kabsch)
+and the least-squares plane of points (PCA).
 
 Scanner space of scan j: ``x = R_j (X - S_j)``, ``R_j = R3(kappa) R2(phi) R1(omega)`` with
 passive Cardan rotations. Observations of a point: range ``rho = |x|``, horizontal direction
-``theta = atan2(y, x)`` and elevation angle ``alpha = atan2(z, hypot(x, y))``.
+``theta = atan2(y, x)`` and elevation angle ``alpha = atan2(z, hypot(x, y))``. A panoramic
+scanner observes a direction whose hybrid horizontal direction ``theta'`` is at least pi in its
+second face, as ``(theta' - pi, pi - alpha')`` (:func:`second_face`, :func:`fold_second_face`).
 """
 
 from __future__ import annotations
@@ -48,10 +52,37 @@ def spherical_from_cartesian(x, panoramic_face2=None, xp=jnp):
     rho = xp.sqrt(xp.sum(x * x, axis=-1))
     theta = xp.mod(xp.arctan2(x[..., 1], x[..., 0]), TWO_PI)
     alpha = xp.arctan2(x[..., 2], xp.hypot(x[..., 0], x[..., 1]))
-    if panoramic_face2 is not None:
-        theta = xp.where(panoramic_face2, theta - np.pi, theta)
-        alpha = xp.where(panoramic_face2, np.pi - alpha, alpha)
-    return xp.stack([rho, theta, alpha], axis=-1)
+    l = xp.stack([rho, theta, alpha], axis=-1)
+    return l if panoramic_face2 is None else fold_second_face(l, panoramic_face2, xp)
+
+
+def second_face(theta_hybrid, architecture: str = "panoramic"):
+    """The panoramic face rule (SPEC section 1): True where a direction whose hybrid horizontal
+    direction ``theta'`` (in [0, 2 pi)) is at least pi, which a panoramic scanner observes in
+    its second face; False everywhere for a hybrid scanner (one face)."""
+    if architecture != "panoramic":
+        return np.zeros(np.shape(theta_hybrid), dtype=bool)
+    return theta_hybrid >= np.pi
+
+
+def fold_second_face(l, face2, xp=jnp):
+    """Hybrid observations ``l[..., 3]`` as a panoramic scanner's: ``(rho, theta - pi, pi -
+    alpha)`` where ``face2`` (:func:`second_face`), unchanged elsewhere."""
+    theta = xp.where(face2, l[..., 1] - np.pi, l[..., 1])
+    alpha = xp.where(face2, np.pi - l[..., 2], l[..., 2])
+    return xp.stack([l[..., 0], theta, alpha], axis=-1)
+
+
+def scanner_observations(x, architecture: str, xp=jnp):
+    """(rho, theta, alpha) of scanner-space points ``x[..., 3]`` as a scanner of
+    ``architecture`` reports them: theta in [0, 2 pi) for a hybrid scanner, the two faces of
+    SPEC section 1 for a panoramic one."""
+    l = spherical_from_cartesian(x, xp=xp)
+    theta = xp.where(l[..., 1] >= TWO_PI, 0.0, l[..., 1])  # the mod can round up to 2 pi
+    l = xp.stack([l[..., 0], theta, l[..., 2]], axis=-1)
+    if architecture == "panoramic":
+        l = fold_second_face(l, second_face(theta), xp)
+    return l
 
 
 def cartesian_from_spherical(l, xp=jnp):
@@ -72,12 +103,61 @@ def is_face2(alpha, xp=jnp):
     return alpha > np.pi / 2
 
 
-def rigid_fit(src, dst, xp=jnp):
-    """R, t minimising ``sum |R src + t - dst|^2`` over rotations (Horn 1987; SVD of the
-    cross-covariance, with the reflection removed), both (n, 3); jax (differentiable) or numpy."""
-    cs, cd = src.mean(axis=0), dst.mean(axis=0)
-    U, _, Vt = xp.linalg.svd((src - cs).T @ (dst - cd), full_matrices=False)
-    dsign = xp.sign(xp.linalg.det(Vt.T @ U.T))
+def kabsch(u, v, weights=None, xp=jnp):
+    """Rotation R minimising ``sum w_i |R u_i - v_i|^2`` over rotations, for centred point sets
+    (or directions) ``u``, ``v`` (n, 3) (Kabsch 1976; Horn 1987): ``R = V D U^T`` from the SVD
+    ``U S V^T`` of the cross-covariance ``H = sum w_i u_i v_i^T``, with ``D = diag(1, 1,
+    det(V U^T))`` removing a reflection (1 where H is too degenerate to tell). Returns R and
+    the singular values of H (descending; ``s_2 / s_1`` near 0: the rotation is undetermined).
+    jax (differentiable) or numpy (``xp``)."""
+    H = (u if weights is None else u * weights[:, None]).T @ v
+    U, sv, Vt = xp.linalg.svd(H, full_matrices=False)
+    dsign = xp.where(xp.linalg.det(Vt.T @ U.T) < 0, -1.0, 1.0)
     D = xp.diag(xp.stack([xp.ones_like(dsign), xp.ones_like(dsign), dsign]))
-    R = Vt.T @ D @ U.T
+    return Vt.T @ D @ U.T, sv
+
+
+def rigid_fit(src, dst, xp=jnp):
+    """R, t minimising ``sum |R src + t - dst|^2`` over rotations: :func:`kabsch` of the
+    centred sets, both (n, 3); jax (differentiable) or numpy."""
+    cs, cd = src.mean(axis=0), dst.mean(axis=0)
+    R, _ = kabsch(src - cs, dst - cd, xp=xp)
     return R, cd - R @ cs
+
+
+def plane_from_moments(count, first, second):
+    """Least-squares planes of point sets from their moments (host side, numpy; batched over
+    leading axes): ``count`` n, ``first`` = sum x (..., 3), ``second`` = sum x x^T (..., 3, 3),
+    about any origin. The covariance ``C = second / n - c c^T`` about the centroid ``c = first
+    / n``; the unit normal is the eigenvector of its smallest eigenvalue (principal component
+    analysis; the orthogonal-distance least-squares plane). Returns (normal (..., 3), centroid
+    (..., 3), eigenvalues of C (..., 3), ascending)."""
+    n = np.asarray(count, dtype=np.float64)
+    c = first / n[..., None]
+    C = second / n[..., None, None] - c[..., :, None] * c[..., None, :]
+    w, V = np.linalg.eigh(C)
+    return V[..., :, 0], c, w
+
+
+def fit_plane(x):
+    """Least-squares plane of points x (n, 3): unit normal, d (``n . X = d``), eigenvalues of
+    the points' covariance (ascending); :func:`plane_from_moments` about the centroid."""
+    c = x.mean(axis=0)
+    y = x - c
+    n, cy, w = plane_from_moments(len(x), y.sum(axis=0), y.T @ y)
+    return n, float(n @ (c + cy)), w
+
+
+def helmert_fit(src, dst, scale: bool = False, xp=np):
+    """s, R, t minimising ``sum |s R src + t - dst|^2`` (s = 1 unless ``scale``): the rigid
+    (6-parameter) or similarity (7-parameter Helmert) least-squares fit with equal weights,
+    which is the inner-constraint solution on the points (Horn 1987; Umeyama 1991: the rotation
+    does not depend on the scale, ``s = sum (R src_c) . dst_c / sum |src_c|^2``)."""
+    R, t = rigid_fit(src, dst, xp=xp)
+    s = 1.0
+    if scale:
+        cs, cd = src.mean(axis=0), dst.mean(axis=0)
+        a = (src - cs) @ R.T
+        s = xp.sum(a * (dst - cd)) / xp.sum(a * a)
+        t = cd - s * (R @ cs)
+    return s, R, t

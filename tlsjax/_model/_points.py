@@ -95,10 +95,15 @@ def simulate_point_observations(
     return distorted_observations(base, correction)
 
 
-@functools.partial(jit, static_argnames=("scanner", "names"))
 def observe_points(X, eops, noise, face2, coeffs, scanner: Scanner, names: tuple):
     """:func:`simulate_point_observations` for many points of one instrument: ``X``, ``eops``,
-    ``noise`` (m, 3)/(m, 6)/(m, 3), ``face2`` (m,). Compiled once per (scanner, AP names, m)."""
+    ``noise`` (m, 3)/(m, 6)/(m, 3), ``face2`` (m,). Compiled once per (scanner as registered
+    now, :meth:`Scanner.current`; AP names; m)."""
+    return _observe_points(X, eops, noise, face2, coeffs, scanner.current(), names)
+
+
+@functools.partial(jit, static_argnames=("scanner", "names"))
+def _observe_points(X, eops, noise, face2, coeffs, scanner: Scanner, names: tuple):
 
     def one(Xi, ei, ni, f2):
         return simulate_point_observations(

@@ -27,10 +27,13 @@ import sys
 
 import numpy as np
 
+from .._adjustment._quality import external_reliability_factor, minimal_detectable_bias
 from .._io._json import read_result_json
+from .._stats import DELTA0
 from .._units import ARCSEC, DISPLAY_UNITS
+from .._version import __version__
+from ._json import scanner_settings as scanner_settings
 
-DELTA0 = 4.13
 _GROUPS = ("range", "hz", "el")
 _GROUP_UNIT = {
     "range": ("mm", 1e3),
@@ -55,8 +58,6 @@ def sha256_of(path, block: int = 1 << 20) -> str:
 def provenance(files=(), argv=None) -> dict:
     """tlsjax version, command line, time (UTC), Python and platform, and the SHA-256 and size
     of each input file."""
-    from .. import __version__
-
     argv = sys.argv if argv is None else argv
     inputs = []
     for f in files:
@@ -71,16 +72,6 @@ def provenance(files=(), argv=None) -> dict:
         "python": platform.python_version(),
         "platform": platform.platform(),
         "inputs": inputs,
-    }
-
-
-def scanner_settings(scanner) -> dict:
-    """Architecture, unit lengths and AP names: what ``tlsjax correct`` needs to apply the APs."""
-    return {
-        "architecture": scanner.architecture,
-        "unit_length": scanner.unit_length,
-        "unit_length_2": scanner.unit_length_2,
-        "aps": list(scanner.aps),
     }
 
 
@@ -104,12 +95,10 @@ def reliability_summary(result, *, mdb=None, mask=None) -> dict:
     used = np.ones(r.shape, bool) if mask is None else np.asarray(mask, bool)
     if result.used is not None and mask is None:
         used = np.asarray(result.used, bool)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        if mdb is None:
-            mdb = np.where(r > 1e-12, DELTA0 * net.sigmas / np.sqrt(np.maximum(r, 1e-300)), np.inf)
-        ext = np.where(r > 1e-12, np.sqrt(np.maximum(1 - r, 0) / np.maximum(r, 1e-300)), np.inf)
+    if mdb is None:
+        mdb = minimal_detectable_bias(np.asarray(net.sigmas, dtype=np.float64), r)
     mdb = np.where(used, mdb, np.nan)
-    ext = np.where(used, ext * DELTA0, np.nan)
+    ext = np.where(used, external_reliability_factor(r), np.nan)
     out = {"delta0": DELTA0, "groups": {}, "per_scan": {}}
     for g, name in enumerate(_GROUPS):
         uncontrolled = int(np.sum(used[:, g] & ~np.isfinite(mdb[:, g])))
@@ -347,7 +336,7 @@ def _section_reliability(doc) -> str:
         for g, v in rel.get("groups", {}).items()
     ]
     out = (
-        f"<h2>Reliability (&delta;0 = {rel.get('delta0', DELTA0)})</h2>"
+        f"<h2>Reliability (&delta;0 = {rel.get('delta0', DELTA0):.2f})</h2>"
         "<p>Internal: minimal detectable bias MDB = &delta;0 &sigma; / &radic;r. External: "
         "Baarda's factor &radic;((1 - r)/r) &delta;0, the effect of an undetected MDB-sized error "
         "on the unknowns in units of their sigma.</p>" + _table(head, rows)

@@ -4,11 +4,13 @@ written atomically (:mod:`tlsjax._io._json`)."""
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 import numpy as np
 
 from .._inference._statistics import global_test
 from .._io._json import to_json_value, write_json_file
+from .._io._target_lists import ELLIPSOID_95
 from .._model._aps import get_ap
 from ._text import EOP_NAMES
 
@@ -22,6 +24,90 @@ def _num(x):
         return None
     x = float(x)
     return x if math.isfinite(x) else None
+
+
+def scanner_settings(scanner) -> dict:
+    """Architecture, unit lengths and AP names of one :class:`~tlsjax.Scanner`, or of each
+    instrument (``{"instruments": {name: settings}}``) for a mapping: what applying the APs
+    needs (``tlsjax correct``, :meth:`tlsjax.Calibration.from_json`)."""
+    if isinstance(scanner, Mapping):
+        per = {str(k): scanner_settings(v) for k, v in scanner.items()}
+        archs = {d["architecture"] for d in per.values()}
+        out = {"instruments": per}
+        if len(archs) == 1:
+            out["architecture"] = archs.pop()
+        return out
+    return {
+        "architecture": scanner.architecture,
+        "unit_length": scanner.unit_length,
+        "unit_length_2": scanner.unit_length_2,
+        "aps": list(scanner.aps),
+    }
+
+
+def target_ellipsoids(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """1-sigma semi-axes (t, 3), largest first, and their unit directions (t, 3, 3), one per
+    column, of the 3 x 3 target covariances ``cov`` (t, 3, 3); NaN where a block is not finite."""
+    cov = np.asarray(cov, dtype=np.float64).reshape(-1, 3, 3)
+    ok = np.all(np.isfinite(cov), axis=(1, 2))
+    axes = np.full((cov.shape[0], 3), np.nan)
+    dirs = np.full((cov.shape[0], 3, 3), np.nan)
+    if ok.any():
+        w, v = np.linalg.eigh(0.5 * (cov[ok] + np.swapaxes(cov[ok], 1, 2)))
+        axes[ok] = np.sqrt(np.clip(w[:, ::-1], 0, None))
+        dirs[ok] = v[:, :, ::-1]
+    return axes, dirs
+
+
+def target_scan_counts(res) -> np.ndarray:
+    """Number of scans whose used observations include each target (t,)."""
+    net = res.network
+    used = np.ones(net.observations.shape[0], bool) if res.used is None else res.used.any(axis=1)
+    pairs = np.unique(
+        np.stack([net.target_index[used], net.scan_index[used]], axis=1).reshape(-1, 2), axis=0
+    )
+    return np.bincount(pairs[:, 0], minlength=len(res.targets))
+
+
+def _targets_dict(res) -> dict:
+    """Adjusted target coordinates with sigmas and 1-sigma ellipsoid semi-axes [m], in the
+    datum of the adjustment (SPEC section 6), with the number of scans that observed each."""
+    net = res.network
+    if net is None or not len(res.targets):
+        return {}
+    cov = res.target_covariance
+    if cov is None:
+        cov = np.full((len(res.targets), 3, 3), np.nan)
+    axes, dirs = target_ellipsoids(cov)
+    n_scans = target_scan_counts(res)
+    targets = {
+        name: {
+            "xyz": [_num(v) for v in res.target_xyz[t]],
+            "sigma": [_num(v) for v in res.target_sigmas[t]],
+            "ellipsoid_axes": [_num(v) for v in axes[t]],
+            "ellipsoid_directions": [[_num(v) for v in row] for row in dirs[t]],
+            "n_scans": int(n_scans[t]),
+        }
+        for t, name in enumerate(res.targets)
+    }
+    return {
+        "targets": targets,
+        "targets_frame": datum_text(res),
+        "targets_units": "xyz, sigma and ellipsoid_axes in metres, a posteriori in that frame; "
+        f"ellipsoid_axes: 1-sigma semi-axes, largest first (x {ELLIPSOID_95} for 95 %), "
+        "ellipsoid_directions: one unit column per axis",
+    }
+
+
+def datum_text(res) -> str:
+    """What the target coordinates and sigmas of ``res`` refer to (its datum, SPEC section 6)."""
+    datum = str(res.datum)
+    if datum.startswith("inner"):
+        return (
+            "object space of the free network (inner constraints on the targets at their "
+            "approximate values)"
+        )
+    return f"object space of the adjustment's datum ({datum})"
 
 
 def result_to_dict(res, *, alpha: float = 0.05) -> dict:
@@ -54,6 +140,9 @@ def _withhold_estimates(d: dict, reason: str) -> None:
     for p in d.get("planes", {}).values():
         p["normal"], p["d"] = [None, None, None], None
         p["sigma"] = {k: None for k in p["sigma"]}
+    for t in d.get("targets", {}).values():
+        t["xyz"], t["sigma"], t["ellipsoid_axes"] = [None] * 3, [None] * 3, [None] * 3
+        t["ellipsoid_directions"] = [[None] * 3 for _ in range(3)]
     d["estimates"] = f"withheld: the adjustment failed ({reason})"
 
 
@@ -67,6 +156,8 @@ def _undetermined(res) -> set:
 
 
 def _result_dict(res, alpha: float) -> dict:
+    """The result JSON of SPEC section 11, field by field (long because the contract has many
+    fields; there is no logic beyond the conversions)."""
     aps = {}
     for i, name in enumerate(res.ap_names):
         base = name.split("[")[0]
@@ -125,8 +216,17 @@ def _result_dict(res, alpha: float) -> dict:
         ],
         "rank_deficient": list(res.rank_deficient),
         "estimates": "valid",
+        **_scanner_dict(res),
+        **_targets_dict(res),
         **_planes_dict(res),
     }
+
+
+def _scanner_dict(res) -> dict:
+    model = getattr(res, "model", None)
+    if model is None:
+        return {}
+    return {"scanner": scanner_settings(model.scanner)}
 
 
 def _planes_dict(res) -> dict:

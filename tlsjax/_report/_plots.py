@@ -67,58 +67,22 @@ def plot_residuals(
     if mask is not None:
         used = np.asarray(mask, dtype=bool)
     curves = _ap_curves(result, scanner) if overlay else {}
+    grey = None if compare is None else _rows(compare)[1]
     # Own y scale per panel: an overlay panel (residuals without a term) spans far more than a
     # plain one, and a shared scale would flatten the plain residuals to a line.
     fig, axes = plt.subplots(3, 3, figsize=(12, 9))
     for g in range(3):
         for c, (xlabel, xf) in enumerate(ABSCISSAE):
             ax = axes[g, c]
-            y = v[:, g].copy()
-            curve = curves.get((g, c))
-            if compare is not None:
+            if grey is not None:
+                label = f"APs: {' '.join(compare.ap_names) or 'none'}"
                 ax.plot(
-                    l[:, c] * xf,
-                    _rows(compare)[1][:, g] * GROUP_FACTORS[g],
-                    ".",
-                    ms=2,
-                    color="0.7",
-                    label=f"APs: {' '.join(compare.ap_names) or 'none'}",
+                    l[:, c] * xf, grey[:, g] * GROUP_FACTORS[g], ".", ms=2, color="0.7", label=label
                 )
-            if curve is not None:
-                y = y - curve["at_obs"]
-            m = used[:, g]
-            ax.plot(
-                l[m, c] * xf,
-                y[m] * GROUP_FACTORS[g],
-                ".",
-                ms=2,
-                alpha=0.6,
-                label=(
-                    f"without {' '.join(curve['terms'])}"
-                    if curve is not None
-                    else f"APs: {' '.join(result.ap_names) or 'none'}"
-                ),
+            _residual_panel(
+                ax, result, l[:, c] * xf, v[:, g], used[:, g], curves.get((g, c)), g, xf
             )
-            if (~m).any():
-                ax.plot(
-                    l[~m, c] * xf,
-                    y[~m] * GROUP_FACTORS[g],
-                    "x",
-                    ms=5,
-                    color="tab:red",
-                    label="removed",
-                )
-            if curve is not None:
-                ax.plot(
-                    curve["x"] * xf,
-                    -curve["y"] * GROUP_FACTORS[g],
-                    "-",
-                    color="tab:orange",
-                    lw=1.5,
-                    label=f"fitted {' + '.join(curve['terms'])}",
-                )
-            ax.axhline(0.0, color="k", lw=0.5)
-            if curve is not None or compare is not None or (~m).any():
+            if curves.get((g, c)) is not None or grey is not None or (~used[:, g]).any():
                 ax.legend(fontsize=7, loc="upper right", markerscale=3)
             if g == 2:
                 ax.set_xlabel(xlabel)
@@ -131,6 +95,26 @@ def plot_residuals(
     _save(fig, path)
     plt.close(fig)
     return path
+
+
+def _residual_panel(ax, result, x, v, used, curve, g, xf):
+    """One panel of :func:`plot_residuals`: the residuals of group ``g`` (without the AP terms
+    of ``curve`` when it is given, and that fitted curve as a line) against abscissa ``x``; the
+    observations not used as red crosses."""
+    f = GROUP_FACTORS[g]
+    y = v if curve is None else v - curve["at_obs"]
+    label = (
+        f"without {' '.join(curve['terms'])}"
+        if curve is not None
+        else f"APs: {' '.join(result.ap_names) or 'none'}"
+    )
+    ax.plot(x[used], y[used] * f, ".", ms=2, alpha=0.6, label=label)
+    if (~used).any():
+        ax.plot(x[~used], y[~used] * f, "x", ms=5, color="tab:red", label="removed")
+    if curve is not None:
+        label = f"fitted {' + '.join(curve['terms'])}"
+        ax.plot(curve["x"] * xf, -curve["y"] * f, "-", color="tab:orange", lw=1.5, label=label)
+    ax.axhline(0.0, color="k", lw=0.5)
 
 
 def _rows(result):

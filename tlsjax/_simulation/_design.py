@@ -39,7 +39,7 @@ from .._adjustment._network import (
     make_network,
 )
 from .._model._aps import resolve_aps
-from .._model._geometry import TWO_PI, rotation_matrix, spherical_from_cartesian
+from .._model._geometry import TWO_PI, rotation_matrix, second_face, spherical_from_cartesian
 from .._model._scanner import ARCHITECTURES, Scanner
 from .._units import DEG
 from ._point_clouds import Board, _observe_in_chunks
@@ -467,7 +467,7 @@ def _observe(design, eops, rows_t, rows_p, scanner, coeffs, names, noise_seed):
     R = np.stack([rotation_matrix(*p[3:], xp=np) for p in eops])
     x = np.einsum("mij,mj->mi", R[si], X - eops[si, :3])
     hyb = spherical_from_cartesian(x, xp=np)
-    face2 = hyb[:, 1] >= np.pi if design.architecture == "panoramic" else np.zeros(len(X), bool)
+    face2 = second_face(hyb[:, 1], design.architecture)
     obs = _observe_in_chunks(X, eops[si], e, face2, coeffs, scanner, names)
     # Full-turn wrap only (a face-2 direction near 0 pushed below zero is near 2 pi, not pi).
     obs[:, 1] = np.mod(obs[:, 1], TWO_PI)

@@ -52,6 +52,7 @@ from .._jit import jit
 from .._model._aps import ap_corrections, on_reregistration
 from .._model._levelling import compensator_reading
 from .._model._points import FIXED_POINT_ITERATIONS, distorted_observations
+from .._stats import t_critical_value
 from .._units import display_unit
 from ._batch import auto_chunk, compile_batched, device_key, round_chunk, run_batched
 from ._truth import SimulationTruth
@@ -222,7 +223,7 @@ def _simulator(truth: SimulationTruth, ap_sigma) -> _Simulator:
         bar_sigma=jnp.asarray(net.scale_bar_sigma.reshape(-1)),
         true_aps=jnp.asarray(true_vals),
         draw_sigma=jnp.asarray(draw),
-        scanners=tuple(truth.scanners),
+        scanners=tuple(sc.current() for sc in truth.scanners),
         slices=tuple(slices),
         iterations=iterations,
     )
@@ -463,13 +464,11 @@ class MonteCarloResult:
         """Empirical precision per AP (Lichti 2008): mean, bias, empirical and mean formal sigma,
         their ratio, and power = share of realisations with ``|t| > t_crit`` at ``alpha``.
         Values in SI units. The ratio's own sampling sigma is about ``1/sqrt(2 (N - 1))``."""
-        from scipy import stats
-
         ok = self.ok
         n = int(ok.sum())
         v = self.ap_values[ok]
         s = self.ap_sigmas[ok]
-        t_crit = float(stats.t.ppf(1.0 - self.alpha / 2.0, self.dof))
+        t_crit = t_critical_value(self.alpha, self.dof)
         out = {
             "runs": self.runs,
             "successful": n,

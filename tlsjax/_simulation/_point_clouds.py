@@ -16,6 +16,17 @@ of sight and the plane normal) and ``sigma_angle`` in both angles (SPEC section 
 
 Panoramic scanners see directions whose hybrid horizontal direction is >= pi in their second
 face: ``theta = theta' - pi``, ``alpha = pi - alpha'`` (SPEC section 1).
+
+Signalised targets (issue 33): spheres (:class:`SphereTarget`) and planar contrast targets
+(:class:`PlanarTarget`: a 2 x 2 checkerboard, or a white disc on a dark square) are rendered in
+the same ray cast, geometry and intensity. Every point carries an intensity
+``reflectance (0.25 + 0.75 cos beta) exp(-rho / 40 m) + e_I``; on a planar target the
+reflectance is the printed pattern blurred by the laser footprint (``_model/_targets.py``), of
+standard deviation ``beam_width + beam_divergence rho``. ``dark_range_bias`` adds a range
+offset on the dark share of a target's footprint (the intensity-dependent range error that
+makes a contrast centroid sit off the target's plane, Lichti & Licht 2006, section 5.3).
+``target_step`` scans a finer angular grid in a window around each target (as scanners
+fine-scan their targets), so that a room of thousands of points holds targets of hundreds.
 """
 
 from __future__ import annotations
@@ -34,9 +45,16 @@ from .._adjustment._network import (
     make_plane_network,
 )
 from .._model._aps import resolve_aps
-from .._model._geometry import TWO_PI, rotation_matrix, spherical_from_cartesian
+from .._model._geometry import TWO_PI, rotation_matrix, second_face, spherical_from_cartesian
 from .._model._points import observe_points
 from .._model._scanner import Scanner
+from .._model._targets import (
+    PATTERNS,
+    checkerboard_white,
+    disc_white,
+    plane_frame,
+    sphere_ray_distance,
+)
 from .._units import DEG
 from ._room import Room, default_true_value, room_scans, simulated_levelling
 
@@ -87,6 +105,134 @@ DEFAULT_BOARDS = (
 )
 
 
+def _point3(value, what: str) -> tuple:
+    v = np.asarray(value, dtype=np.float64)
+    if v.shape != (3,) or not np.all(np.isfinite(v)):
+        raise ValueError(f"{what} must be three finite coordinates in metres, got {value!r}")
+    return tuple(float(c) for c in v)
+
+
+def _share(value, what: str) -> float:
+    if not (np.isfinite(value) and 0.0 <= value <= 1.0):
+        raise ValueError(f"{what} must be in [0, 1], got {value}")
+    return float(value)
+
+
+@dataclasses.dataclass(frozen=True)
+class SphereTarget:
+    """A sphere target: ``centre`` (3,) [m] in object space, ``radius`` [m], ``reflectance``
+    in [0, 1] (a matt white sphere: 0.85)."""
+
+    centre: tuple
+    radius: float = 0.0725
+    reflectance: float = 0.85
+
+    def __post_init__(self):
+        object.__setattr__(self, "centre", _point3(self.centre, "sphere centre"))
+        if not (np.isfinite(self.radius) and 0.0 < self.radius < 2.0):
+            raise ValueError(f"sphere radius must be in (0, 2) m, got {self.radius}")
+        object.__setattr__(self, "reflectance", _share(self.reflectance, "sphere reflectance"))
+
+
+@dataclasses.dataclass(frozen=True)
+class PlanarTarget:
+    """A planar contrast target: a square plate of side ``size`` [m] centred at ``centre`` (3,)
+    [m], facing ``normal`` (towards the scanners), its pattern turned by ``rotation`` [rad]
+    about the normal from the plate's horizontal axis (:func:`~tlsjax._model._targets.plane_frame`).
+
+    ``pattern``: "checkerboard" (2 x 2 squares of side size / 2, white where ``u v > 0``) or
+    "circle" (a white disc of ``circle_radius``, default 0.3 size, on a dark plate).
+    ``dark``/``bright``: reflectances of the print.
+    """
+
+    centre: tuple
+    normal: tuple
+    pattern: str = "checkerboard"
+    size: float = 0.15
+    rotation: float = 0.0
+    circle_radius: float | None = None
+    dark: float = 0.05
+    bright: float = 0.85
+
+    def __post_init__(self):
+        object.__setattr__(self, "centre", _point3(self.centre, "planar target centre"))
+        n = np.asarray(_point3(self.normal, "planar target normal"))
+        if np.linalg.norm(n) < 1e-9:
+            raise ValueError("planar target normal must not be zero")
+        object.__setattr__(self, "normal", tuple(float(c) for c in n / np.linalg.norm(n)))
+        if self.pattern not in PATTERNS:
+            raise ValueError(f"planar target pattern {self.pattern!r} is not one of {PATTERNS}")
+        if not (np.isfinite(self.size) and 0.0 < self.size < 5.0):
+            raise ValueError(f"planar target size must be in (0, 5) m, got {self.size}")
+        r = 0.3 * self.size if self.circle_radius is None else float(self.circle_radius)
+        if not 0.0 < r < 0.5 * self.size:
+            raise ValueError(f"circle radius {r} m must be in (0, size / 2 = {self.size / 2} m)")
+        object.__setattr__(self, "circle_radius", r)
+        object.__setattr__(self, "dark", _share(self.dark, "planar target dark reflectance"))
+        object.__setattr__(self, "bright", _share(self.bright, "planar target bright reflectance"))
+
+    def frame(self) -> np.ndarray:
+        """In-plane axes (u, v) (2, 3) of the pattern."""
+        return plane_frame(self.normal, self.rotation)
+
+    def board(self) -> Board:
+        """The plate as a :class:`Board` (for the ray cast)."""
+        u, v = self.frame() * self.size
+        c = np.asarray(self.centre)
+        return Board(tuple(c - 0.5 * (u + v)), tuple(u), tuple(v))
+
+
+def place_targets(
+    room: Room | None = None,
+    *,
+    spheres: int = 8,
+    checkerboards: int = 8,
+    circles: int = 0,
+    radius: float = 0.0725,
+    size: float = 0.15,
+    seed: int = 0,
+    clearance: float = 0.6,
+) -> dict:
+    """A random field of targets in ``room``: ``spheres`` free-standing spheres of ``radius``
+    (0.5 to 2.5 m high, at least ``clearance`` from the walls, the stations and each other) and
+    planar targets of ``size`` on the room's faces (facing into the room, 2 mm off the face,
+    turned at random in their plane), as keyword arguments of :class:`CloudDesign`
+    (``spheres=``, ``planar_targets=``)."""
+    room = room or Room()
+    rng = np.random.default_rng(seed)
+    L, W, H = room.length, room.width, room.height
+    st = np.asarray(room.stations, dtype=np.float64)
+    sph = []
+    for _ in range(10000):
+        if len(sph) == spheres:
+            break
+        c = rng.uniform(
+            [clearance, clearance, 0.5], [L - clearance, W - clearance, min(2.5, H - 0.3)]
+        )
+        if np.min(np.linalg.norm(st - c, axis=1)) < 1.5 or any(
+            np.linalg.norm(c - np.asarray(t.centre)) < clearance for t in sph
+        ):
+            continue
+        sph.append(SphereTarget(tuple(c), radius))
+    faces = [(0, 0.0, 1), (0, L, -1), (1, 0.0, 1), (1, W, -1), (2, 0.0, 1), (2, H, -1)]
+    size3 = np.array([L, W, H])
+    planar = []
+    kinds = ["checkerboard"] * checkerboards + ["circle"] * circles
+    for kind in kinds:
+        for _ in range(10000):
+            ax, val, sign = faces[rng.integers(6)]
+            c = rng.uniform(room.margin, size3 - room.margin)
+            c[ax] = val + sign * 0.002
+            if all(np.linalg.norm(c - np.asarray(t.centre)) > 4 * size for t in planar):
+                break
+        n = np.zeros(3)
+        n[ax] = sign
+        planar.append(
+            PlanarTarget(tuple(c), tuple(n), kind, size, rotation=rng.uniform(0, np.pi / 2))
+        )
+    return {"spheres": tuple(sph), "planar_targets": tuple(planar)}
+
+
 @dataclasses.dataclass(frozen=True)
 class CloudDesign:
     """Settings of a point-cloud simulation (SPEC section 8).
@@ -98,6 +244,13 @@ class CloudDesign:
     ``boards``: finite planes inside the room besides its six faces. ``levelling``: the
     levelled (untilted) scans get dual-axis compensator observations with ``sigma_levelling``
     [rad], as in :func:`~tlsjax.simulate`.
+
+    Targets (module docstring): ``spheres`` (:class:`SphereTarget`), ``planar_targets``
+    (:class:`PlanarTarget`), ``target_step`` [rad] the finer grid in a window around each
+    target (None: the room grid only). Intensity: ``reflectance`` of the room's faces and
+    boards, the footprint ``beam_width`` [m] + ``beam_divergence`` [rad] x range (standard
+    deviation of the spot), ``intensity_noise`` (standard deviation, in reflectance units),
+    ``dark_range_bias`` [m] added to the range of the dark share of a target's footprint.
     """
 
     room: Room = Room()
@@ -115,8 +268,38 @@ class CloudDesign:
     unit_length: float = 1.2
     levelling: bool = True
     sigma_levelling: float = DEFAULT_SIGMA_LEVELLING
+    spheres: tuple = ()
+    planar_targets: tuple = ()
+    target_step: float | None = None
+    reflectance: float = 0.5
+    beam_width: float = 1.0e-3
+    beam_divergence: float = 0.2e-3
+    intensity_noise: float = 0.01
+    dark_range_bias: float = 0.0
 
     def __post_init__(self):
+        for t in self.spheres:
+            if not isinstance(t, SphereTarget):
+                raise ValueError(f"spheres must be SphereTarget instances, got {type(t).__name__}")
+        for t in self.planar_targets:
+            if not isinstance(t, PlanarTarget):
+                raise ValueError(
+                    f"planar_targets must be PlanarTarget instances, got {type(t).__name__}"
+                )
+        object.__setattr__(self, "spheres", tuple(self.spheres))
+        object.__setattr__(self, "planar_targets", tuple(self.planar_targets))
+        if self.target_step is not None and not (0.0 < self.target_step <= self.angular_step):
+            raise ValueError(
+                f"target_step must be None or in (0, angular_step], got {self.target_step}"
+            )
+        _share(self.reflectance, "reflectance")
+        for name in ("beam_width", "beam_divergence", "intensity_noise"):
+            if not (np.isfinite(getattr(self, name)) and getattr(self, name) >= 0.0):
+                raise ValueError(f"CloudDesign.{name} must be >= 0, got {getattr(self, name)}")
+        if self.beam_width + self.beam_divergence <= 0.0:
+            raise ValueError("CloudDesign.beam_width and beam_divergence must not both be 0")
+        if not np.isfinite(self.dark_range_bias):
+            raise ValueError(f"dark_range_bias must be finite, got {self.dark_range_bias}")
         if not (0.0 < self.angular_step <= 10.0 * DEG):
             raise ValueError(
                 f"angular_step must be in (0, 10 deg], got {self.angular_step / DEG:g} deg"
@@ -148,6 +331,12 @@ class PointClouds:
     ``planes`` (k, 4) = (n_x, n_y, n_z, d) with ``n . X = d``, unit normals pointing into the
     room for its faces. ``true_aps``: name -> value (SI). ``levelling``: scan -> compensator
     observation (the mapping :func:`~tlsjax.make_network` takes) of the levelled scans.
+
+    Targets: ``intensity[j]`` (n_j,) of every point; ``target_ids[j]`` (n_j,) the target hit
+    (index into ``target_names``, -1 elsewhere; a sphere's points have plane id -1, a planar
+    target's plate is a plane ``plate1``, ``plate2``, ...); ``target_kinds`` ("sphere",
+    "checkerboard", "circle"), ``target_centres`` (t, 3) in object space, ``target_sizes``
+    (t,) the sphere radius or the plate's side [m].
     """
 
     scans: tuple
@@ -163,6 +352,37 @@ class PointClouds:
     sigma_range: float
     sigma_angle: float
     levelling: dict = dataclasses.field(default_factory=dict)
+    intensity: tuple = ()
+    target_ids: tuple = ()
+    target_names: tuple = ()
+    target_kinds: tuple = ()
+    target_centres: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))
+    target_sizes: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+
+    def target_observations(self, min_points: int = 1) -> dict:
+        """The noise-free observation of every target centre in every scan that has at least
+        ``min_points`` points on it: ``{(scan, target): (rho, theta, alpha)}``, the fixed point
+        ``l = F(X_c, EOP) + Delta(l; AP)`` of the centre (for a panoramic scanner in the face of
+        its direction), i.e. what a perfect extraction of the centre from the APs-distorted
+        cloud observes."""
+        keys, X, E = [], [], []
+        for j, ids in enumerate(self.target_ids):
+            counts = np.bincount(ids[ids >= 0], minlength=len(self.target_names))
+            for t in np.flatnonzero(counts >= min_points):
+                keys.append((self.scans[j], self.target_names[t]))
+                X.append(self.target_centres[t])
+                E.append(self.eops[j])
+        if not keys:
+            return {}
+        X, E = np.asarray(X), np.asarray(E)
+        R = np.stack([rotation_matrix(*e[3:], xp=np) for e in E])
+        hyb = spherical_from_cartesian(np.einsum("mij,mj->mi", R, X - E[:, :3]), xp=np)
+        face2 = second_face(hyb[:, 1], self.scanner.architecture)
+        names = self.scanner.aps
+        coeffs = jnp.asarray([self.true_aps[n] for n in names], dtype=jnp.float64)
+        obs = _observe_in_chunks(X, E, np.zeros_like(X), face2, coeffs, self.scanner, names)
+        obs[:, 1] = np.mod(obs[:, 1], TWO_PI)
+        return dict(zip(keys, obs))
 
     def to_table(self, max_points: int | None = None, *, seed: int = 0) -> ObservationTable:
         """The plane observations with the true plane labels, as a plane ``ObservationTable``
@@ -212,10 +432,11 @@ class PointClouds:
         rng = np.random.default_rng(seed)
         out = []
         for ids in self.plane_ids:
-            keep = np.arange(len(ids))
+            keep = np.flatnonzero(ids >= 0)  # -1: a point on a sphere target
             if max_points is not None:
                 parts = [
-                    rng.permutation(np.flatnonzero(ids == k))[:max_points] for k in np.unique(ids)
+                    rng.permutation(np.flatnonzero(ids == k))[:max_points]
+                    for k in np.unique(ids[keep])
                 ]
                 keep = np.sort(np.concatenate(parts)) if parts else keep[:0]
             out.append(keep)
@@ -355,12 +576,212 @@ def _observe_in_chunks(X, E, e, face2, coeffs, scanner, names):
     return np.concatenate(out)[:n]
 
 
+@dataclasses.dataclass(frozen=True, eq=False)
+class _Scene:
+    """Everything a ray can hit: plane patches (the room's faces, boards, target plates; arrays
+    of :func:`room_patches`), spheres, and the targets' truth."""
+
+    patches: tuple  # normal, d, origin, edge_u, edge_v
+    plane_names: tuple
+    plate_target: np.ndarray  # (k,) target index of a plate, -1 for other patches
+    sphere_centres: np.ndarray  # (q, 3)
+    sphere_radii: np.ndarray
+    sphere_reflectance: np.ndarray
+    n_spheres: int
+    planar: tuple  # PlanarTarget per planar target (targets n_spheres, n_spheres + 1, ...)
+    frames: np.ndarray  # (p, 2, 3) pattern axes of the planar targets
+    names: tuple
+    kinds: tuple
+    centres: np.ndarray  # (t, 3)
+    sizes: np.ndarray  # (t,)
+    extents: np.ndarray  # (t,) radius of the fine window around a target [m]
+
+
+def _scene(design: CloudDesign) -> _Scene:
+    plates = tuple(t.board() for t in design.planar_targets)
+    normal, d, origin, eu, ev, names = room_patches(design.room, design.boards + plates)
+    n_other = len(names) - len(plates)
+    names = names[:n_other] + tuple(f"plate{i + 1}" for i in range(len(plates)))
+    q = len(design.spheres)
+    plate_target = np.full(len(names), -1, dtype=np.int64)
+    plate_target[n_other:] = q + np.arange(len(plates))
+    kinds = ("sphere",) * q + tuple(t.pattern for t in design.planar_targets)
+    counter: dict[str, int] = {}
+    tnames = []
+    for k in kinds:
+        counter[k] = counter.get(k, 0) + 1
+        tnames.append(f"{k}{counter[k]}")
+    sph = design.spheres
+    return _Scene(
+        (normal, d, origin, eu, ev),
+        names,
+        plate_target,
+        np.array([t.centre for t in sph], dtype=np.float64).reshape(-1, 3),
+        np.array([t.radius for t in sph], dtype=np.float64),
+        np.array([t.reflectance for t in sph], dtype=np.float64),
+        q,
+        design.planar_targets,
+        np.array([t.frame() for t in design.planar_targets]).reshape(-1, 2, 3),
+        tuple(tnames),
+        kinds,
+        np.array(
+            [t.centre for t in sph] + [t.centre for t in design.planar_targets], dtype=np.float64
+        ).reshape(-1, 3),
+        np.array([t.radius for t in sph] + [t.size for t in design.planar_targets]),
+        np.array(
+            [1.6 * t.radius + 0.03 for t in sph]
+            + [0.75 * t.size + 0.03 for t in design.planar_targets]
+        ),
+    )
+
+
+def _window_directions(design: CloudDesign, scene: _Scene, eop):
+    """Fine-grid directions (theta, alpha) (m, 2) around the targets seen from ``eop``, and the
+    windows as unit axes (t, 3) and cosines of their angular radii (t,)."""
+    step = design.target_step
+    lo, hi = design.elevation_limits
+    R = rotation_matrix(*eop[3:], xp=np)
+    c = (scene.centres - eop[:3]) @ R.T
+    dist = np.linalg.norm(c, axis=1)
+    gamma = np.arcsin(np.minimum(1.0, scene.extents / dist)) + 2.0 * step
+    axes = c / dist[:, None]
+    hyb = spherical_from_cartesian(c, xp=np)
+    n_theta = int(np.floor(TWO_PI / step + 1e-9))
+    cells = []
+    for (_, th, al), g, a in zip(hyb, gamma, axes):
+        j = np.arange(
+            np.ceil((max(lo, al - g) - lo) / step), np.floor((min(hi, al + g) - lo) / step) + 1
+        )
+        cos_band = np.cos(min(np.pi / 2, abs(al) + g))
+        half = np.pi if cos_band < np.sin(g) else np.arcsin(np.sin(g) / cos_band) + step
+        i = np.arange(np.floor((th - half) / step - 0.5), np.ceil((th + half) / step - 0.5) + 1)
+        ii, jj = np.meshgrid(np.mod(i, n_theta), j, indexing="ij")
+        ii, jj = ii.ravel().astype(np.int64), jj.ravel().astype(np.int64)
+        t, e = step * (ii + 0.5), lo + step * jj
+        u = np.stack([np.cos(e) * np.cos(t), np.cos(e) * np.sin(t), np.sin(e)], axis=1)
+        inside = u @ a >= np.cos(g)
+        cells.append(np.stack([ii[inside], jj[inside]], axis=1))
+    cells = np.unique(np.concatenate(cells), axis=0) if cells else np.zeros((0, 2), np.int64)
+    dirs = np.stack([step * (cells[:, 0] + 0.5), lo + step * cells[:, 1]], axis=1)
+    return dirs, axes, np.cos(gamma)
+
+
+def _unit(grid):
+    ca = np.cos(grid[:, 1])
+    return np.stack([ca * np.cos(grid[:, 0]), ca * np.sin(grid[:, 0]), np.sin(grid[:, 1])], axis=1)
+
+
+def scan_grid(design: CloudDesign, scene: _Scene, eop) -> np.ndarray:
+    """All directions (theta, alpha) (m, 2) of one scan: the room grid of
+    :func:`scan_directions`, its directions inside a target's window replaced by the window's
+    finer grid (``target_step``)."""
+    grid = scan_directions(design)
+    if design.target_step is None or len(scene.names) == 0:
+        return grid
+    fine, axes, cos_g = _window_directions(design, scene, eop)
+    u = _unit(grid)
+    outside = np.ones(len(grid), dtype=bool)
+    for a, cg in zip(axes, cos_g):
+        outside &= u @ a < cg
+    return np.concatenate([grid[outside], fine])
+
+
+_RAYS = 1 << 16
+
+
+def render_rays(design: CloudDesign, scene: _Scene, eop, grid) -> dict:
+    """Cast the scanner-space directions ``grid`` (theta, alpha) of the scan at ``eop`` into the
+    scene. Returns, for the directions that hit something within ``max_incidence``: ``X``
+    (object space), ``plane`` (patch index, -1 on a sphere), ``target`` (-1 off targets),
+    ``incidence``, ``white`` (white share of the footprint on a plate, 1 elsewhere) and
+    ``reflectance``. Chunked, so that memory does not grow with the patches times the rays."""
+    normal, d, origin, eu, ev = scene.patches
+    R = rotation_matrix(*eop[3:], xp=np)
+    S = eop[:3]
+    parts = []
+    for a in range(0, len(grid), _RAYS):
+        D = _unit(grid[a : a + _RAYS]) @ R  # rows R^T u: object-space directions
+        t, k = cast_rays(S, D, normal, d, origin, eu, ev)
+        sphere = np.full(len(D), -1, dtype=np.int64)
+        for q, (C, r) in enumerate(zip(scene.sphere_centres, scene.sphere_radii)):
+            ts = sphere_ray_distance(D, C - S, r)
+            nearer = ts < t
+            t = np.where(nearer, ts, t)
+            sphere[nearer] = q
+        X = S + np.where(np.isfinite(t), t, 0.0)[:, None] * D
+        on_sphere = sphere >= 0
+        nrm = normal[k]
+        if on_sphere.any():
+            c = scene.sphere_centres[sphere[on_sphere]]
+            nrm[on_sphere] = (X[on_sphere] - c) / scene.sphere_radii[sphere[on_sphere], None]
+        inc = np.arccos(np.clip(np.abs(np.einsum("mi,mi->m", D, nrm)), 0.0, 1.0))
+        keep = np.isfinite(t) & (inc <= design.max_incidence)
+        plane = np.where(on_sphere, -1, k)[keep]
+        target = np.where(on_sphere, sphere, scene.plate_target[k])[keep]
+        refl = np.full(len(D), design.reflectance)
+        refl[on_sphere] = scene.sphere_reflectance[sphere[on_sphere]]
+        refl = refl[keep]
+        parts.append(
+            {"X": X[keep], "plane": plane, "target": target, "incidence": inc[keep], "refl": refl}
+        )
+    out = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+    _paint_plates(design, scene, out, S)
+    return out
+
+
+def _paint_plates(design: CloudDesign, scene: _Scene, hits: dict, station) -> None:
+    """The white share and reflectance of the points on the target plates (in place)."""
+    X, target = hits["X"], hits["target"]
+    white = np.ones(len(X))
+    for p, tgt in enumerate(scene.planar):
+        on = target == scene.n_spheres + p
+        if not on.any():
+            continue
+        rho = np.linalg.norm(X[on] - station, axis=1)
+        uv = (X[on] - np.asarray(tgt.centre)) @ scene.frames[p].T
+        blur = design.beam_width + design.beam_divergence * rho
+        if tgt.pattern == "checkerboard":
+            w = checkerboard_white(uv[:, 0], uv[:, 1], blur, xp=np)
+        else:
+            w = disc_white(uv[:, 0], uv[:, 1], tgt.circle_radius, blur, xp=np)
+        white[on] = w
+        hits["refl"][on] = tgt.dark + (tgt.bright - tgt.dark) * w
+    hits["white"] = white
+
+
+def _observe_scan(design, eop, hits, rng, coeffs, scanner, names):
+    """Observations ``l = F + Delta(l; AP) + e`` of one scan's hit points (module docstring):
+    range noise ``sigma_range sec(beta)`` plus the dark share's range bias, angular noise."""
+    X = hits["X"]
+    m = len(X)
+    R = rotation_matrix(*eop[3:], xp=np)
+    hyb = spherical_from_cartesian((X - eop[:3]) @ R.T, xp=np)
+    face2 = second_face(hyb[:, 1], design.architecture)
+    sig = np.stack(
+        [
+            design.sigma_range / np.cos(hits["incidence"]),
+            np.full(m, design.sigma_angle),
+            np.full(m, design.sigma_angle),
+        ],
+        axis=1,
+    )
+    e = rng.standard_normal(sig.shape) * sig if design.noise else np.zeros_like(sig)
+    e[:, 0] += design.dark_range_bias * (1.0 - hits["white"])
+    E = np.broadcast_to(eop, (m, 6))
+    obs = _observe_in_chunks(X, E, e, face2, coeffs, scanner, names)
+    # Full-turn wrap only (a face-2 direction near 0 pushed below zero is near 2 pi, not pi).
+    obs[:, 1] = np.mod(obs[:, 1], TWO_PI)
+    obs[:, 1] = np.where(obs[:, 1] >= TWO_PI, 0.0, obs[:, 1])
+    return obs
+
+
 def simulate_point_clouds(design: CloudDesign | None = None, *, seed: int = 0) -> PointClouds:
     """Simulate the scans of the calibration room as point clouds (SPEC section 8).
 
     Poses from :func:`tlsjax._simulate.room_scans` (two stations, three scans each; tilted
     variant with omega = -45, +45 deg). ``seed`` fixes the noise. Returns a :class:`PointClouds`
-    whose observations satisfy ``l = F + Delta(l; AP) + e`` (see the module docstring).
+    whose observations satisfy ``l = F + Delta(l; AP) + e`` (see the module docstring), with
+    the intensity of every point and the targets' truth.
     """
     design = design or CloudDesign()
     rng = np.random.default_rng(seed)
@@ -368,73 +789,51 @@ def simulate_point_clouds(design: CloudDesign | None = None, *, seed: int = 0) -
     values.update(design.true_aps or {})
     names = tuple(values)
     scanner = Scanner(architecture=design.architecture, aps=names, unit_length=design.unit_length)
-    normal, d, origin, eu, ev, plane_names = room_patches(design.room, design.boards)
+    scene = _scene(design)
     eops = room_scans(design.room, design.tilted)
-    grid = scan_directions(design)
-    ca = np.cos(grid[:, 1])
-    dirs_scanner = np.stack(
-        [ca * np.cos(grid[:, 0]), ca * np.sin(grid[:, 0]), np.sin(grid[:, 1])], axis=1
-    )
-
-    X_all, eop_all, plane_all, inc_all, scan_all = [], [], [], [], []
-    for j, eop in enumerate(eops):
-        R = rotation_matrix(*eop[3:], xp=np)
-        D = dirs_scanner @ R  # rows R^T d: object-space directions
-        t, k = cast_rays(eop[:3], D, normal, d, origin, eu, ev)
-        cosb = np.abs(np.einsum("mi,mi->m", D, normal[k]))
-        incidence = np.arccos(np.clip(cosb, 0.0, 1.0))
-        keep = np.isfinite(t) & (incidence <= design.max_incidence)
-        X_all.append(eop[:3] + t[keep, None] * D[keep])
-        eop_all.append(np.broadcast_to(eop, (int(keep.sum()), 6)))
-        plane_all.append(k[keep])
-        inc_all.append(incidence[keep])
-        scan_all.append(np.full(int(keep.sum()), j))
-    X = np.concatenate(X_all)
-    E = np.concatenate(eop_all)
-    inc = np.concatenate(inc_all)
-    si = np.concatenate(scan_all)
-
-    R_all = np.stack([rotation_matrix(*e[3:], xp=np) for e in eops])
-    x = np.einsum("mij,mj->mi", R_all[si], X - E[:, :3])
-    hyb = spherical_from_cartesian(x, xp=np)
-    face2 = (
-        hyb[:, 1] >= np.pi if design.architecture == "panoramic" else np.zeros(len(X), dtype=bool)
-    )
-    sig = np.stack(
-        [
-            design.sigma_range / np.cos(inc),
-            np.full(len(X), design.sigma_angle),
-            np.full(len(X), design.sigma_angle),
-        ],
-        axis=1,
-    )
-    e = rng.standard_normal(sig.shape) * sig if design.noise else np.zeros_like(sig)
 
     coeffs = jnp.asarray([values[n] for n in names], dtype=jnp.float64)
-    obs = _observe_in_chunks(X, E, e, face2, coeffs, scanner, names)
-    # Full-turn wrap only (a face-2 direction near 0 pushed below zero is near 2 pi, not pi).
-    obs[:, 1] = np.mod(obs[:, 1], TWO_PI)
-    obs[:, 1] = np.where(obs[:, 1] >= TWO_PI, 0.0, obs[:, 1])
+    hits = [render_rays(design, scene, eop, scan_grid(design, scene, eop)) for eop in eops]
+    # One scan at a time, so that memory follows the largest scan; the noise is drawn in the
+    # same order as for all points at once.
+    for eop, h in zip(eops, hits):
+        h["obs"] = _observe_scan(design, eop, h, rng, coeffs, scanner, names)
+    obs = np.concatenate([h["obs"] for h in hits])
+    inc = np.concatenate([h["incidence"] for h in hits])
+    X = np.concatenate([h["X"] for h in hits])
+    rho = np.concatenate([np.linalg.norm(h["X"] - e[:3], axis=1) for e, h in zip(eops, hits)])
 
     lev = (
         simulated_levelling(eops, rng, design.sigma_levelling, design.noise)
         if design.levelling
         else {}
     )
+    # Intensity from its own stream, so that the geometry of a seed does not depend on it.
+    rng_i = np.random.default_rng([seed, 33])
+    refl = np.concatenate([h["refl"] for h in hits])
+    intensity = refl * (0.25 + 0.75 * np.cos(inc)) * np.exp(-rho / 40.0)
+    if design.noise:
+        intensity = intensity + rng_i.standard_normal(len(X)) * design.intensity_noise
 
-    split = np.cumsum([len(p) for p in plane_all])[:-1]
+    split = np.cumsum([len(h["X"]) for h in hits])[:-1]
     return PointClouds(
         scans=tuple(f"S{j + 1}" for j in range(len(eops))),
         observations=tuple(np.split(obs, split)),
-        plane_ids=tuple(plane_all),
+        plane_ids=tuple(h["plane"] for h in hits),
         incidence=tuple(np.split(inc, split)),
         true_points=tuple(np.split(X, split)),
         eops=eops,
-        planes=np.concatenate([normal, d[:, None]], axis=1),
-        plane_names=plane_names,
+        planes=np.concatenate([scene.patches[0], scene.patches[1][:, None]], axis=1),
+        plane_names=scene.plane_names,
         scanner=scanner,
         true_aps=values,
         sigma_range=design.sigma_range,
         sigma_angle=design.sigma_angle,
         levelling=lev,
+        intensity=tuple(np.split(intensity, split)),
+        target_ids=tuple(h["target"] for h in hits),
+        target_names=scene.names,
+        target_kinds=scene.kinds,
+        target_centres=scene.centres,
+        target_sizes=scene.sizes,
     )

@@ -23,7 +23,7 @@ from .._adjustment._network import (
     make_network,
 )
 from .._model._aps import get_ap, resolve_aps
-from .._model._geometry import TWO_PI, rotation_matrix, spherical_from_cartesian
+from .._model._geometry import TWO_PI, rotation_matrix, second_face, spherical_from_cartesian
 from .._model._points import observe_points
 from .._model._scanner import Scanner
 from .._units import ARCSEC, DEG
@@ -217,7 +217,7 @@ def simulate(
     cosb = np.abs(np.sum(los * normals[ti], axis=1)) / np.linalg.norm(los, axis=1)
     incidence = np.arccos(np.clip(cosb, 0.0, 1.0))
     hyb = spherical_from_cartesian(x, xp=np)
-    face2 = (hyb[:, 1] >= np.pi) if architecture == "panoramic" else np.zeros(len(ti), dtype=bool)
+    face2 = second_face(hyb[:, 1], architecture)
     sig = np.stack(
         [
             sigma_range / np.cos(incidence),

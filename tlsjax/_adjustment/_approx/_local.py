@@ -14,7 +14,7 @@ import dataclasses
 
 import numpy as np
 
-from ..._model._geometry import cartesian_from_spherical
+from ..._model._geometry import cartesian_from_spherical, plane_from_moments
 from .._network import Network
 from ._config import ApproxConfig
 
@@ -62,11 +62,8 @@ def plane_fit(cnt, s1, s2, cfg: ApproxConfig):
     """PCA plane fits from moments: normal (g, 3), has_n, sigma of the normal [rad], centroid,
     sigma of the centroid across the plane [m]."""
     m = np.maximum(cnt, 1.0)
-    c = s1 / m[:, None]
-    C = s2 / m[:, None, None] - c[:, :, None] * c[:, None, :]
-    w, V = np.linalg.eigh(C)
+    n, c, w = plane_from_moments(m, s1, s2)
     w = np.clip(w, 0.0, None)
-    n = V[:, :, 0]
     has_n = (cnt >= 3) & (w[:, 1] >= cfg.min_spread**2)
     # Tilt of a PCA normal: residual variance over the points' spread along the weaker axis.
     resid = w[:, 0] * m / np.maximum(m - 3.0, 1.0)

@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..._model._geometry import kabsch as geometry_kabsch
+
 #: Correspondences the distance screen compares pairwise (its cost is quadratic in them; the
 #: scoring of hypotheses on all correspondences is linear).
 SCREEN_SIZE = 64
@@ -24,10 +26,8 @@ SCREEN_SIZE = 64
 def kabsch(u, v, w):
     """Rotation R minimising ``sum w |R u - v|^2`` (rows u, v; Horn 1987), and the ratio of
     the second to the first singular value of the cross-covariance (0: rotation undetermined)."""
-    H = (u * w[:, None]).T @ v
-    U, sv, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0])
-    return Vt.T @ D @ U.T, sv[1] / max(sv[0], 1e-300)
+    R, sv = geometry_kabsch(u, v, w, xp=np)
+    return R, sv[1] / max(sv[0], 1e-300)
 
 
 def kabsch_many(u, v):
@@ -37,7 +37,8 @@ def kabsch_many(u, v):
 
 def rotations_from_cross(H):
     """The rotations ``R = V D U^T`` of cross-covariances ``H = U S V^T`` (h, 3, 3), the
-    reflection removed (Horn 1987); all SVDs in one call."""
+    reflection removed (Horn 1987); all SVDs in one call (the batched form of
+    :func:`tlsjax._model._geometry.kabsch`, which takes one set)."""
     U, _, Vt = np.linalg.svd(H)
     V = np.swapaxes(Vt, -1, -2)
     d = np.sign(np.linalg.det(V @ np.swapaxes(U, -1, -2)))

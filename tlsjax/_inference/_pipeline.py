@@ -1,0 +1,354 @@
+"""The testing pipeline of :func:`tlsjax.calibrate_and_test`: an explicit state, the transitions
+of it that the steps share, and the compiled adjustment they re-solve (SPEC sections 5 and 7).
+
+* :class:`TestingState` (frozen) is everything a step reads and writes: the variance factors of
+  the groups, the mask of the observations in use, the targets held by a pin, the removals, the
+  latest adjustment and the last one that succeeded, the a priori tests, the history, the
+  warnings and how VCE ended. A step never changes a state in place: it returns a new one
+  (``dataclasses.replace``; arrays are copied before they change), so what a step did is its
+  return value, and an earlier state can be kept and gone back to.
+* :class:`TestingContext` (frozen) is what stays fixed during a run: the network, the options,
+  the a priori sigmas and the analysed adjustment (:class:`Reweighter`).
+* A step is a function ``step(ctx, state) -> state`` (:data:`Step`). The steps and their order
+  are listed in one place, :data:`._steps.PIPELINE`, and :func:`run_pipeline` runs them. Each
+  step reads from ``ctx.options`` whether it has work to do and otherwise returns the state it
+  was given; a new step joins by being written as such a function and put in the list.
+
+Every re-adjustment is the same compiled adjustment with other weights (traced arrays) and
+pinned targets: nothing recompiles. The weights are ``1 / (sigma sqrt(factor_g))`` for the
+observations in use and 0 for the removed ones (a mask, never a new network: shapes stay
+static).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._adjustment._calibrate import analyze
+from .._adjustment._config import CalibrationModel, SolverOptions
+from .._adjustment._network import Network
+from .._adjustment._result import CalibrationResult, assemble
+from .._model._levelling import compensator_reading
+from .._units import display_group
+from ._statistics import variance_factor
+from ._tested import GROUPS, Removal, TestingOptions, VCEResult
+
+#: Pseudo-observation sigma [m] that holds a target which lost all its testable observations
+#: at its last estimate; it carries no information about anything else (see :func:`remove`).
+PIN_SIGMA = 1.0
+#: Residual sigma of a group [m, rad, rad, rad] below which the residuals are rounding, not
+#: measurement noise (noise-free data: about 1e-15 m and 1e-16 rad in a float64 adjustment;
+#: the best scanners measure to 1e-4 m and 1e-6 rad).
+ROUNDING_SIGMA = (1e-9, 1e-11, 1e-11, 1e-11)
+
+
+class Adjusted(NamedTuple):
+    """One adjustment of the pipeline: the :class:`tlsjax.CalibrationResult`, the solver's
+    final state (its ``params`` warm-start the next adjustment) and the AP influence (n, 3, a)
+    of every target observation (external reliability)."""
+
+    result: CalibrationResult
+    solution: object
+    influence: np.ndarray
+
+
+class Reweighter:
+    """One analysed adjustment (:class:`tlsjax.Adjustment`), re-solved with other weights and
+    pinned targets; nothing recompiles."""
+
+    def __init__(self, net: Network, model: CalibrationModel, options: SolverOptions):
+        self.net, self.model, self.options = net, model, options
+        self.adjustment = analyze(net, model, options)
+        self.plan = self.adjustment.plan
+        self.params0 = self.adjustment.initial
+
+    def run(
+        self,
+        weight,
+        levelling_weight,
+        pinned: Mapping,
+        params0=None,
+        plane_weight=None,
+        fixed_aps=None,
+    ) -> Adjusted:
+        """``weight`` (n, 3) = 1/sigma or 0 (removed); ``pinned`` maps target -> xyz;
+        ``plane_weight`` (m, 3) of the plane rows (None: the network's); ``fixed_aps``: AP
+        labels held at zero (None: the model's), e.g. candidate terms of an analysed wider
+        model that are not (yet) in the model: one compiled adjustment serves both."""
+        adj = self.adjustment
+        control = {t: (xyz, PIN_SIGMA) for t, xyz in pinned.items()}
+        problem = adj.problem(
+            weights=weight,
+            levelling_weights=levelling_weight,
+            control=control,
+            plane_weights=plane_weight,
+            fixed_aps=fixed_aps,
+        )
+        state, q = adj.run(problem, params0)
+        plan = dataclasses.replace(self.plan, problem=problem)
+        res = assemble(self.net, self.model, plan, state, q)
+        infl = np.zeros((self.net.observations.shape[0], 3, plan.spec.n_aps))
+        for fi, rows in enumerate(plan.family_rows[: len(plan.family_targets)]):
+            infl[rows] = np.asarray(q.ap_influence[fi])
+        return Adjusted(res, state, infl)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class TestingContext:
+    """What stays fixed during one run of the pipeline: the network, the testing options, the
+    analysed adjustment and the a priori sigmas of the observations (n, 3) and of the
+    levelling readings (s, 2; inf where a scan is not levelled)."""
+
+    network: Network
+    options: TestingOptions
+    reweighter: Reweighter
+    base_sigma: np.ndarray
+    levelling_sigma: np.ndarray
+    levelling_active: np.ndarray
+
+    @classmethod
+    def make(cls, net: Network, model, solver: SolverOptions, options: TestingOptions):
+        lev = np.asarray(net.levelling_sigma, dtype=float)
+        return cls(
+            net,
+            options,
+            Reweighter(net, model, solver),
+            np.asarray(net.sigmas, dtype=float),
+            lev,
+            np.isfinite(lev),
+        )
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class TestingState:
+    """Everything the steps of :data:`._steps.PIPELINE` read and write (module docstring).
+
+    ``factor`` (4,): variance factors of range, hz, el and levelling (the sigmas in use are
+    ``sqrt(factor)`` times the a priori ones); ``estimated`` (4,) and ``notes``: which factors
+    VCE estimated and why the others were held. ``mask`` (n, 3): True where an observation is
+    used; ``plane_mask`` (m,): the same for plane points (for the snooping of plane points;
+    all True today). ``pinned``: target index -> xyz of the targets held at their last
+    estimate. ``removals``, ``history``, ``warnings``, ``a_priori_tests``: what the run reports.
+    ``adjusted``: the latest :class:`Adjusted` (None before the first); ``last_ok``: the last
+    successful one with its variance factors; ``params``: the estimates that warm-start the
+    next adjustment (None: the approximate values). ``removal_step`` counts rejections,
+    ``n_adjustments`` adjustments; ``critical_value`` and ``screening_critical_value`` are
+    those of the latest snooping and screening tests; ``vce_result`` and ``vce_iterations``
+    say how VCE went.
+    """
+
+    factor: np.ndarray
+    estimated: np.ndarray
+    notes: tuple
+    mask: np.ndarray
+    plane_mask: np.ndarray
+    pinned: Mapping = dataclasses.field(default_factory=dict)
+    removals: tuple = ()
+    history: tuple = ()
+    warnings: tuple = ()
+    a_priori_tests: tuple = ()
+    adjusted: Adjusted | None = None
+    last_ok: tuple | None = None
+    params: object = None
+    removal_step: int = 0
+    n_adjustments: int = 0
+    critical_value: float = float("nan")
+    screening_critical_value: float | None = None
+    vce_result: VCEResult = VCEResult.OFF
+    vce_iterations: int = 0
+
+    @classmethod
+    def initial(cls, ctx: TestingContext, critical_value: float) -> TestingState:
+        """Before the first adjustment: a priori weights, every observation used."""
+        net = ctx.network
+        return cls(
+            factor=np.ones(4),
+            estimated=np.zeros(4, dtype=bool),
+            notes=("",) * 4,
+            mask=np.ones((net.observations.shape[0], 3), dtype=bool),
+            plane_mask=np.ones(net.plane_observations.shape[0], dtype=bool),
+            critical_value=critical_value,
+            vce_result=VCEResult.CONVERGED if ctx.options.vce else VCEResult.OFF,
+        )
+
+    @property
+    def result(self) -> CalibrationResult:
+        """The latest adjustment's result."""
+        return self.adjusted.result
+
+    @property
+    def ok(self) -> bool:
+        """The latest adjustment succeeded."""
+        return self.adjusted is not None and bool(self.adjusted.result.ok)
+
+
+#: A step of the pipeline: a new state from the context and the state before it.
+Step = Callable[[TestingContext, TestingState], TestingState]
+
+
+@dataclasses.dataclass(frozen=True)
+class NamedStep:
+    """A step of the pipeline with the name it is listed (and reported) by."""
+
+    name: str
+    run: Step
+
+
+def run_pipeline(ctx: TestingContext, state: TestingState, steps) -> TestingState:
+    """Run ``steps`` (:class:`NamedStep`, in order) from ``state``."""
+    for step in steps:
+        state = step.run(ctx, state)
+    return state
+
+
+# --- Transitions the steps share ------------------------------------------------------------
+
+
+def sigmas(ctx: TestingContext, state: TestingState) -> np.ndarray:
+    """Sigmas in use (n, 3): a priori times ``sqrt(factor)`` of the group."""
+    return ctx.base_sigma * np.sqrt(state.factor[:3])[None, :]
+
+
+def levelling_sigmas(ctx: TestingContext, state: TestingState) -> np.ndarray:
+    return ctx.levelling_sigma * np.sqrt(state.factor[3])
+
+
+def adjust(ctx: TestingContext, state: TestingState) -> TestingState:
+    """Re-adjust with the state's weights (factors, mask, pins), warm-started at its
+    ``params``; a successful adjustment becomes ``last_ok`` and the next warm start (the datum,
+    inner constraints, stays the same because the S-transformation is applied to every
+    update)."""
+    w = np.where(state.mask, 1.0 / sigmas(ctx, state), 0.0)
+    lw = np.where(ctx.levelling_active, 1.0 / levelling_sigmas(ctx, state), 0.0)
+    adjusted = ctx.reweighter.run(w, lw, state.pinned, state.params)
+    changes = dict(adjusted=adjusted, n_adjustments=state.n_adjustments + 1)
+    if adjusted.result.ok:
+        changes.update(params=adjusted.solution.params, last_ok=(adjusted, state.factor.copy()))
+    return dataclasses.replace(state, **changes)
+
+
+def with_factors(state: TestingState, factor) -> TestingState:
+    """The state with other variance factors (not yet adjusted with them)."""
+    return dataclasses.replace(state, factor=np.asarray(factor, dtype=float))
+
+
+def restore_last_ok(state: TestingState) -> TestingState:
+    """Back to the last successful adjustment and its variance factors (no re-run: the same
+    weights need not converge again from another start)."""
+    adjusted, factor = state.last_ok
+    return dataclasses.replace(state, adjusted=adjusted, factor=factor)
+
+
+def add_warning(state: TestingState, text: str) -> TestingState:
+    return dataclasses.replace(state, warnings=state.warnings + (text,))
+
+
+def add_history(state: TestingState, entry: dict) -> TestingState:
+    return dataclasses.replace(state, history=state.history + (entry,))
+
+
+def group_statistics(ctx: TestingContext, state: TestingState):
+    """Per group (range, hz, el, levelling) at the latest adjustment and the weights in use:
+    the variance factor estimate ``s_g^2 = v_g^T P_g v_g / r_g`` (Förstner 1979;
+    :func:`._statistics.variance_factor`), the group redundancy ``r_g`` and the number of
+    observations used ``n_g``."""
+    res, mask = state.result, state.mask
+    e2 = np.where(mask, (res.residuals / sigmas(ctx, state)) ** 2, 0.0)
+    r = np.where(mask, res.redundancy, 0.0)
+    s2, r_g, n_g = np.ones(4), np.zeros(4), np.zeros(4, dtype=int)
+    for g in range(3):
+        s2[g], r_g[g] = variance_factor(e2[:, g], r[:, g])
+        n_g[g] = int(mask[:, g].sum())
+    active = ctx.levelling_active
+    if active.any():
+        # Levelling residuals from the compensator readings of the final poses.
+        read = np.asarray(jax.vmap(compensator_reading)(jnp.asarray(res.eops)))
+        v = read - res.network.levelling
+        sig = np.where(active, levelling_sigmas(ctx, state), 1.0)
+        e2l = np.where(active, (v / sig) ** 2, 0.0)
+        s2[3], r_g[3] = variance_factor(e2l, res.redundancy_levelling[active])
+        n_g[3] = int(active.sum())
+    return s2, r_g, n_g
+
+
+def rounding_groups(ctx: TestingContext, state: TestingState, s2) -> list:
+    """Groups whose residual sigma ``sqrt(factor s_g^2) * median sigma`` is rounding
+    (:data:`ROUNDING_SIGMA`): noise-free data."""
+    out = []
+    for g in range(4):
+        sig = ctx.base_sigma[:, g] if g < 3 else ctx.levelling_sigma[ctx.levelling_active]
+        if sig.size and np.isfinite(s2[g]) and s2[g] >= 0:
+            if np.sqrt(state.factor[g] * s2[g]) * np.median(sig) < ROUNDING_SIGMA[g]:
+                out.append(GROUPS[g])
+    return out
+
+
+def remove(ctx: TestingContext, state: TestingState, i: int, g: int, w, reason: str):
+    """Weight 0 for observation (i, g) (or the target's three with ``removal="target"``), each
+    removal reported with its residual and test statistic ``w[i, g]``. A target that the
+    removals leave without redundancy loses its other observations too and is pinned
+    (:func:`_undetermined_targets`)."""
+    step = state.removal_step + 1
+    net, res = ctx.network, state.result
+    mask = state.mask.copy()
+    cols = (0, 1, 2) if ctx.options.removal == "target" else (g,)
+    removals = []
+    for c in cols:
+        if mask[i, c]:
+            why = reason if c == g else "same target observation as the rejected one"
+            removals.append(_removal(net, res, step, i, c, float(w[i, c]), why))
+            mask[i, c] = False
+    extra, mask, pinned = _undetermined_targets(net, res, mask, state.pinned, step)
+    return dataclasses.replace(
+        state,
+        removal_step=step,
+        mask=mask,
+        pinned=pinned,
+        removals=state.removals + tuple(removals) + extra,
+    )
+
+
+def _removal(net: Network, res: CalibrationResult, step: int, i: int, c: int, w, why) -> Removal:
+    val, unit = display_group(c, res.residuals[i, c])
+    return Removal(
+        step,
+        int(i),
+        net.scans[net.scan_index[i]],
+        net.targets[net.target_index[i]],
+        GROUPS[c],
+        float(val),
+        unit,
+        w,
+        why,
+    )
+
+
+def _undetermined_targets(net: Network, res: CalibrationResult, mask, pinned: Mapping, step: int):
+    """The remaining observations of targets that the removals left without redundancy
+    (observed in fewer than two scans or by fewer than four observations), removed and
+    reported, and the targets pinned at their last estimate. Such a target would otherwise be
+    determined exactly by its last observations (nothing to test) or not at all (a rank
+    defect). Returns (removals, mask, pinned), new objects."""
+    out, mask, pinned = [], mask.copy(), dict(pinned)
+    active = mask.any(axis=1)
+    for t in np.unique(net.target_index[~mask.all(axis=1)]):
+        if int(t) in pinned:
+            continue
+        rows = np.flatnonzero(net.target_index == t)
+        n_scans = len(np.unique(net.scan_index[rows[active[rows]]]))
+        if n_scans >= 2 and int(mask[rows].sum()) >= 4:
+            continue
+        why = "target left without redundancy by the removals; held at its last estimate"
+        for i in rows:
+            for c in range(3):
+                if mask[i, c]:
+                    out.append(_removal(net, res, step, i, c, float("nan"), why))
+                    mask[i, c] = False
+        pinned[int(t)] = res.target_xyz[t].copy()
+    return tuple(out), mask, pinned

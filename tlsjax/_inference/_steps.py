@@ -1,0 +1,384 @@
+"""The named steps of :func:`tlsjax.calibrate_and_test`, and their order (:data:`PIPELINE`).
+
+Each step is ``step(ctx, state) -> state`` over the explicit :class:`._pipeline.TestingState`
+(see :mod:`._pipeline`); the statistics they call are pure functions in :mod:`._statistics`.
+
+1. **Robust start** (:func:`robust_start`): a slot, no-op today. Its place is before the first
+   least-squares adjustment: a high-breakdown registration of the scans and iteratively
+   reweighted first iterations would set ``state.params`` (the warm start) and remove gross
+   blunders (``remove``), so that the least-squares steps below start from a clean network.
+2. **A priori tests** (:func:`a_priori_tests`): the first adjustment, with the a priori
+   sigmas; the global test ``v^T P v ~ chi^2(r)`` and one test per group ``Omega_g = v_g^T P_g
+   v_g ~ chi^2(r_g)`` (the group variance-factor test JAG3D reports). A global test computed
+   after the variance factors were fitted to the same residuals cannot fail (its sigma0 is 1
+   by construction), so these are the tests of the stochastic model.
+3. **Screening** (:func:`screening`, with VCE): gross errors out before VCE (Koch 1999, sec.
+   3.8). VCE fitted to data with blunders inflates the factors until the blunders look normal
+   (a 1 m range error turns the range factor into ~5,000 and hides itself). Each group's scale
+   is estimated robustly, ``s_g = median |u_i| / 0.6745`` of ``u_i = v_i / (sigma_i sqrt(r_i))``
+   (a few blunders do not move a median), which first rebalances groups whose a priori sigmas
+   are far off; then the largest ``|u_i| / s_g`` above the family-wise critical value
+   ``N^-1(1 - alpha_s / (2 n))`` is removed and the network re-adjusted, until none is; the a
+   priori tests are repeated on the screened observations.
+4. **Variance components** (:func:`variance_components`): VCE per group, range, horizontal
+   direction, elevation angle and levelling (Förstner 1979; Koch 1999, sec. 3.6), ``s_g^2 =
+   v_g^T P_g v_g / r_g``; the group's sigmas are multiplied by ``s_g`` and the adjustment is
+   repeated until every ``s_g^2`` is 1 within tolerance. Safeguards: the iteration runs in log
+   space with a bounded step, halved where it changes sign (oscillation); a group with too
+   little redundancy is held; residuals at rounding level (noise-free data) stop it; a factor
+   beyond :data:`VCE_FACTOR_LIMIT` stops it. Every stop is a :class:`VCEResult` with its
+   reason, never a NaN; only the weights change, and they are traced arrays of the compiled
+   adjustment, so re-weighting never recompiles.
+5. **Data snooping** (:func:`data_snooping`; Baarda 1968): ``w_i = v_i / (sigma_i sqrt(r_i))``
+   with the sigmas in use (after VCE: the re-estimated group sigmas); the largest ``|w_i|``
+   above the critical value (3.29 for alpha = 0.1 %) is removed, the network re-adjusted and
+   the variance components re-estimated, until no test rejects. Every removal is reported.
+6. **Selection** (:func:`selection`): a slot, no-op today, for a step that changes the model
+   (add or drop a term) on the tested network.
+
+Where a later step competes with a removal (Baarda's alternative hypotheses, SPEC section 7:
+the score test ``T_c`` of a term missing from the model against the largest ``w_i^2``), it
+belongs in :func:`_largest_w`'s callers: both screening and snooping act on the largest
+statistic of one decision.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from ._pipeline import (
+    NamedStep,
+    TestingContext,
+    TestingState,
+    add_history,
+    add_warning,
+    adjust,
+    group_statistics,
+    remove,
+    restore_last_ok,
+    rounding_groups,
+    sigmas,
+    with_factors,
+)
+from ._statistics import (
+    bounded_log_step,
+    critical_value,
+    global_test,
+    group_variance_test,
+    implausible_factor,
+    robust_scale,
+    snooping_critical_value,
+    w_tests,
+)
+from ._tested import GROUPS, VCEResult
+
+#: Largest change of a variance factor in one VCE iteration (a factor 100 in sigma).
+VCE_MAX_STEP = np.log(1e4)
+#: Variance factors beyond this (either way; a factor 1e10 in sigma) stop VCE.
+VCE_FACTOR_LIMIT = 1e20
+#: Fewest testable observations of a group for a robust scale.
+MIN_SCREENED = 10
+#: Robust re-weighting steps that balance the groups before screening.
+ROBUST_REWEIGHTING = 4
+
+
+# --- 1. Robust start --------------------------------------------------------------------------
+
+
+def robust_start(ctx: TestingContext, state: TestingState) -> TestingState:
+    """Slot for a high-breakdown start (module docstring): nothing yet."""
+    return state
+
+
+# --- 2. A priori tests ------------------------------------------------------------------------
+
+
+def a_priori_tests(ctx: TestingContext, state: TestingState) -> TestingState:
+    """The first adjustment, with the a priori sigmas, and its global and group tests; when it
+    fails, a warning that names a far-off sigma0 (a unit mix-up of all groups)."""
+    state = adjust(ctx, state)
+    if state.ok:
+        return record_a_priori_tests(ctx, state, "all observations")
+    if np.isfinite(state.result.sigma0):
+        hint = implausible_factor("all groups", state.result.sigma0**2)
+        if hint:
+            state = add_warning(state, f"at the failed first adjustment: {hint}")
+    return state
+
+
+def record_a_priori_tests(ctx: TestingContext, state: TestingState, stage: str) -> TestingState:
+    """Global and group tests at the latest adjustment (a priori weights), as one stage."""
+    alpha = ctx.options.test_alpha
+    s2, r_g, n_g = group_statistics(ctx, state)
+    groups = {
+        g: group_variance_test(float(s2[i] * r_g[i]), float(r_g[i]), alpha)
+        for i, g in enumerate(GROUPS)
+        if n_g[i] > 0
+    }
+    res = state.result
+    entry = {"stage": stage, "global": global_test(res.sigma0, res.dof, alpha), "groups": groups}
+    return dataclasses.replace(state, a_priori_tests=state.a_priori_tests + (entry,))
+
+
+# --- 3. Screening -----------------------------------------------------------------------------
+
+
+def screening(ctx: TestingContext, state: TestingState) -> TestingState:
+    """Gross-error screening before VCE (module docstring), then the a priori tests again on
+    the screened observations. Only with ``vce`` and ``screening`` and a first adjustment that
+    succeeded."""
+    t = ctx.options
+    if not (state.ok and t.vce and t.screening):
+        return state
+    n_before = len(state.removals)
+    state = _screen(ctx, state)
+    if len(state.removals) > n_before and state.ok:
+        state = _a_priori_after_screening(ctx, state)
+    return state
+
+
+def _standardised(ctx: TestingContext, state: TestingState):
+    """``u = v / (sigma sqrt(r))`` at the weights in use (NaN where removed or untestable) and
+    each group's robust scale (NaN for a group with too few testable observations)."""
+    res = state.result
+    u = np.where(state.mask, w_tests(res.residuals, sigmas(ctx, state), res.redundancy), np.nan)
+    scale = np.full(3, np.nan)
+    for g in range(3):
+        keep = np.isfinite(u[:, g]) & (res.redundancy[:, g] >= ctx.options.min_redundancy)
+        scale[g] = robust_scale(u[:, g], keep, MIN_SCREENED)
+    return u, scale
+
+
+def _balance_groups(ctx: TestingContext, state: TestingState):
+    """Robust re-weighting before screening: a priori sigmas far off between the groups (e.g.
+    ranges in mm read as m) distort the residuals of the others; each group's factor is set to
+    its robust scale squared (bounded steps) until they agree within 10 %. Returns the state
+    and False when the residuals are at rounding level (nothing to screen)."""
+    for _ in range(ROBUST_REWEIGHTING):
+        _, scale = _standardised(ctx, state)
+        if rounding_groups(ctx, state, np.append(scale**2, np.nan)):
+            return state, False
+        ok = np.isfinite(scale) & (scale > 0)
+        step = bounded_log_step(scale, ok, VCE_MAX_STEP, power=2)
+        if np.all(np.abs(step) < np.log(1.1)):
+            return state, True
+        # Levelling (a few readings, no robust scale of its own) moves with the others.
+        step = np.append(step, step[ok].mean() if ok.any() else 0.0)
+        limit = np.log(VCE_FACTOR_LIMIT)
+        state = adjust(
+            ctx, with_factors(state, np.exp(np.clip(np.log(state.factor) + step, -limit, limit)))
+        )
+        if not state.ok:
+            return restore_last_ok(state), True
+    return state, True
+
+
+def _largest_w(w):
+    """Row, group and size of the largest finite ``|w|`` (-1 where there is none)."""
+    aw = np.where(np.isfinite(w), np.abs(w), -1.0)
+    i, g = np.unravel_index(int(np.argmax(aw)), aw.shape)
+    return int(i), int(g), float(aw[i, g])
+
+
+def _screen(ctx: TestingContext, state: TestingState) -> TestingState:
+    """Robust group scales, family-wise critical value, largest first, re-adjusting after each
+    removal; stops with a warning when more than ``screening_max_share`` would go."""
+    t = ctx.options
+    limit = max(1, int(t.screening_max_share * state.mask.sum()))
+    state, balanced = _balance_groups(ctx, state)
+    if not balanced:
+        return state  # noise-free: nothing to screen; VCE says so
+    removed = 0
+    while True:
+        u, scale = _standardised(ctx, state)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w = u / np.where(scale > 0, scale, np.nan)[None, :]
+        n_tested = int(np.isfinite(w).sum())
+        if n_tested == 0:
+            return state
+        crit = critical_value(t.screening_alpha / n_tested)
+        state = dataclasses.replace(state, screening_critical_value=crit)
+        i, g, top = _largest_w(w)
+        if top <= crit:
+            return state
+        if removed >= limit or len(state.removals) >= t.max_removals:
+            return add_warning(
+                state,
+                f"screening stopped after {removed} removal(s) with |w| = {top:.1f} still above "
+                f"{crit:.2f}: more than {100 * t.screening_max_share:.0f}% of the observations "
+                "fail; the functional model (APs, architecture) or the sigmas are wrong, not a "
+                "few blunders",
+            )
+        why = "screening before VCE: robust |w| above the family-wise critical value"
+        state = adjust(ctx, remove(ctx, state, i, g, w, why))
+        removed += 1
+        if not state.ok:
+            return state
+
+
+def _a_priori_after_screening(ctx: TestingContext, state: TestingState) -> TestingState:
+    """The a priori tests again, on the screened observations (a priori weights)."""
+    fitted = state.factor.copy()
+    state = adjust(ctx, with_factors(state, np.ones(4)))
+    if state.ok:
+        state = record_a_priori_tests(ctx, state, "after screening")
+    return adjust(ctx, with_factors(state, fitted))
+
+
+# --- 4. Variance components -------------------------------------------------------------------
+
+
+def variance_components(ctx: TestingContext, state: TestingState) -> TestingState:
+    """VCE to its fixed point or to a safeguard's stop (module docstring), when ``vce`` is on,
+    the latest adjustment succeeded and VCE has not stopped before."""
+    if state.ok and ctx.options.vce and state.vce_result == VCEResult.CONVERGED:
+        return _vce(ctx, state)
+    return state
+
+
+def _vce(ctx: TestingContext, state: TestingState) -> TestingState:
+    """Every stop leaves the state at weights whose adjustment succeeded."""
+    t = ctx.options
+    prev_step = np.zeros(4)
+    relax = np.ones(4)  # halved at every change of direction of a group's step
+    flips = 0
+    for it in range(t.vce_max_iterations):
+        s2, r_g, n_g = group_statistics(ctx, state)
+        est = (r_g >= t.vce_min_redundancy) & (n_g > 0)
+        notes = tuple(
+            f"redundancy r_g = {r_g[g]:.2f} < {t.vce_min_redundancy:g}"
+            if n_g[g] and not est[g]
+            else ""
+            for g in range(4)
+        )
+        state = dataclasses.replace(state, estimated=est, notes=notes)
+        res = state.result
+        entry = {"step": state.removal_step, "vce_iteration": it, "sigma0": res.sigma0}
+        state = add_history(state, {**entry, "factors": state.factor.tolist(), "s2": s2.tolist()})
+        if not est.any():
+            return _stop(ctx, state, VCEResult.NO_REDUNDANCY)
+        noise_free = rounding_groups(ctx, state, np.where(est, s2, np.nan))
+        if noise_free:
+            state = add_warning(
+                state, f"residuals of {', '.join(noise_free)} at rounding level: noise-free data?"
+            )
+            return _stop(ctx, state, VCEResult.NOISE_FREE, reset=True)
+        if not np.all(np.isfinite(s2[est]) & (s2[est] > 0)):
+            return _stop(ctx, state, VCEResult.NONFINITE)
+        if np.all(np.abs(s2[est] - 1.0) < t.vce_tolerance):
+            return dataclasses.replace(state, vce_result=VCEResult.CONVERGED)
+        step = bounded_log_step(s2, est, VCE_MAX_STEP)
+        flip = step * prev_step < 0
+        relax = np.where(flip, 0.5 * relax, relax)  # damp an oscillation geometrically
+        step = relax * step
+        flips += int(flip.any())
+        new = np.log(state.factor) + step
+        if np.any(np.abs(new) > np.log(VCE_FACTOR_LIMIT)):
+            g = int(np.argmax(np.abs(new)))
+            state = add_warning(
+                state,
+                f"{GROUPS[g]}: the variance factor would pass {np.exp(new[g]):.3g}, beyond "
+                f"{VCE_FACTOR_LIMIT:.0e} either way: the a priori sigmas are not plausible",
+            )
+            return _stop(ctx, state, VCEResult.FACTOR_LIMIT)
+        state = adjust(ctx, with_factors(state, np.exp(new)))
+        state = dataclasses.replace(state, vce_iterations=state.vce_iterations + 1)
+        if not state.ok:
+            return _adjustment_failed(ctx, state, est)
+        prev_step = step
+    return _stop(ctx, state, VCEResult.OSCILLATING if flips >= 3 else VCEResult.MAX_ITERATIONS)
+
+
+def _adjustment_failed(ctx: TestingContext, state: TestingState, est) -> TestingState:
+    """VCE stops where an adjustment with the new weights failed: the last weights whose
+    adjustment succeeded are kept."""
+    factors = ", ".join(f"{GROUPS[g]} {state.factor[g]:.4g}" for g in range(4) if est[g])
+    state = add_warning(
+        state,
+        f"VCE stopped: with the re-estimated weights (variance factors {factors}) the "
+        f"adjustment failed: {state.result.message}; the last weights whose adjustment "
+        "succeeded are kept",
+    )
+    return _stop(ctx, restore_last_ok(state), VCEResult.ADJUSTMENT_FAILED)
+
+
+def _stop(ctx, state: TestingState, result: VCEResult, reset: bool = False) -> TestingState:
+    """End VCE with ``result``; ``reset``: back to the a priori weights (re-adjusted)."""
+    state = dataclasses.replace(state, vce_result=result)
+    if reset and np.any(state.factor != 1.0):
+        state = adjust(ctx, with_factors(state, np.ones(4)))
+    if reset:
+        notes = (result.message.split(":")[0],) * 4
+        state = dataclasses.replace(state, estimated=np.zeros(4, dtype=bool), notes=notes)
+    return state
+
+
+# --- 5. Data snooping -------------------------------------------------------------------------
+
+
+def data_snooping(ctx: TestingContext, state: TestingState) -> TestingState:
+    """Baarda's data snooping (module docstring): one rejection at a time, each followed by a
+    re-adjustment and the variance components re-estimated. Without ``snooping`` it only
+    records the w-tests' critical value and the history line of the final adjustment."""
+    while state.ok:
+        state, removed = _snoop_once(ctx, state)
+        if not removed:
+            break
+        state = adjust(ctx, state)
+        if not state.ok:
+            break
+        state = variance_components(ctx, state)
+    return state
+
+
+def _snoop_once(ctx: TestingContext, state: TestingState):
+    """One test of every observation; (state, True) when the largest |w| was removed."""
+    t, res = ctx.options, state.result
+    w = np.where(state.mask, w_tests(res.residuals, sigmas(ctx, state), res.redundancy), np.nan)
+    n_tested = int(np.isfinite(w).sum())
+    crit = snooping_critical_value(
+        t.alpha, n_tested, bonferroni=t.bonferroni, given=t.critical_value
+    )
+    state = add_history(
+        dataclasses.replace(state, critical_value=crit),
+        {
+            "step": state.removal_step,
+            "sigma0": res.sigma0,
+            "max_abs_w": float(np.nanmax(np.abs(w))) if n_tested else None,
+            "critical": crit,
+            "factors": state.factor.tolist(),
+        },
+    )
+    if not t.snooping or n_tested == 0:
+        return state, False
+    i, g, top = _largest_w(w)
+    if top <= crit:
+        return state, False
+    if len(state.removals) >= t.max_removals:
+        text = (
+            f"snooping stopped after max_removals = {t.max_removals} with |w| = {top:.2f} "
+            f"still above {crit:.2f}"
+        )
+        return add_warning(state, text), False
+    return remove(ctx, state, i, g, w, "largest |w| above critical value"), True
+
+
+# --- 6. Selection -----------------------------------------------------------------------------
+
+
+def selection(ctx: TestingContext, state: TestingState) -> TestingState:
+    """Slot for a step that changes the model on the tested network (module docstring)."""
+    return state
+
+
+#: The steps of :func:`tlsjax.calibrate_and_test`, in order: the one place they are listed.
+PIPELINE = (
+    NamedStep("robust start", robust_start),
+    NamedStep("a priori tests", a_priori_tests),
+    NamedStep("screening", screening),
+    NamedStep("variance components", variance_components),
+    NamedStep("data snooping", data_snooping),
+    NamedStep("selection", selection),
+)
