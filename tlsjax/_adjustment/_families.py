@@ -174,9 +174,15 @@ class Family(eqx.Module):
         return self.residuals(spec, problem, params, fi, ap_jac=ap_jac), state, 0.0
 
     def state_from_rows(self, rows, state):
-        """The next state and its change from a linearisation's rows (:class:`._normal.Rows`),
-        at the same unknowns (a rejected step)."""
+        """The next state and its change from the rows (:class:`._normal.Rows`) evaluated with
+        ``state``: one update at the rows' unknowns."""
         return state, 0.0
+
+    def rows_after(self, problem, fi, rows, dp, ds, da):
+        """The rows (:class:`._normal.Rows`) moved to the end of a step ``(dp (n, p), ds (s, 6),
+        da (a,))`` to first order, ``e + J dx``, for a family with a state (whose residuals are
+        computed from the rows); the rows themselves otherwise."""
+        return rows
 
     def constraint_basis(self, P):
         """Hard constraints on the primitives in null-space form, ``E`` (n, p, p - c), or None."""
@@ -185,6 +191,12 @@ class Family(eqx.Module):
     def hard_constraints(self) -> int:
         """Number of hard constraints on the family's primitives (counted in the dof)."""
         return 0
+
+    def tangent_gradient(self, P, b):
+        """The part of a gradient ``b`` (n, p) that moves the primitives along their
+        constraint manifold (identity here). At a constrained solution the rest is the
+        constraint's reaction, which the retraction removes from every step."""
+        return b
 
     def active_rows(self):
         """Which residual rows are observations in the adjustment (weight > 0), (m, rows)."""
@@ -477,6 +489,19 @@ class PlaneFamily(Family):
             rows.e[:, 0] * jnp.sqrt(jnp.where(m > 0, m, 1.0)), rows.B, m, state
         )[1:]
 
+    def rows_after(self, problem, fi, rows, dp, ds, da):
+        """The rows with ``e + J dx`` (and the reported residual, which is e): their
+        Gauss-Helmert update (:meth:`state_from_rows`) is then ``v = -Sigma_l B^T M^-1 (A dx +
+        w)`` with A, B, w and M of the rows at the step's start, the residuals of the step in the
+        rigorous iteration (Lenzmann & Lenzmann 2004)."""
+        at = lambda v, by: self.at_rows(problem, fi, v, by)
+        Jdx = (
+            jnp.sum(rows.Jp * at(dp, "prim")[:, None, :], axis=-1)
+            + jnp.sum(rows.Js * at(ds, "scan")[:, None, :], axis=-1)
+            + rows.Ja @ da
+        )
+        return dataclasses.replace(rows, e=rows.e + Jdx, raw=rows.raw + Jdx)
+
     def _variance_from(self, B):
         """``m = B Sigma_l B^T`` of each condition."""
         return jnp.sum((B * self._sigma()) ** 2, axis=-1)
@@ -517,6 +542,14 @@ class PlaneFamily(Family):
     def _sigma(self):
         w = self.weight
         return jnp.where(w > 0, 1.0 / jnp.where(w > 0, w, 1.0), 0.0)
+
+    def tangent_gradient(self, P, b):
+        """``b`` without its component along ``(n, 0)``, the gradient of ``|n|^2``: at the
+        solution the observations pull each normal along itself with the unit-normal
+        constraint's Lagrange multiplier. A factorisation's step basis (:meth:`constraint_basis`)
+        taken at another estimate (the chord steps) would otherwise pass a share of it on."""
+        a = jnp.concatenate([P[:, :3], jnp.zeros_like(P[:, 3:])], axis=-1)
+        return b - a * (jnp.sum(a * b, axis=-1) / jnp.sum(a * a, axis=-1))[:, None]
 
     def observation_quality(self, spec, problem, params, fi, JQJ, rows):
         """Gauss-Helmert residuals ``v = -Sigma_l B^T w / m`` of the three observations (the
@@ -661,6 +694,24 @@ def state_from_rows(problem, rows, state):
     return tuple(st for st, _ in out), change
 
 
+def rows_after(problem, rows, dps, dz, n_scans: int) -> tuple:
+    """The families' rows moved to the end of the step ``(dps, dz)`` to first order
+    (:meth:`Family.rows_after`; unchanged for a family without a state)."""
+    ds, da = dz[: 6 * n_scans].reshape(n_scans, 6), dz[6 * n_scans :]
+    return tuple(
+        fam.rows_after(problem, fi, r, dp, ds, da)
+        for fi, (fam, r, dp) in enumerate(zip(problem.families, rows, dps))
+    )
+
+
+def predicted_state(problem, rows, state, dps, dz, n_scans: int) -> tuple:
+    """The families' states after the step ``(dps, dz)``, predicted from the rows at its start
+    (evaluated with ``state``): the update from the rows moved by the step (:func:`rows_after`);
+    for a Gauss-Helmert family ``v = -Sigma_l B^T M^-1 (A dx + w)``."""
+    moved = rows_after(problem, rows, dps, dz, n_scans)
+    return state_from_rows(problem, moved, state)[0]
+
+
 def settled_state(spec, problem, params, steps: int = PROJECTION_STEPS) -> tuple:
     """The families' states settled at fixed ``params``: ``steps`` updates from the initial
     state (for a Gauss-Helmert family, the residuals projected onto the conditions,
@@ -725,7 +776,7 @@ def grid_layout(fam: Family, n_scans: int) -> Layout | None:
     rows = np.where(valid, rows, first[np.arange(rows.size) // (n_scans * c)])
     pos = np.empty(m, dtype=np.int64)
     pos[order] = slot
-    return Layout(jnp.asarray(rows), jnp.asarray(valid), jnp.asarray(pos), (n, n_scans, c))
+    return Layout(rows, valid, pos, (n, n_scans, c))
 
 
 def on_grid(problem: Problem) -> Problem:
