@@ -59,6 +59,7 @@ from ._pipeline import (
     remove,
     restore_last_ok,
     rounding_groups,
+    score_tests_at,
     sigmas,
     with_factors,
 )
@@ -88,8 +89,122 @@ ROBUST_REWEIGHTING = 4
 
 
 def robust_start(ctx: TestingContext, state: TestingState) -> TestingState:
-    """Slot for a high-breakdown start (module docstring): nothing yet."""
-    return state
+    """Gross errors out before the first least-squares adjustment (module docstring, step 1):
+    iteratively reweighted adjustments with the IGG-III weight of the robustly normalised
+    residuals, first with the APs held at zero (the geometry alone: a blunder of metres stands
+    out of any systematic misfit), then with the model's APs; the observations beyond the
+    family-wise critical value at the last reweighting are removed and reported, and the
+    least-squares steps start from their estimates. On with ``screening`` and ``robust_start``."""
+    t = ctx.options
+    if not (t.screening and t.robust_start):
+        return state
+    start = state
+    labels = tuple(ctx.reweighter.plan.ap_labels)
+    # Before any step: the misclosures at the approximate values (APs at zero) set the first
+    # weights, so that the first adjustment already gives a blunder of metres no weight.
+    at_x0 = adjust(ctx, dataclasses.replace(state, fixed_aps=labels or None), max_iterations=0)
+    z, _ = _robust_normalised(ctx, at_x0)
+    factor = _igg3_factor(ctx, z, np.ones_like(ctx.base_sigma), gross=True)
+    state = dataclasses.replace(state, n_adjustments=at_x0.n_adjustments)
+    for fixed in (labels, None) if labels else (None,):
+        state = dataclasses.replace(state, fixed_aps=fixed)
+        state, factor = _reweight(ctx, state, factor, gross=fixed is not None)
+    if state.adjusted is None or not state.adjusted.result.ok:
+        # Nothing robust to go on: the least-squares steps start as before (and report).
+        return dataclasses.replace(start, n_adjustments=state.n_adjustments)
+    u, scale = _robust_normalised(ctx, state)
+    n = int(np.isfinite(u).sum())
+    k1 = critical_value(t.screening_alpha / max(n, 1))
+    state = dataclasses.replace(state, robust_factor=None, fixed_aps=None)
+    why = f"robust start: |w| / robust scale above the family-wise critical value {k1:.2f}"
+    for i, g in _beyond(u, k1):
+        if state.mask[i, g]:
+            state = remove(ctx, state, i, g, u, why)
+    return dataclasses.replace(state, last_ok=None, adjusted=None)
+
+
+#: Upper end of the IGG-III band of the stages without APs, in family-wise critical values.
+GROSS_BAND = 4.0
+#: Largest number of reweighted adjustments per stage of the robust start.
+ROBUST_ITERATIONS = 8
+#: Smallest weight factor of the robust start: small enough that a blunder of metres has no
+#: effect, large enough that its residual and redundancy number stay defined (weight 0 means
+#: removed, :mod:`tlsjax._adjustment._quality`).
+ROBUST_FLOOR = 1e-8
+
+
+def _robust_normalised(ctx: TestingContext, state: TestingState):
+    """``u_i / s_g``, NaN where removed or untestable, and the scales ``s_g`` (the robust scale
+    of each group's u's). ``u_i`` is the residual of observation i deleted from the reweighted
+    adjustment, ``d_i = v_i / r_i``, over its standard deviation ``sqrt(sigma_i^2 + q_i)``
+    (``q_i`` the variance of its prediction by the others): with weight factor ``f`` and
+    redundancy number ``r`` of the reweighted adjustment (Sherman-Morrison),
+
+        u_i = v_i sqrt(f) / (sigma_i sqrt(r) sqrt(f r + 1 - r)),
+
+    Baarda's w-test when f = 1, and for a down-weighted observation its misclosure against
+    the others in units of its full standard deviation: near the nadir, where the others fix
+    a target's horizontal direction poorly, a correct direction is not mistaken for a blunder."""
+    res = state.result
+    f = np.ones_like(ctx.base_sigma) if state.robust_factor is None else state.robust_factor
+    r = np.clip(res.redundancy, 0.0, 1.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r_full = r * (f * r + 1.0 - r) / f  # so that v / (sigma sqrt(r_full)) is u above
+    u = np.where(state.mask, w_tests(res.residuals, sigmas(ctx, state), r_full), np.nan)
+    scale = np.full(3, np.nan)
+    for g in range(3):
+        keep = np.isfinite(u[:, g]) & (res.redundancy[:, g] >= ctx.options.min_redundancy)
+        scale[g] = robust_scale(u[:, g], keep, MIN_SCREENED)
+    ok = np.isfinite(scale) & (scale > 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return u / np.where(ok, scale, np.nan)[None, :], scale
+
+
+def _reweight(ctx: TestingContext, state: TestingState, factor, gross: bool):
+    """IGG-III reweighting (Yang 1999; :func:`._robust.igg3`) to a fixed point: k0 the per-test
+    critical value of the w-test, k1 the family-wise one. Returns the state (with the weight
+    factors in use) and the factors; an adjustment that fails ends it at the last good one."""
+    for _ in range(ROBUST_ITERATIONS):
+        trial = adjust(ctx, dataclasses.replace(state, robust_factor=factor))
+        if not trial.ok:
+            return (state if state.adjusted is not None else trial), factor
+        state = trial
+        z, _ = _robust_normalised(ctx, state)
+        if not np.isfinite(z).any():
+            return state, factor
+        new = _igg3_factor(ctx, z, factor, gross)
+        done = np.max(np.abs(new - factor)) < 1e-3
+        factor = new
+        if done:
+            break
+    return state, factor
+
+
+def _igg3_factor(ctx: TestingContext, z, factor, gross: bool = False):
+    """IGG-III weight factors of the robustly normalised residuals ``z`` (k0 the per-test
+    critical value, k1 the family-wise one), at least :data:`ROBUST_FLOOR`; ``factor`` where
+    ``z`` is not finite. ``gross``: the band of the stages with the APs held at zero, from the
+    family-wise value to :data:`GROSS_BAND` times it: there the systematic misfit of the
+    missing APs widens the tails (steep targets under collimation and trunnion errors), and
+    only errors far beyond it may lose their weight, or the APs lose the observations that
+    determine them."""
+    from ._robust import igg3
+
+    t = ctx.options
+    n = max(int(np.isfinite(z).sum()), 1)
+    k0 = critical_value(t.alpha)
+    k1 = max(critical_value(t.screening_alpha / n), k0 + 0.5)
+    if gross:
+        k0, k1 = k1, GROSS_BAND * k1
+    return np.where(np.isfinite(z), np.maximum(igg3(z, k0, k1), ROBUST_FLOOR), factor)
+
+
+def _beyond(z, k):
+    """(row, group) of every finite ``|z| > k``, largest first."""
+    az = np.where(np.isfinite(z), np.abs(z), -1.0)
+    idx = np.argwhere(az > k)
+    order = np.argsort(-az[idx[:, 0], idx[:, 1]]) if len(idx) else []
+    return [(int(idx[j, 0]), int(idx[j, 1])) for j in order]
 
 
 # --- 2. A priori tests ------------------------------------------------------------------------
@@ -127,15 +242,18 @@ def record_a_priori_tests(ctx: TestingContext, state: TestingState, stage: str) 
 
 def screening(ctx: TestingContext, state: TestingState) -> TestingState:
     """Gross-error screening before VCE (module docstring), then the a priori tests again on
-    the screened observations. Only with ``vce`` and ``screening`` and a first adjustment that
-    succeeded."""
+    the screened observations. With ``screening`` (any weighting: without ``vce`` the robust
+    group balancing is undone afterwards and the a priori sigmas kept) and a first adjustment
+    that succeeded."""
     t = ctx.options
-    if not (state.ok and t.vce and t.screening):
+    if not (state.ok and t.screening):
         return state
     n_before = len(state.removals)
     state = _screen(ctx, state)
     if len(state.removals) > n_before and state.ok:
         state = _a_priori_after_screening(ctx, state)
+    if not t.vce and np.any(state.factor != 1.0):
+        state = adjust(ctx, with_factors(state, np.ones(4)))
     return state
 
 
@@ -203,6 +321,9 @@ def _screen(ctx: TestingContext, state: TestingState) -> TestingState:
         i, g, top = _largest_w(w)
         if top <= crit:
             return state
+        term = _systematic(ctx, state, u[i, g])
+        if term is not None:
+            return add_warning(state, term)
         if removed >= limit or len(state.removals) >= t.max_removals:
             return add_warning(
                 state,
@@ -216,6 +337,24 @@ def _screen(ctx: TestingContext, state: TestingState) -> TestingState:
         removed += 1
         if not state.ok:
             return state
+
+
+def _systematic(ctx: TestingContext, state: TestingState, u_top: float) -> str | None:
+    """Baarda's alternative hypotheses compared (SPEC section 7): the reduction of ``v^T P v``
+    by removing the observation with the largest w-test, ``w^2``, against the largest score
+    statistic ``T_c`` of a candidate term (:mod:`._score`), both with the weights in use. When a
+    significant term explains more, the misfit is systematic: screening stops (a warning
+    names the term) instead of removing correct observations."""
+    tests = score_tests_at(ctx, state) if ctx.options.score_tests else None
+    best = tests.best() if tests is not None else None
+    if best is None or not best.significant or not best.statistic > u_top**2:
+        return None
+    return (
+        f"screening stopped: the largest misfit is systematic, not a blunder: the term "
+        f"{best.name} ({best.group}) would reduce v^T P v by {best.statistic:.1f} "
+        f"({100 * best.share:.1f}%), more than removing the observation with the largest w-test "
+        f"(w^2 = {u_top**2:.1f}); add it to the model (or use stepwise selection)"
+    )
 
 
 def _a_priori_after_screening(ctx: TestingContext, state: TestingState) -> TestingState:
@@ -369,8 +508,20 @@ def _snoop_once(ctx: TestingContext, state: TestingState):
 
 
 def selection(ctx: TestingContext, state: TestingState) -> TestingState:
-    """Slot for a step that changes the model on the tested network (module docstring)."""
+    """Slot for a step that changes the model on the tested network (module docstring);
+    stepwise selection (:func:`tlsjax.select_aps`) runs outside, on the screened observations."""
     return state
+
+
+# --- 7. Score tests of the missing terms ------------------------------------------------------
+
+
+def missing_terms(ctx: TestingContext, state: TestingState) -> TestingState:
+    """The score test of every candidate term not in the model at the final adjustment
+    (:mod:`._score`), with ``score_tests``."""
+    if not ctx.options.score_tests:
+        return state
+    return dataclasses.replace(state, score_tests=score_tests_at(ctx, state))
 
 
 #: The steps of :func:`tlsjax.calibrate_and_test`, in order: the one place they are listed.
@@ -381,4 +532,5 @@ PIPELINE = (
     NamedStep("variance components", variance_components),
     NamedStep("data snooping", data_snooping),
     NamedStep("selection", selection),
+    NamedStep("missing terms", missing_terms),
 )

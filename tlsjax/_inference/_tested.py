@@ -30,7 +30,11 @@ class TestingOptions:
     ``vce``: estimate one variance factor per group (point-based networks). ``vce_tolerance``:
     stop when every ``|s_g^2 - 1|`` is below it; ``vce_min_redundancy``: a group with a smaller
     redundancy keeps its a priori sigma (its estimate would be mostly noise).
-    ``screening``: with ``vce``, remove gross errors before VCE (robust group scales,
+    ``robust_start``: before the least-squares steps, iteratively reweighted adjustments with a
+    redescending weight (:func:`tlsjax._inference._steps.robust_start`) find and remove gross
+    errors (metres, swapped names, a target in the wrong scan) that a first least-squares
+    adjustment would spread over correct observations; on whenever ``screening`` is.
+    ``screening``: remove gross errors before VCE and snooping, for any weighting (robust group scales,
     family-wise level ``screening_alpha``, Bonferroni over the tested observations: a clean
     network loses an observation with probability ``screening_alpha``); it stops when more than
     ``screening_max_share`` of the observations would go (then the model, not a few blunders,
@@ -46,7 +50,10 @@ class TestingOptions:
     the target in that scan). ``alpha0``, ``power``: reliability (delta0 = 4.13).
     ``min_redundancy``: observations with a smaller redundancy number are flagged uncontrolled.
     ``ap_alpha``: significance level of the AP t-tests; ``test_alpha``: level of the global and
-    group tests.
+    group tests. ``score_tests``: after the last adjustment, the score test of every candidate
+    term not in the model (``candidates``, default every registered term of the model's naming;
+    :mod:`._score`), family-wise level ``score_alpha``; screening compares them with the
+    largest w-test (SPEC section 7) so that a systematic misfit is named, not removed.
     """
 
     vce: bool = True
@@ -67,11 +74,15 @@ class TestingOptions:
     min_redundancy: float = 0.1
     ap_alpha: float = 0.05
     test_alpha: float = 0.05
+    robust_start: bool = True
+    score_tests: bool = True
+    score_alpha: float = 0.05
+    candidates: tuple | None = None
 
     def __post_init__(self):
         if self.removal not in REMOVAL_UNITS:
             raise ValueError(f"removal must be one of {REMOVAL_UNITS}, got {self.removal!r}")
-        for name in ("alpha", "screening_alpha", "test_alpha"):
+        for name in ("alpha", "screening_alpha", "test_alpha", "score_alpha"):
             if not 0 < getattr(self, name) < 1:
                 raise ValueError(f"{name} must be in (0, 1), got {getattr(self, name)}")
         if self.critical_value is not None and not self.critical_value > 0:
@@ -224,6 +235,7 @@ class TestedCalibration:
     vce_iterations: int = 0
     screening_critical_value: float | None = None
     warnings: tuple = ()
+    score_tests: object = None  # ._score.ScoreTests, or None (off, failed or several scanners)
 
     @property
     def ok(self) -> bool:
@@ -257,7 +269,11 @@ class TestedCalibration:
             },
             "a_priori_tests": list(self.a_priori_tests),
             "screening": {
-                "enabled": bool(self.options.vce and self.options.screening),
+                "enabled": bool(self.options.screening),
+                "robust_start": bool(self.options.screening and self.options.robust_start),
+                "n_removed_robust_start": sum(
+                    o.reason.startswith("robust start") for o in self.outliers
+                ),
                 "critical_value": self.screening_critical_value,
                 "family_alpha": self.options.screening_alpha,
                 "n_removed": sum(o.reason.startswith("screening") for o in self.outliers),
@@ -277,6 +293,8 @@ class TestedCalibration:
             "warnings": list(self.warnings),
             "testing_message": self.message,
         }
+        if self.score_tests is not None:
+            out["score_tests"] = self.score_tests.as_json()
         if self.a_priori_tests and self.weights_fitted:
             out["global_test"] = {**self.a_priori_tests[-1]["global"], "stage": "a priori"}
             out["global_test_after_vce"] = {
@@ -321,7 +339,9 @@ class TestedCalibration:
             )
         for w in self.warnings:
             lines.append(f"warning: {w}")
-        for t in self.ap_tests:
+        if self.score_tests is not None:
+            lines.append(self.score_tests.summary())
+        for t in self.ap_tests if self.calibration.ok else ():
             lines.append(
                 f"  {t.name}: t = {t.t:.2f} ({'significant' if t.significant else 'not significant'} at |t| > {t.critical:.2f})"
             )

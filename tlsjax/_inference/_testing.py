@@ -124,7 +124,7 @@ def tested_calibration(ctx: TestingContext, state: TestingState) -> TestedCalibr
         external=ext,
         external_ap=ext_ap,
         uncontrolled=unc,
-        ap_tests=ap_t_tests(res, t.ap_alpha),
+        ap_tests=ap_t_tests(res, t.ap_alpha) if res.ok else (),
         pinned_targets=tuple(ctx.network.targets[i] for i in state.pinned),
         history=state.history,
         n_adjustments=state.n_adjustments,
@@ -134,6 +134,7 @@ def tested_calibration(ctx: TestingContext, state: TestingState) -> TestedCalibr
         vce_iterations=state.vce_iterations,
         screening_critical_value=state.screening_critical_value,
         warnings=warnings,
+        score_tests=state.score_tests,
     )
 
 
