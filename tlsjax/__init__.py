@@ -73,6 +73,9 @@ from ._inference._compat import compatibility_test as compatibility_test
 from ._inference._robust import PlaneScreening as PlaneScreening
 from ._inference._robust import PlaneScreeningOptions as PlaneScreeningOptions
 from ._inference._robust import screen_planes as screen_planes
+from ._inference._score import ScoreTest as ScoreTest
+from ._inference._score import ScoreTests as ScoreTests
+from ._inference._score import score_tests as score_tests
 from ._inference._selection import SelectionOptions as SelectionOptions
 from ._inference._selection import SelectionResult as SelectionResult
 from ._inference._selection import select_aps as select_aps

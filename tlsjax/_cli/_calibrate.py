@@ -82,10 +82,13 @@ def add_calibrate_parser(sub):
         "--screen",
         action=argparse.BooleanOptionalAction,
         default=True,
-        help="with VCE, remove gross errors before it (robust group scales, family-wise level "
-        "--screen-alpha); default on: VCE on data with blunders inflates the factors until the "
-        "blunders look normal. With planes: screen the plane points (IGG-III reweighting, "
-        "family-wise removal, then the a priori weights)",
+        help="remove gross errors before the least-squares tests, for any weighting (with or "
+        "without --vce): a robust start (IGG-III reweighting from the misclosures at the "
+        "approximate values) and screening (robust group scales, family-wise level "
+        "--screen-alpha), both attributed to the observation holding the error; with --select "
+        "the selection runs on the screened observations. Default on; --no-screen turns it off. "
+        "With planes: screen the plane points (IGG-III reweighting, family-wise removal, then "
+        "the a priori weights)",
     )
     c.add_argument(
         "--screen-alpha",
@@ -209,12 +212,14 @@ def _calibrate(args) -> int:
         model, scanner = _select(args, net, model, scanner, extra)
     if net.has_planes and (args.screen or args.snoop):
         res = _screen(net, model, solver, extra)
-    elif args.vce or args.snoop:
+    elif args.vce or args.snoop or args.screen:
         tested = _test(args, net, model, solver)
         res, mask, mdb = tested.calibration, tested.mask, tested.mdb
         extra.update(tested.json_fields())
     else:
         res = calibrate(net, model, solver)
+    if tested is None:
+        _missing_terms(net, model, solver, res, extra)
     print(f"({time.perf_counter() - t0:.2f} s)")
     report(res, after_vce=tested is not None and tested.weights_fitted)
     extra.update(_report_fields(res, scanner, args, mask, mdb))
@@ -284,6 +289,19 @@ def _select(args, net, model, scanner, extra):
     scanner = dataclasses.replace(scanner, aps=tuple(sel.aps))
     extra["selection"] = {"aps": list(sel.aps), "n_fits": sel.n_fits}
     return dataclasses.replace(model, scanner=scanner), scanner
+
+
+def _missing_terms(net, model, solver, res, extra):
+    """Score tests of the terms missing from the model (tj.score_tests), printed and in the
+    JSON's ``score_tests``; none for a failed adjustment or several instruments."""
+    from .._inference._score import score_tests
+    from .._model._scanner import Scanner
+
+    if not (res.ok and isinstance(model.scanner, Scanner)):
+        return
+    tests = score_tests(net, model, res, solver=solver)
+    print(tests.summary())
+    extra["score_tests"] = tests.as_json()
 
 
 def _screen(net, model, solver, extra):

@@ -286,6 +286,32 @@ def score_tests_at(ctx: TestingContext, state: TestingState):
     )
 
 
+#: Share of ``v^T P v`` above which one observation is said to dominate the misfit.
+DOMINANT_SHARE = 0.5
+
+
+def dominant_misfit(ctx: TestingContext, state: TestingState) -> str | None:
+    """A sentence naming the observation that holds more than :data:`DOMINANT_SHARE` of its
+    group's misfit ``sum (v_i / sigma_i)^2`` at the latest adjustment (a gross error: then a
+    far-off variance factor says nothing about the units), or None."""
+    res = state.result
+    e2 = np.where(state.mask, (res.residuals / sigmas(ctx, state)) ** 2, 0.0)
+    e2 = np.where(np.isfinite(e2), e2, 0.0)
+    i, g = np.unravel_index(int(np.argmax(e2)), e2.shape)
+    total = float(e2[:, g].sum())
+    share = float(e2[i, g]) / total if total > 0 else 0.0
+    if share <= DOMINANT_SHARE:
+        return None
+    net = ctx.network
+    val, unit = display_group(int(g), res.residuals[i, g])
+    return (
+        f"one observation holds {100 * share:.0f}% of the {GROUPS[g]} misfit: {GROUPS[g]} of target "
+        f"{net.targets[net.target_index[i]]} in scan {net.scans[net.scan_index[i]]} (residual "
+        f"{val:.4g} {unit}, {np.sqrt(e2[i, g]):.3g} sigma): a gross error in that observation, "
+        "not wrong units or sigmas"
+    )
+
+
 def with_factors(state: TestingState, factor) -> TestingState:
     """The state with other variance factors (not yet adjusted with them)."""
     return dataclasses.replace(state, factor=np.asarray(factor, dtype=float))

@@ -176,7 +176,6 @@ class ScoreTester:
         self.adjustment = analyze(network, wide, solver or SolverOptions(full_covariance=False))
         labels = self.adjustment.plan.ap_labels
         self.model_index = np.array([labels.index(a) for a in scanner.aps], dtype=int)
-        self.cand_index = np.array([labels.index(c) for c in self.candidates], dtype=int)
 
     def __call__(
         self,
@@ -191,8 +190,7 @@ class ScoreTester:
         """``params``: the model's estimates (its :class:`Params`, APs in the model's order);
         the weights as :meth:`tlsjax.Adjustment.problem` takes them (None: the network's)."""
         adj = self.adjustment
-        spec = adj.plan.spec
-        aps = np.zeros(spec.n_aps)
+        aps = np.zeros(adj.plan.spec.n_aps)
         aps[self.model_index] = np.asarray(params.aps)
         wide = Params(params.prims, params.eops, jnp.asarray(aps))
         problem = adj.problem(
@@ -202,14 +200,22 @@ class ScoreTester:
             control=control,
             fixed_aps=adj.model.fixed_aps,
         )
-        K, rhs, vtpv, nzz = _score_system(
-            spec, problem, wide, jnp.asarray(adj.options.rank_tolerance, dtype=jnp.float64)
-        )
-        free = ~np.asarray(problem.fixed)
-        return _tests(
-            np.asarray(K), np.asarray(rhs), float(vtpv), np.asarray(nzz), free, self.candidates,
-            self.cand_index, 6 * spec.n_scans, alpha, float(adj.options.rank_tolerance),
-        )  # fmt: skip
+        return tests_in(adj, problem, wide, self.candidates, alpha)
+
+
+def tests_in(adjustment, problem, params, names, alpha: float) -> ScoreTests:
+    """Score tests of the terms ``names`` of an analysed ``adjustment`` whose ``problem`` holds
+    them at zero, at its solution ``params`` (a :class:`Params` of that adjustment): what
+    stepwise selection asks of its one wide adjustment, and :class:`ScoreTester` of its own."""
+    spec, tol = adjustment.plan.spec, float(adjustment.options.rank_tolerance)
+    labels = adjustment.plan.ap_labels
+    K, rhs, vtpv, nzz = _score_system(spec, problem, params, jnp.asarray(tol, dtype=jnp.float64))
+    free = ~np.asarray(problem.fixed)
+    idx = np.array([labels.index(n) for n in names], dtype=int)
+    return _tests(
+        np.asarray(K), np.asarray(rhs), float(vtpv), np.asarray(nzz), free, tuple(names), idx,
+        6 * spec.n_scans, alpha, tol,
+    )  # fmt: skip
 
 
 def _tests(K, rhs, vtpv, nzz, free, names, cand_index, n_pose, alpha, tol) -> ScoreTests:

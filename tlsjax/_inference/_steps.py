@@ -55,6 +55,7 @@ from ._pipeline import (
     add_history,
     add_warning,
     adjust,
+    dominant_misfit,
     group_statistics,
     remove,
     restore_last_ok,
@@ -115,11 +116,27 @@ def robust_start(ctx: TestingContext, state: TestingState) -> TestingState:
     u, scale = _robust_normalised(ctx, state)
     n = int(np.isfinite(u).sum())
     k1 = critical_value(t.screening_alpha / max(n, 1))
+    # Baarda's alternatives compared (SPEC section 7): where a missing term explains more of
+    # the misfit than removing an observation would, that observation stays (the tails of a
+    # systematic misfit are not blunders); the term is named by the score tests at the end.
+    tests = score_tests_at(ctx, state) if t.score_tests else None
+    best = tests.best() if tests is not None else None
+    floor = best.statistic if best is not None and best.significant else 0.0
     state = dataclasses.replace(state, robust_factor=None, fixed_aps=None)
     why = f"robust start: |w| / robust scale above the family-wise critical value {k1:.2f}"
+    kept = 0
     for i, g in _beyond(u, k1):
-        if state.mask[i, g]:
+        if u[i, g] ** 2 * scale[g] ** 2 <= floor:
+            kept += 1
+        elif state.mask[i, g]:
             state = remove(ctx, state, i, g, u, why)
+    if kept:
+        state = add_warning(
+            state,
+            f"robust start: {kept} observation(s) beyond {k1:.2f} kept: the term {best.name} "
+            f"({best.group}) explains more of the misfit (T = {best.statistic:.1f}) than "
+            "removing any of them would",
+        )
     return dataclasses.replace(state, last_ok=None, adjusted=None)
 
 
@@ -216,6 +233,9 @@ def a_priori_tests(ctx: TestingContext, state: TestingState) -> TestingState:
     state = adjust(ctx, state)
     if state.ok:
         return record_a_priori_tests(ctx, state, "all observations")
+    dominant = dominant_misfit(ctx, state)
+    if dominant:
+        return add_warning(state, f"at the failed first adjustment: {dominant}")
     if np.isfinite(state.result.sigma0):
         hint = implausible_factor("all groups", state.result.sigma0**2)
         if hint:

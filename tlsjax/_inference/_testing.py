@@ -23,7 +23,14 @@ from .._adjustment._config import CalibrationModel, SolverOptions
 from .._adjustment._network import Network, check_calibration_arguments
 from .._adjustment._quality import minimal_detectable_bias
 from .._stats import non_centrality
-from ._pipeline import TestingContext, TestingState, group_statistics, run_pipeline, sigmas
+from ._pipeline import (
+    TestingContext,
+    TestingState,
+    dominant_misfit,
+    group_statistics,
+    run_pipeline,
+    sigmas,
+)
 from ._statistics import (
     ap_t_tests,
     external_reliability,
@@ -103,7 +110,12 @@ def tested_calibration(ctx: TestingContext, state: TestingState) -> TestedCalibr
         (int(i), GROUPS[g]) for i, g in zip(*np.nonzero(mask & (res.redundancy < t.min_redundancy)))
     )
     vcs = _variance_components(ctx, state)
-    warnings = state.warnings + _factor_warnings(state, vcs, vce_result)
+    dominant = dominant_misfit(ctx, state) if state.adjusted is not None else None
+    warnings = state.warnings + (
+        () if dominant else _factor_warnings(state, vcs, vce_result)
+    )  # one observation holding the misfit says nothing about the units
+    if dominant and not any(dominant in w for w in warnings):
+        warnings += (dominant,)
     parts = [res.message]
     if t.vce:
         parts.append(vce_result.message)
