@@ -3,23 +3,31 @@
 Each step is ``step(ctx, state) -> state`` over the explicit :class:`._pipeline.TestingState`
 (see :mod:`._pipeline`); the statistics they call are pure functions in :mod:`._statistics`.
 
-1. **Robust start** (:func:`robust_start`): a slot, no-op today. Its place is before the first
-   least-squares adjustment: a high-breakdown registration of the scans and iteratively
-   reweighted first iterations would set ``state.params`` (the warm start) and remove gross
-   blunders (``remove``), so that the least-squares steps below start from a clean network.
+1. **Robust start** (:func:`robust_start`, with ``screening`` and ``robust_start``): gross
+   errors out before the first least-squares adjustment, which would spread a blunder of
+   metres over correct observations (or not converge). The misclosures at the approximate
+   values give the first IGG-III weights (Yang 1999); iteratively reweighted adjustments
+   follow, first with the APs held at zero (a wide band: only errors far beyond the systematic
+   misfit lose weight), then with the model's APs. The statistic is each observation's deleted
+   residual over its standard deviation, divided by the group's robust scale. Observations
+   beyond the family-wise critical value at the end are removed (attributed to the observation
+   holding the error), unless a missing term's score test explains more; the least-squares
+   steps start from its estimates.
 2. **A priori tests** (:func:`a_priori_tests`): the first adjustment, with the a priori
    sigmas; the global test ``v^T P v ~ chi^2(r)`` and one test per group ``Omega_g = v_g^T P_g
    v_g ~ chi^2(r_g)`` (the group variance-factor test JAG3D reports). A global test computed
    after the variance factors were fitted to the same residuals cannot fail (its sigma0 is 1
    by construction), so these are the tests of the stochastic model.
-3. **Screening** (:func:`screening`, with VCE): gross errors out before VCE (Koch 1999, sec.
-   3.8). VCE fitted to data with blunders inflates the factors until the blunders look normal
-   (a 1 m range error turns the range factor into ~5,000 and hides itself). Each group's scale
-   is estimated robustly, ``s_g = median |u_i| / 0.6745`` of ``u_i = v_i / (sigma_i sqrt(r_i))``
-   (a few blunders do not move a median), which first rebalances groups whose a priori sigmas
-   are far off; then the largest ``|u_i| / s_g`` above the family-wise critical value
-   ``N^-1(1 - alpha_s / (2 n))`` is removed and the network re-adjusted, until none is; the a
-   priori tests are repeated on the screened observations.
+3. **Screening** (:func:`screening`, for any weighting): gross errors out before VCE (Koch
+   1999, sec. 3.8). VCE fitted to data with blunders inflates the factors until the blunders
+   look normal (a 1 m range error turns the range factor into ~5,000 and hides itself). Each
+   group's scale is estimated robustly, ``s_g = median |u_i| / 0.6745`` of ``u_i = v_i /
+   (sigma_i sqrt(r_i))`` (a few blunders do not move a median), which first rebalances groups
+   whose a priori sigmas are far off (undone afterwards without VCE); then the largest
+   ``|u_i| / s_g`` above the family-wise critical value ``N^-1(1 - alpha_s / (2 n))`` is
+   removed and the network re-adjusted, until none is, or until a candidate term's score
+   statistic exceeds ``u_i^2`` (:func:`_systematic`: the misfit is systematic, and a warning
+   names the term); the a priori tests are repeated on the screened observations.
 4. **Variance components** (:func:`variance_components`): VCE per group, range, horizontal
    direction, elevation angle and levelling (Förstner 1979; Koch 1999, sec. 3.6), ``s_g^2 =
    v_g^T P_g v_g / r_g``; the group's sigmas are multiplied by ``s_g`` and the adjustment is
@@ -33,13 +41,16 @@ Each step is ``step(ctx, state) -> state`` over the explicit :class:`._pipeline.
    with the sigmas in use (after VCE: the re-estimated group sigmas); the largest ``|w_i|``
    above the critical value (3.29 for alpha = 0.1 %) is removed, the network re-adjusted and
    the variance components re-estimated, until no test rejects. Every removal is reported.
-6. **Selection** (:func:`selection`): a slot, no-op today, for a step that changes the model
-   (add or drop a term) on the tested network.
+6. **Selection** (:func:`selection`): a slot for a step that changes the model on the tested
+   network; stepwise selection (:func:`tlsjax.select_aps`) runs the robust start and screening
+   itself and enters terms by their score tests.
+7. **Missing terms** (:func:`missing_terms`): the score test of every candidate term not in
+   the model at the final adjustment (:mod:`._score`).
 
-Where a later step competes with a removal (Baarda's alternative hypotheses, SPEC section 7:
-the score test ``T_c`` of a term missing from the model against the largest ``w_i^2``), it
-belongs in :func:`_largest_w`'s callers: both screening and snooping act on the largest
-statistic of one decision.
+Both screening and the robust start weigh a removal against the candidate terms (Baarda's
+alternative hypotheses, SPEC section 7: the score test ``T_c`` of a term missing from the model
+against the largest ``w_i^2``), so a systematic misfit becomes a term and only an isolated one
+a removal.
 """
 
 from __future__ import annotations
@@ -232,7 +243,9 @@ def a_priori_tests(ctx: TestingContext, state: TestingState) -> TestingState:
     fails, a warning that names a far-off sigma0 (a unit mix-up of all groups)."""
     state = adjust(ctx, state)
     if state.ok:
-        return record_a_priori_tests(ctx, state, "all observations")
+        n = len(state.removals)
+        stage = f"after the robust start ({n} removed)" if n else "all observations"
+        return record_a_priori_tests(ctx, state, stage)
     dominant = dominant_misfit(ctx, state)
     if dominant:
         return add_warning(state, f"at the failed first adjustment: {dominant}")

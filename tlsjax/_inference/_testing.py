@@ -53,9 +53,12 @@ def calibrate_and_test(
     """Self-calibration with a priori tests, gross-error screening, variance component
     estimation, Baarda data snooping, reliability and AP t-tests (SPEC sections 5 and 7).
 
-    Order (:data:`tlsjax._inference._steps.PIPELINE`): adjust with the a priori sigmas and test
-    them (global test and one test per group); with ``testing.vce`` screen out gross errors
-    (robust group scales, family-wise level) and then re-estimate the group variance factors
+    Order (:data:`tlsjax._inference._steps.PIPELINE`): with ``testing.screening`` (any
+    weighting) a robust start removes gross errors before the first least-squares adjustment
+    (IGG-III reweighting from the misclosures at the approximate values); adjust with the a
+    priori sigmas and test them (global test and one test per group); screen out gross errors
+    (robust group scales, family-wise level; a removal is weighed against the score tests of the
+    missing terms); with ``testing.vce`` re-estimate the group variance factors
     ``s_g^2 = v_g^T P_g v_g / r_g`` (Förstner 1979) until all are 1 within ``vce_tolerance``,
     or until a safeguard stops it with a :class:`VCEResult` and its reason; with
     ``testing.snooping`` compute ``w_i = v_i / (sigma_i sqrt(r_i))`` (Baarda 1968), give the
@@ -64,8 +67,9 @@ def calibrate_and_test(
     repeat. A target left with observations in fewer than two scans (or fewer than four
     observations) can no longer be checked: its remaining observations are removed too, it is
     held at its last estimate by a weak pseudo-observation (no rank defect, no effect on the
-    rest), and this is reported. Weights are traced arrays of the compiled adjustment: nothing
-    recompiles.
+    rest), and this is reported. Last, with ``testing.score_tests``, the score test of every
+    candidate term not in the model (:func:`tlsjax.score_tests`). Weights are traced arrays of
+    the compiled adjustment: nothing recompiles.
     """
     check_calibration_arguments(network, model, options, "calibrate_and_test")
     if testing is not None and not isinstance(testing, TestingOptions):
