@@ -399,3 +399,18 @@ def test_screening_without_vce_and_score_tests_on_every_path(simulated, tmp_path
     js = load_strict(off)
     assert js["outliers"] == [] and "score_tests" in js
     assert "missing terms (score tests" in printed
+
+
+def test_select_with_a_gross_error_ends_as_on_the_clean_file(simulated, tmp_path, capsys):
+    d, obs, scans, _ = simulated
+    bad = _edit(obs, tmp_path / "bad.csv", {(30, 2): lambda v: repr(float(v) + 2.0)})
+    chosen = []
+    for name, path in (("clean", obs), ("bad", bad)):
+        out = tmp_path / f"{name}.json"
+        args = ["calibrate", str(path), "--scans", str(scans), "--aps", "A0 B6 C0", "--select"]
+        assert main([*args, "--select-candidates", "A3 B7 C2", "--json", str(out)]) == 0
+        js = load_strict(out)
+        chosen.append(set(js["selection"]["aps"]))
+        assert js["selection"]["n_screened"] == (name == "bad")
+    assert chosen[0] == chosen[1] == {"A0", "B6", "B7", "C0"}
+    assert "largest score statistic" in capsys.readouterr().out

@@ -122,7 +122,8 @@ def add_calibrate_parser(sub):
     c.add_argument(
         "--select",
         action="store_true",
-        help="stepwise AP selection starting from --aps, adding from --select-candidates",
+        help="stepwise AP selection starting from --aps, adding from --select-candidates by "
+        "their score tests, on the observations the robust start and screening keep",
     )
     c.add_argument(
         "--select-candidates", default="chow2013-noscale", help="candidate terms (names or presets)"
@@ -137,7 +138,8 @@ def add_calibrate_parser(sub):
         "--max-correlation",
         type=float,
         default=0.9,
-        help="a candidate more correlated than this with the model is not added (default 0.9)",
+        help="a term entered with a larger correlation with another unknown is reported as "
+        "such in its selection step (default 0.9)",
     )
     c.add_argument(
         "--targets-out",
@@ -282,12 +284,24 @@ def _select(args, net, model, scanner, extra):
         model,
         start=args.aps,
         candidates=args.select_candidates,
-        options=SelectionOptions(alpha=args.select_alpha, max_correlation=args.max_correlation),
+        options=SelectionOptions(
+            alpha=args.select_alpha, max_correlation=args.max_correlation, screening=args.screen
+        ),
     )
     print(sel.report())
     print()
     scanner = dataclasses.replace(scanner, aps=tuple(sel.aps))
-    extra["selection"] = {"aps": list(sel.aps), "n_fits": sel.n_fits}
+    finite = lambda x: float(x) if x == x and abs(x) != float("inf") else None
+    extra["selection"] = {
+        "aps": list(sel.aps),
+        "n_fits": sel.n_fits,
+        "steps": [
+            {"action": st.action, "term": st.term, "score": finite(st.score), "reason": st.reason}
+            for st in sel.steps
+            if st.action != "try"
+        ],
+        "n_screened": 0 if sel.screened is None else len(sel.screened.outliers),
+    }
     return dataclasses.replace(model, scanner=scanner), scanner
 
 
