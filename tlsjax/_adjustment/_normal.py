@@ -83,7 +83,9 @@ def _sums_on_grid(shape, e, Jp, Js, Ja):
     and sums over axes. Returns (N_pp, b_p, N_ps pairs (n, s, p, 6), N_pa, N_ss, N_sa, N_aa,
     b_s, b_a)."""
     n, ns, c = shape
-    g = lambda J: J.reshape(n, ns, -1, J.shape[-1])  # slots and rows in one axis
+    # Slots and rows in one axis, its length explicit: -1 cannot be inferred for a model
+    # without APs (Ja has a zero-length last axis).
+    g = lambda J: J.reshape(n, ns, J.shape[0] * J.shape[1] // (n * ns), J.shape[-1])
     e, Jp, Js, Ja = e.reshape(n, ns, -1), g(Jp), g(Js), g(Ja)
     # Contractions as einsums (dot_general): measured 2x faster than broadcast-multiply-sum
     # for these shapes on the CPU.

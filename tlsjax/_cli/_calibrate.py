@@ -307,11 +307,11 @@ def _select(args, net, model, scanner, extra):
 
 def _missing_terms(net, model, solver, res, extra):
     """Score tests of the terms missing from the model (tj.score_tests), printed and in the
-    JSON's ``score_tests``; none for a failed adjustment or several instruments."""
+    JSON's ``score_tests``; none for a failed adjustment, several instruments or planes."""
     from .._inference._score import score_tests
     from .._model._scanner import Scanner
 
-    if not (res.ok and isinstance(model.scanner, Scanner)):
+    if not (res.ok and isinstance(model.scanner, Scanner)) or net.has_planes:
         return
     tests = score_tests(net, model, res, solver=solver)
     print(tests.summary())

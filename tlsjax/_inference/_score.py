@@ -84,7 +84,6 @@ class ScoreTests:
 
     tests: tuple
     vtpv: float
-    dof: float
     alpha: float
     critical: float
 
@@ -251,7 +250,7 @@ def _tests(K, rhs, vtpv, nzz, free, names, cand_index, n_pose, alpha, tol) -> Sc
     crit = chi2_quantile(1 - alpha / k, 1.0)
     out = [dataclasses.replace(t, significant=t.testable and t.statistic > crit) for t in out]
     out.sort(key=lambda t: -t.statistic if t.testable else np.inf)
-    return ScoreTests(tuple(out), vtpv, float("nan"), alpha, float(crit))
+    return ScoreTests(tuple(out), vtpv, alpha, float(crit))
 
 
 def score_tests(
@@ -268,9 +267,13 @@ def score_tests(
     names (default :func:`default_candidates`). See the module docstring."""
     from .._adjustment._plan import initial_params
 
+    if network.has_planes:
+        raise ValueError(
+            f"{network.source}: score tests of missing terms are for target networks (the plane "
+            "conditions are not tested yet)"
+        )
     model = model or CalibrationModel()
     tester = ScoreTester(network, model, candidates, solver)
-    planes = result.plane_params if network.has_planes else None
-    p = initial_params(network, tester.adjustment.plan, result.target_xyz, result.eops, planes)
+    p = initial_params(network, tester.adjustment.plan, result.target_xyz, result.eops)
     narrow = Params(p.prims, p.eops, jnp.asarray(result.ap_values))
     return tester(narrow, alpha=alpha)

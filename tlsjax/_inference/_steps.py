@@ -60,6 +60,7 @@ import dataclasses
 import numpy as np
 
 from ._pipeline import (
+    ROUNDING_SIGMA,
     NamedStep,
     TestingContext,
     TestingState,
@@ -183,7 +184,9 @@ def _robust_normalised(ctx: TestingContext, state: TestingState):
     for g in range(3):
         keep = np.isfinite(u[:, g]) & (res.redundancy[:, g] >= ctx.options.min_redundancy)
         scale[g] = robust_scale(u[:, g], keep, MIN_SCREENED)
-    ok = np.isfinite(scale) & (scale > 0)
+    # Residuals at rounding level (noise-free data): nothing to judge (rounding is no blunder).
+    rounding = scale * np.median(ctx.base_sigma, axis=0) < np.asarray(ROUNDING_SIGMA[:3])
+    ok = np.isfinite(scale) & (scale > 0) & ~rounding
     with np.errstate(invalid="ignore", divide="ignore"):
         return u / np.where(ok, scale, np.nan)[None, :], scale
 
