@@ -229,7 +229,7 @@ def _max_correlations(plan: Plan, q, skip):
     parts, sigmas = [], []
     for D, X in zip(q.prim_cofactor, q.prim_cross):
         D, X = np.asarray(D), np.asarray(X)
-        parts.append(X[:, :, ap_idx].reshape(-1, na).T)  # (a, n p)
+        parts.append(X[:, :, ap_idx].reshape(X.shape[0] * X.shape[1], na).T)  # (a, n p)
         sigmas.append(np.sqrt(np.clip(np.diagonal(D, axis1=1, axis2=2), 0, None)).reshape(-1))
     parts.append(Qzz[ap_idx])
     sigmas.append(np.where(dep, 0.0, sz))

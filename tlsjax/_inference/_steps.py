@@ -357,7 +357,10 @@ def _screen(ctx: TestingContext, state: TestingState) -> TestingState:
         i, g, top = _largest_w(w)
         if top <= crit:
             return state
-        term = _systematic(ctx, state, u[i, g])
+        # A gross error (far beyond the band of a systematic misfit's tails, GROSS_BAND) is
+        # removed without asking: a first least-squares adjustment spreads it over the
+        # residuals, so a candidate term can look as if it explained it.
+        term = _systematic(ctx, state, u[i, g]) if top <= GROSS_BAND * crit else None
         if term is not None:
             return add_warning(state, term)
         if removed >= limit or len(state.removals) >= t.max_removals:
