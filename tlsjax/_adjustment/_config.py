@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping
 
-import jax.numpy as jnp
+import numpy as np
 
 from .._model._scanner import Scanner
 from ._families import Options
@@ -44,6 +44,12 @@ class CalibrationModel:
             raise ValueError(f"datum {self.datum!r} is not one of {DATUMS}")
         if self.datum == "fixed-scan" and self.fixed_scan is None:
             raise ValueError("datum 'fixed-scan' needs fixed_scan=<scan name>")
+        if self.fixed_scan is not None and self.datum != "fixed-scan":
+            # Accepted and ignored it would look like a fixed-scan datum and be another one.
+            raise ValueError(
+                f"fixed_scan={self.fixed_scan!r} takes effect only with datum='fixed-scan' "
+                f"(datum is {self.datum!r}); pass datum='fixed-scan' or leave fixed_scan out"
+            )
         if not 0 < self.correlation_threshold <= 1:
             raise ValueError(
                 f"correlation_threshold must be in (0, 1], got {self.correlation_threshold}"
@@ -103,14 +109,20 @@ class SolverOptions:
             )
 
     def arrays(self) -> Options:
-        f = lambda v: jnp.asarray(v, dtype=jnp.float64)
-        return Options(
-            jnp.asarray(int(self.max_iterations)),
-            f(self.tolerance),
-            f(self.rank_tolerance),
-            f(self.damping_initial),
-            f(self.damping_increase),
-            f(self.damping_decrease),
-            f(self.damping_min),
-            f(self.damping_max),
-        )
+        """The settings as arrays (host arrays: a compiled call takes them without a device
+        transfer per field; cached, the options being frozen)."""
+        cached = self.__dict__.get("_arrays")
+        if cached is None:
+            f = lambda v: np.asarray(v, dtype=np.float64)
+            cached = Options(
+                np.asarray(int(self.max_iterations)),
+                f(self.tolerance),
+                f(self.rank_tolerance),
+                f(self.damping_initial),
+                f(self.damping_increase),
+                f(self.damping_decrease),
+                f(self.damping_min),
+                f(self.damping_max),
+            )
+            object.__setattr__(self, "_arrays", cached)
+        return cached
