@@ -153,7 +153,7 @@ def _score_system(spec, problem, params, rank_tolerance):
     _, Hz = null_space(spec, grid.families, params)
     red = reduce(spec, grid, blocks, Hz, jnp.asarray(0.0), rank_tolerance)
     cost = linearised_cost(grid, params, rows)
-    return red.K, reduced_rhs(blocks, red), cost, jnp.diagonal(blocks.Nzz)
+    return red.K, reduced_rhs(blocks.bp, blocks.bz, red), cost, jnp.diagonal(blocks.Nzz)
 
 
 class ScoreTester:
