@@ -7,6 +7,7 @@ import dataclasses
 import os
 import time
 
+from .._clouds._thin import DEFAULT_PLANE_SPACING
 from .._units import ARCSEC
 from ._common import EXIT_FAILED, EXIT_OK, scanner_args
 
@@ -24,6 +25,18 @@ def add_calibrate_parser(sub):
         "--planes",
         help="plane observations: a plane CSV or the .npz of `tlsjax extract-planes`; "
         "alone (plane-based) or with a target CSV (combined network)",
+    )
+    c.add_argument(
+        "--plane-spacing",
+        type=float,
+        default=DEFAULT_PLANE_SPACING,
+        metavar="M",
+        help="thin the plane points to one per voxel of this side [m] per scan and plane "
+        f"(default {DEFAULT_PLANE_SPACING:g}: noise of points closer than about a third of it is "
+        "correlated, and the sigmas of all points would be too small; 0 keeps all points)",
+    )
+    c.add_argument(
+        "--quiet", action="store_true", help="no progress lines (phases and times) on stderr"
     )
     c.add_argument("--scans", help="scans CSV with levelling observations")
     c.add_argument(
@@ -157,6 +170,7 @@ def _calibrate(args) -> int:
     from .._io._json import check_output_file
     from .._io._tables import read_network
     from .._model._scanner import Scanner
+    from ._progress import Phases
 
     if args.observations is None and args.planes is None:
         raise ValueError("give an observation CSV, --planes FILE, or both")
@@ -164,10 +178,12 @@ def _calibrate(args) -> int:
     check_output_file(args.targets_out, "--targets-out ")
     args.architecture = file_architecture(args.architecture, args.observations, args.planes)
     scanner = Scanner(architecture=args.architecture, aps=args.aps, unit_length=args.unit_length)
+    phases = Phases(enabled=not args.quiet)
+    observations, planes = read_tables(args.observations, args.planes, args.plane_spacing, phases)
     net = read_network(
-        args.observations,
+        observations,
         args.scans,
-        planes=args.planes,
+        planes=planes,
         drop_single_targets=args.drop_single_targets,
         sigma_range=args.sigma_range_mm * 1e-3,
         sigma_hz=args.sigma_hz_arcsec * ARCSEC,
@@ -207,6 +223,7 @@ def _calibrate(args) -> int:
     extra, mask, tested, mdb = {}, None, None, None
     if args.select:
         model, scanner = _select(args, net, model, scanner, extra)
+    phases.start(_adjusting(net, args))
     if net.has_planes and (args.screen or args.snoop):
         res = _screen(net, model, solver, extra)
     elif args.vce or args.snoop:
@@ -215,6 +232,7 @@ def _calibrate(args) -> int:
         extra.update(tested.json_fields())
     else:
         res = calibrate(net, model, solver)
+    phases.done(f"adjusted: {res.iterations} iterations in the last adjustment, {res.message}")
     print(f"({time.perf_counter() - t0:.2f} s)")
     report(res, after_vce=tested is not None and tested.weights_fitted)
     extra.update(_report_fields(res, scanner, args, mask, mdb))
@@ -225,6 +243,44 @@ def _calibrate(args) -> int:
         _write_report(res, args.report, extra, scanner, mask)
     ok = res.ok and (tested is None or tested.ok)
     return EXIT_OK if ok else EXIT_FAILED
+
+
+def _adjusting(net, args) -> str:
+    """The progress line of the adjustment phase: what runs, on how many observations."""
+    what = "adjusting"
+    if net.has_planes and (args.screen or args.snoop):
+        what = "screening the plane points (IGG-III reweighting, one adjustment per round)"
+    elif args.vce or args.snoop:
+        what = "adjusting and testing (screening, VCE, snooping: one adjustment per step)"
+    n = net.observations.shape[0] + (net.plane_observations.shape[0] if net.has_planes else 0)
+    return f"{what}: {n} points and targets (compiling on the first run of this shape)"
+
+
+def read_tables(observations, planes, spacing, phases):
+    """The observation and plane tables of ``calibrate``, the plane points thinned to
+    ``spacing`` (:func:`tlsjax.thin_planes`; a plane CSV given as the observation file counts
+    as the planes), with progress lines; target files are read as they are."""
+    from .._clouds._thin import thin_planes
+    from .._io._tables import read_observations, read_planes
+
+    if observations is not None:
+        phases.start(f"reading {observations}")
+        observations = read_observations(observations)
+        phases.done(f"read {len(observations)} {observations.kind} observation rows")
+        if observations.kind == "plane" and planes is None:
+            observations, planes = None, observations
+    if planes is not None and not hasattr(planes, "kind"):
+        phases.start(f"reading {planes}")
+        planes = read_planes(planes)
+        phases.done(f"read {len(planes)} plane points")
+    if planes is not None and spacing != 0:
+        phases.start(f"thinning {len(planes)} plane points to one per {spacing:g} m voxel")
+        n = len(planes)
+        planes = thin_planes(planes, spacing)
+        phases.done(f"kept {len(planes)} of {n} plane points")
+        if len(planes) < n:
+            print(planes.notes[-1])
+    return observations, planes
 
 
 def file_architecture(given, *paths) -> str:
