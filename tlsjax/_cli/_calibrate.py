@@ -252,8 +252,12 @@ def _adjusting(net, args) -> str:
         what = "screening the plane points (IGG-III reweighting, one adjustment per round)"
     elif args.vce or args.snoop:
         what = "adjusting and testing (screening, VCE, snooping: one adjustment per step)"
-    n = net.observations.shape[0] + (net.plane_observations.shape[0] if net.has_planes else 0)
-    return f"{what}: {n} points and targets (compiling on the first run of this shape)"
+    counts = []
+    if net.has_targets:
+        counts.append(f"{net.observations.shape[0]} target observations")
+    if net.has_planes:
+        counts.append(f"{net.plane_observations.shape[0]} plane points")
+    return f"{what}: {', '.join(counts)} (compiling on the first run of this shape)"
 
 
 def read_tables(observations, planes, spacing, phases):

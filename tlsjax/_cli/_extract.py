@@ -8,6 +8,7 @@ import dataclasses
 import numpy as np
 
 from .._clouds._extract import ExtractionConfig
+from ._progress import Phases
 
 
 def add_extract_parser(subparsers) -> argparse.ArgumentParser:
@@ -39,7 +40,11 @@ def add_extract_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--min-points", type=int, default=ExtractionConfig.min_points)
     p.add_argument("--csv", help="also write the plane observations CSV (SPEC section 11)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--no-progress",
+        action="store_true",
+        help="no progress bar or phase lines on stderr",
+    )
     p.set_defaults(func=cli_extract)
     return p
 
@@ -71,6 +76,15 @@ def read_scan_files(paths, architecture, poses_path=None, *, out=None):
     return clouds, poses
 
 
+def _scan_line(phases):
+    """A progress line per extracted scan (where no progress bar is drawn)."""
+
+    def line(name, n_patches, n_on, n):
+        phases.note(f"scan {name}: {n_patches} patches, {n_on} of {n} points on them")
+
+    return line
+
+
 def cli_extract(args) -> int:
     """Run ``tlsjax extract-planes``; returns the exit code.
 
@@ -86,7 +100,10 @@ def cli_extract(args) -> int:
 
     check_output_file(args.out, "--out ")  # before the extraction runs
     check_output_file(args.csv, "--csv ")
+    phases = Phases(enabled=not args.no_progress)
+    phases.start(f"reading {len(args.scans)} file(s)")
     clouds, table = read_scan_files(args.scans, args.architecture, args.poses)
+    phases.done(f"read {len(clouds)} scan(s), {sum(len(c.points) for c in clouds)} points")
     names = [c.name for c in clouds]
     if len(set(names)) != len(names):
         raise ValueError(f"scan names are not unique: {names}")
@@ -106,15 +123,21 @@ def cli_extract(args) -> int:
     config = ExtractionConfig(
         distance_threshold=args.distance_threshold, min_points=args.min_points, budget=args.budget
     )
+    bar = not args.no_progress and sys.stderr.isatty()
+    phases.start("extracting planes (RANSAC, DBSCAN, least-squares refit per scan)")
     planes = extract_planes(
         [c.observations for c in clouds],
         config,
         names=names,
         seed=args.seed,
-        progress=not args.no_progress and sys.stderr.isatty(),
+        progress=bar,
+        on_scan=None if bar else _scan_line(phases),
     )
+    phases.done(f"extracted {len(planes.patch_scan)} patches")
     if poses is not None:
+        phases.start("matching the patches across scans")
         planes = match_planes(planes, poses)
+        phases.done(f"matched {len(planes.planes)} planes")
     save_planes(args.out, planes)
     if args.csv:
         table = dataclasses.replace(planes.to_table(), architecture=args.architecture)
