@@ -43,9 +43,12 @@ DEFAULT_PLANE_SPACING = 0.1
 
 
 def _codes(labels) -> np.ndarray:
-    """Integer codes of a sequence of labels (scan or plane names)."""
-    _, inverse = np.unique(np.asarray(labels), return_inverse=True)
-    return inverse.astype(np.int64).reshape(-1)
+    """Integer codes of a sequence of labels (scan or plane names), by a dictionary: linear,
+    without an array of strings (a sort of ten million strings takes longer than the rest)."""
+    index: dict = {}
+    return np.fromiter(
+        (index.setdefault(k, len(index)) for k in labels), dtype=np.int64, count=len(labels)
+    )
 
 
 def thin_indices(table: ObservationTable, spacing: float = DEFAULT_PLANE_SPACING) -> np.ndarray:
