@@ -71,9 +71,11 @@ def thin_indices(table: ObservationTable, spacing: float = DEFAULT_PLANE_SPACING
     cell = cell.astype(np.int64)
     keys = (cell[:, 2], cell[:, 1], cell[:, 0], _codes(table.primitives), _codes(table.scans))
     order = np.lexsort((np.arange(n), dist) + keys)  # last key is the primary one
-    k = np.stack([a[order] for a in keys], axis=1)
-    first = np.ones(n, dtype=bool)
-    first[1:] = np.any(k[1:] != k[:-1], axis=1)
+    first = np.zeros(n, dtype=bool)
+    first[0] = True
+    for a in keys:  # one key at a time: no (n, 5) copy
+        a = a[order]
+        first[1:] |= a[1:] != a[:-1]
     return np.sort(order[first])
 
 
