@@ -200,6 +200,16 @@ def _run_child(args: list) -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+def _print_phases(r: dict, title: str) -> None:
+    if "phases" in r:
+        line = ", ".join(
+            f"{k} {v['wall_s']:.1f} s / {v['peak_rss_mb']:.0f} MB" for k, v in r["phases"].items()
+        )
+        print(f"{title}: {line}")
+    else:
+        print(f"{title}: {r}")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--points", type=float, nargs="+", default=[1e6, 1e7])
@@ -230,19 +240,9 @@ def main(argv=None) -> int:
     results["loadavg_after"] = loadavg()
     results["total_wall_s"] = round(time.perf_counter() - t0, 1)
     for r in results["path"]:
-        if "phases" in r:
-            line = ", ".join(
-                f"{k} {v['wall_s']:.1f} s / {v['peak_rss_mb']:.0f} MB"
-                for k, v in r["phases"].items()
-            )
-            print(f"{r['points']} points (kept {r['kept_points']}): {line}")
+        _print_phases(r, f"{r.get('points')} points (kept {r.get('kept_points')})")
     for r in results["extraction"]:
-        if "phases" in r:
-            line = ", ".join(
-                f"{k} {v['wall_s']:.1f} s / {v['peak_rss_mb']:.0f} MB"
-                for k, v in r["phases"].items()
-            )
-            print(f"extraction of {r['points']} points ({r['planes']} planes): {line}")
+        _print_phases(r, f"extraction of {r.get('points')} points ({r.get('planes')} planes)")
     write_results(results, args.out)
     return 0
 
