@@ -212,7 +212,7 @@ def _print_phases(r: dict, title: str) -> None:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    p.add_argument("--points", type=float, nargs="+", default=[1e6, 1e7])
+    p.add_argument("--points", type=float, nargs="*", default=[1e6, 1e7])
     p.add_argument("--extract-points", type=float, nargs="*", default=[3e5])
     p.add_argument("--all-points-max", type=float, default=1.1e6)
     p.add_argument("--out", default=str(HERE / "results" / "dense_planes.json"))
