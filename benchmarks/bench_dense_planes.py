@@ -174,7 +174,7 @@ def child_extract(points: float) -> dict:
     with Phase("simulate", log):
         pc = tj.simulate_point_clouds(design, seed=0)
     with Phase("extract", log):
-        found = tj.extract_planes(pc.observations, tj.ExtractionConfig(), seed=0)
+        found = tj.extract_planes(pc.observations, tj.ExtractionOptions(), seed=0)
     with Phase("match", log):
         matched = tj.match_planes(found, pc.eops)
     return {

@@ -41,9 +41,9 @@ from ._adjustment._network import make_plane_network as make_plane_network
 from ._adjustment._result import RESULT_MESSAGES as RESULT_MESSAGES
 from ._adjustment._result import CalibrationResult as CalibrationResult
 from ._adjustment._result import ResultCode as ResultCode
-from ._clouds._extract import ExtractionConfig as ExtractionConfig
+from ._clouds._extract import ExtractionOptions as ExtractionOptions
 from ._clouds._extract import extract_planes as extract_planes
-from ._clouds._match import MatchingConfig as MatchingConfig
+from ._clouds._match import MatchingOptions as MatchingOptions
 from ._clouds._match import match_planes as match_planes
 from ._clouds._target_match import TargetMatching as TargetMatching
 from ._clouds._target_match import TargetMatchingOptions as TargetMatchingOptions
@@ -111,6 +111,7 @@ from ._model._aps import PRESETS as PRESETS
 from ._model._aps import register_ap as register_ap
 from ._model._aps import registered_aps as registered_aps
 from ._model._aps import resolve_aps as resolve_aps
+from ._model._plausibility import PlausibilityWarning as PlausibilityWarning
 from ._model._scanner import Scanner as Scanner
 from ._report._html import report_from_json as report_from_json
 from ._report._html import write_html_report as write_html_report
@@ -142,3 +143,25 @@ from ._simulation._room import Simulation as Simulation
 from ._simulation._room import simulate as simulate
 from ._simulation._truth import SimulationTruth as SimulationTruth
 from ._version import __version__ as __version__
+
+# Names of earlier releases, kept one release with a DeprecationWarning (issue 34): notebooks that
+# use them keep working while they move to the one word for settings objects, "Options".
+_DEPRECATED = {
+    "ExtractionConfig": ("ExtractionOptions", ExtractionOptions),
+    "MatchingConfig": ("MatchingOptions", MatchingOptions),
+}
+
+
+def __getattr__(name):
+    if name in _DEPRECATED:
+        import warnings
+
+        new, obj = _DEPRECATED[name]
+        warnings.warn(
+            f"tlsjax.{name} is deprecated and will be removed in the next release; "
+            f"use tlsjax.{new}",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return obj
+    raise AttributeError(f"module 'tlsjax' has no attribute {name!r}")

@@ -7,7 +7,9 @@ import dataclasses
 
 import numpy as np
 
-from .._clouds._extract import ExtractionConfig
+from .._clouds._extract import ExtractionOptions
+from ._checks import non_negative_int, positive_float, positive_int
+from ._common import EXIT_FAILED
 from ._progress import Phases
 
 
@@ -30,15 +32,17 @@ def add_extract_parser(subparsers) -> argparse.ArgumentParser:
         "default: the poses stored in the files",
     )
     p.add_argument("--architecture", choices=("hybrid", "panoramic"), default="hybrid")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--budget", type=int, default=None, help="most points kept per plane patch")
+    p.add_argument("--seed", type=non_negative_int, default=0)
+    p.add_argument(
+        "--budget", type=positive_int, default=None, help="most points kept per plane patch"
+    )
     p.add_argument(
         "--distance-threshold",
-        type=float,
-        default=ExtractionConfig.distance_threshold,
+        type=positive_float,
+        default=ExtractionOptions.distance_threshold,
         help="RANSAC inlier distance [m]",
     )
-    p.add_argument("--min-points", type=int, default=ExtractionConfig.min_points)
+    p.add_argument("--min-points", type=positive_int, default=ExtractionOptions.min_points)
     p.add_argument("--csv", help="also write the plane observations CSV (SPEC section 11)")
     p.add_argument(
         "--no-progress",
@@ -92,14 +96,16 @@ def cli_extract(args) -> int:
     """
     import sys
 
-    from .._clouds._extract import ExtractionConfig, extract_planes
+    from .._clouds._extract import ExtractionOptions, extract_planes
     from .._clouds._match import match_planes
-    from .._io._json import check_output_file
+    from .._io._outputs import check_outputs
     from .._io._plane_files import save_planes
     from .._io._tables import write_observations
 
-    check_output_file(args.out, "--out ")  # before the extraction runs
-    check_output_file(args.csv, "--csv ")
+    check_outputs(  # before the extraction runs
+        [("--out", args.out), ("--csv", args.csv)],
+        [("scan", p) for p in args.scans] + [("--poses", args.poses)],
+    )
     phases = Phases(enabled=not args.no_progress)
     phases.start(f"reading {len(args.scans)} file(s)")
     clouds, table = read_scan_files(args.scans, args.architecture, args.poses)
@@ -120,7 +126,7 @@ def cli_extract(args) -> int:
         poses = None
     if poses is None and args.csv:
         raise ValueError("matching planes across scans needs scan poses: give --poses poses.csv")
-    config = ExtractionConfig(
+    config = ExtractionOptions(
         distance_threshold=args.distance_threshold, min_points=args.min_points, budget=args.budget
     )
     bar = not args.no_progress and sys.stderr.isatty()
@@ -134,6 +140,16 @@ def cli_extract(args) -> int:
         on_scan=None if bar else _scan_line(phases),
     )
     phases.done(f"extracted {len(planes.patch_scan)} patches")
+    if len(planes.patch_scan) == 0:  # a non-result: no file, exit 1, the likely causes
+        print(
+            f"tlsjax extract-planes: no plane found in {len(names)} scan(s) ("
+            f"{sum(len(c.points) for c in clouds)} points): no patch of --min-points "
+            f"{args.min_points} points within --distance-threshold {args.distance_threshold} m. "
+            "Likely: clouds too sparse or not in metres, or a threshold too tight for the noise; "
+            f"nothing written to {args.out}",
+            file=sys.stderr,
+        )
+        return EXIT_FAILED
     if poses is not None:
         phases.start("matching the patches across scans")
         planes = match_planes(planes, poses)
