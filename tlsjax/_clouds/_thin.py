@@ -89,7 +89,10 @@ def thin_indices(table: ObservationTable, spacing: float = DEFAULT_PLANE_SPACING
         return np.arange(n, dtype=np.int64)
     if table.kind != "plane":
         raise ValueError(f"{table.source}: thinning is for plane observations, not {table.kind}s")
-    x = cartesian_from_spherical(np.asarray(table.observations, dtype=np.float64), xp=np)
+    obs = np.asarray(table.observations, dtype=np.float64)
+    if obs.shape != (n, 3) or not np.isfinite(obs).all():
+        return np.arange(n, dtype=np.int64)  # all rows: make_network names the bad one
+    x = cartesian_from_spherical(obs, xp=np)
     groups = _codes(zip(table.scans, table.primitives), n)
     x = _on_group_planes(x, groups)
     cell = np.floor(x / spacing)
