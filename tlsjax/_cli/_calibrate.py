@@ -314,7 +314,9 @@ def _calibrate(args) -> int:
     args.architecture = file_architecture(args.architecture, args.observations, args.planes)
     scanner = Scanner(architecture=args.architecture, aps=args.aps, unit_length=args.unit_length)
     args.phases = Phases(enabled=not args.quiet)
+    args.phases.hold()  # shown once the input is accepted
     net = _read(args)
+    args.phases.release()
     model = CalibrationModel(
         scanner,
         datum=args.datum,

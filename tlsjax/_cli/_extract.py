@@ -107,6 +107,7 @@ def cli_extract(args) -> int:
         [("scan", p) for p in args.scans] + [("--poses", args.poses)],
     )
     phases = Phases(enabled=not args.no_progress)
+    phases.hold()  # shown once the input is accepted (a refusal is one line on stderr)
     phases.start(f"reading {len(args.scans)} file(s)")
     clouds, table = read_scan_files(args.scans, args.architecture, args.poses)
     phases.done(f"read {len(clouds)} scan(s), {sum(len(c.points) for c in clouds)} points")
@@ -129,6 +130,7 @@ def cli_extract(args) -> int:
     config = ExtractionOptions(
         distance_threshold=args.distance_threshold, min_points=args.min_points, budget=args.budget
     )
+    phases.release()
     bar = not args.no_progress and sys.stderr.isatty()
     phases.start("extracting planes (RANSAC, DBSCAN, least-squares refit per scan)")
     planes = extract_planes(

@@ -18,10 +18,26 @@ class Phases:
         self.stream = stream or sys.stderr
         self.t0 = time.perf_counter()
         self.t_phase = self.t0
+        self.held = None
 
-    def _line(self, text: str) -> None:
-        if self.enabled:
-            print(f"[{time.perf_counter() - self.t0:7.1f} s] {text}", file=self.stream, flush=True)
+    def hold(self) -> None:
+        """Keep the lines until :meth:`release`: input that is refused then gets its one error
+        line on stderr and nothing else (the CLI's contract)."""
+        self.held = []
+
+    def release(self) -> None:
+        held, self.held = self.held or [], None
+        for line in held:
+            self._line(line, stamped=True)
+
+    def _line(self, text: str, stamped: bool = False) -> None:
+        if not self.enabled:
+            return
+        line = text if stamped else f"[{time.perf_counter() - self.t0:7.1f} s] {text}"
+        if self.held is not None:
+            self.held.append(line)
+        else:
+            print(line, file=self.stream, flush=True)
 
     def start(self, text: str) -> None:
         self.t_phase = time.perf_counter()
