@@ -52,6 +52,8 @@ from ._clouds._targets import ExtractedTargets as ExtractedTargets
 from ._clouds._targets import TargetExtractionOptions as TargetExtractionOptions
 from ._clouds._targets import extract_targets as extract_targets
 from ._clouds._targets import extract_targets_from_files as extract_targets_from_files
+from ._clouds._thin import DEFAULT_PLANE_SPACING as DEFAULT_PLANE_SPACING
+from ._clouds._thin import thin_planes as thin_planes
 from ._design._criteria import DesignCriterion as DesignCriterion
 from ._design._criteria import design_criterion as design_criterion
 from ._design._criteria import predicted_cofactor as predicted_cofactor

@@ -10,6 +10,7 @@ import warnings
 
 import numpy as np
 
+from .._clouds._thin import DEFAULT_PLANE_SPACING
 from .._model._plausibility import PlausibilityWarning
 from .._units import ARCSEC
 from ._checks import correlation, positive_float, positive_int, probability, refuse_unless, warn
@@ -29,6 +30,18 @@ def add_calibrate_parser(sub):
         "--planes",
         help="plane observations: a plane CSV or the .npz of `tlsjax extract-planes`; "
         "alone (plane-based) or with a target CSV (combined network)",
+    )
+    c.add_argument(
+        "--plane-spacing",
+        type=float,
+        default=DEFAULT_PLANE_SPACING,
+        metavar="M",
+        help="thin the plane points to one per voxel of this side [m] per scan and plane "
+        f"(default {DEFAULT_PLANE_SPACING:g}: noise of points closer than about a third of it is "
+        "correlated, and the sigmas of all points would be too small; 0 keeps all points)",
+    )
+    c.add_argument(
+        "--quiet", action="store_true", help="no progress lines (phases and times) on stderr"
     )
     c.add_argument("--scans", help="scans CSV with levelling observations")
     c.add_argument(
@@ -242,10 +255,13 @@ def _warn_ignored_sigmas(args, net) -> None:
 def _read(args):
     from .._io._tables import read_network
 
+    observations, planes = read_tables(
+        args.observations, args.planes, args.plane_spacing, args.phases
+    )
     net = read_network(
-        args.observations,
+        observations,
         args.scans,
-        planes=args.planes,
+        planes=planes,
         drop_single_targets=args.drop_single_targets,
         sigma_range=args.sigma_range_mm * 1e-3,
         sigma_hz=args.sigma_hz_arcsec * ARCSEC,
@@ -286,6 +302,7 @@ def _calibrate(args) -> int:
     from .._adjustment._config import CalibrationModel
     from .._adjustment._network import network_design_warnings
     from .._model._scanner import Scanner
+    from ._progress import Phases
 
     _check_options(args)
     check_outputs(  # before any work: fails in a second
@@ -301,7 +318,10 @@ def _calibrate(args) -> int:
     )
     args.architecture = file_architecture(args.architecture, args.observations, args.planes)
     scanner = Scanner(architecture=args.architecture, aps=args.aps, unit_length=args.unit_length)
+    args.phases = Phases(enabled=not args.quiet)
+    args.phases.hold()  # shown once the input is accepted
     net = _read(args)
+    args.phases.release()
     model = CalibrationModel(
         scanner,
         datum=args.datum,
@@ -315,7 +335,9 @@ def _calibrate(args) -> int:
             f"--fixed-scan {args.fixed_scan}: no such scan (scans: {', '.join(net.scans)})"
         )
     t0 = time.perf_counter()
+    args.phases.start(_adjusting(net, args))
     extra, res, tested, mask, mdb = _run(args, net, model, scanner)
+    args.phases.done(f"adjusted: {res.iterations} iterations in the last adjustment, {res.message}")
     print(f"({time.perf_counter() - t0:.2f} s)")
     withheld = None
     if tested is not None and res.ok and not tested.ok:
@@ -369,6 +391,48 @@ def _run(args, net, model, scanner):
     if tested is None:
         _missing_terms(net, model, solver, res, extra)
     return extra, res, tested, mask, mdb
+
+
+def _adjusting(net, args) -> str:
+    """The progress line of the adjustment phase: what runs, on how many observations."""
+    what = "adjusting"
+    if net.has_planes and (args.screen or args.snoop):
+        what = "screening the plane points (IGG-III reweighting, one adjustment per round)"
+    elif args.vce or args.snoop:
+        what = "adjusting and testing (screening, VCE, snooping: one adjustment per step)"
+    counts = []
+    if net.has_targets:
+        counts.append(f"{net.observations.shape[0]} target observations")
+    if net.has_planes:
+        counts.append(f"{net.plane_observations.shape[0]} plane points")
+    return f"{what}: {', '.join(counts)} (compiling on the first run of this shape)"
+
+
+def read_tables(observations, planes, spacing, phases):
+    """The observation and plane tables of ``calibrate``, the plane points thinned to
+    ``spacing`` (:func:`tlsjax.thin_planes`; a plane CSV given as the observation file counts
+    as the planes), with progress lines; target files are read as they are."""
+    from .._clouds._thin import thin_planes
+    from .._io._tables import read_observations, read_planes
+
+    if observations is not None:
+        phases.start(f"reading {observations}")
+        observations = read_observations(observations)
+        phases.done(f"read {len(observations)} {observations.kind} observation rows")
+        if observations.kind == "plane" and planes is None:
+            observations, planes = None, observations
+    if planes is not None and not hasattr(planes, "kind"):
+        phases.start(f"reading {planes}")
+        planes = read_planes(planes)
+        phases.done(f"read {len(planes)} plane points")
+    if planes is not None and spacing != 0:
+        phases.start(f"thinning {len(planes)} plane points to one per {spacing:g} m voxel")
+        n = len(planes)
+        planes = thin_planes(planes, spacing)
+        phases.done(f"kept {len(planes)} of {n} plane points")
+        if len(planes) < n:
+            print(planes.notes[-1])
+    return observations, planes
 
 
 def file_architecture(given, *paths) -> str:
