@@ -14,6 +14,7 @@ import argparse
 import os
 import sys
 
+from .._version import __version__
 from ._calibrate import add_calibrate_parser
 from ._common import EXIT_BAD_INPUT, EXIT_INTERNAL, use_host_devices
 from ._compare import add_compare_parser
@@ -48,6 +49,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="tlsjax", description="Terrestrial laser scanner self-calibration in JAX."
     )
+    ap.add_argument("--version", action="version", version=f"tlsjax {__version__}")
     sub = ap.add_subparsers(dest="command", required=True)
     for add in (
         add_demo_parser,

@@ -142,6 +142,14 @@ def add_calibrate_parser(sub):
         help="write the adjusted target coordinates with sigmas and ellipsoid axes here (in "
         "the datum of the adjustment; the JSON has them too)",
     )
+    c.add_argument(
+        "--tables",
+        metavar="DIR",
+        help="write the result tables as CSV into this folder: observations.csv (per "
+        "observation: residual, normalised residual, redundancy number, MDB, external "
+        "reliability, test decision; line = the input file's line), plane_points.csv, "
+        "groups.csv (variance factors with their redundancy), targets.csv, planes.csv",
+    )
     scanner_args(
         c, default=None, default_help="the one recorded in the observation file, else hybrid"
     )
@@ -154,7 +162,7 @@ def _calibrate(args) -> int:
     60 lines: one sequence of steps of the command, each a call."""
     from .._adjustment._calibrate import calibrate
     from .._adjustment._config import CalibrationModel, SolverOptions
-    from .._io._json import check_output_file
+    from .._io._json import check_output_dir, check_output_file
     from .._io._tables import read_network
     from .._model._scanner import Scanner
 
@@ -162,6 +170,7 @@ def _calibrate(args) -> int:
         raise ValueError("give an observation CSV, --planes FILE, or both")
     check_outputs(args.json, args.plots, args.report)  # before any work: fails in a second
     check_output_file(args.targets_out, "--targets-out ")
+    check_output_dir(args.tables, "--tables ")
     args.architecture = file_architecture(args.architecture, args.observations, args.planes)
     scanner = Scanner(architecture=args.architecture, aps=args.aps, unit_length=args.unit_length)
     net = read_network(
@@ -218,9 +227,16 @@ def _calibrate(args) -> int:
     print(f"({time.perf_counter() - t0:.2f} s)")
     report(res, after_vce=tested is not None and tested.weights_fitted)
     extra.update(_report_fields(res, scanner, args, mask, mdb))
+    extra.update(_table_fields(res, tested))
+    if extra.get("outliers"):
+        from .._report._tables import with_lines
+
+        extra["outliers"] = with_lines(extra["outliers"], res)
     write_outputs(res, args.json, args.plots, extra=extra, scanner=scanner, mask=mask)
     if args.targets_out:
         write_targets(res, args.targets_out)
+    if args.tables:
+        _write_tables(res, args.tables, tested)
     if args.report:
         _write_report(res, args.report, extra, scanner, mask)
     ok = res.ok and (tested is None or tested.ok)
@@ -348,6 +364,23 @@ def _report_fields(res, scanner, args, mask, mdb) -> dict:
     if res.network is not None and res.network.has_targets:
         fields["reliability"] = reliability_summary(res, mdb=mdb, mask=mask)
     return fields
+
+
+def _table_fields(res, tested) -> dict:
+    """The per-observation and per-group tables in the JSON (none for a failed adjustment)."""
+    from .._report._tables import table_json
+
+    return table_json(res, tested) if res.ok else {}
+
+
+def _write_tables(res, folder, tested):
+    from .._report._tables import write_tables
+
+    paths = write_tables(res, folder, tested)
+    if paths:
+        print(f"wrote {len(paths)} tables into {folder}: {', '.join(map(os.path.basename, paths))}")
+    else:
+        print(f"--tables {folder}: not written (the adjustment failed: no estimates)")
 
 
 def _write_report(res, path, extra, scanner, mask):
