@@ -33,7 +33,6 @@ from .._adjustment._quality import (
     minimal_detectable_bias,
 )
 from .._inference._statistics import critical_value, group_variance_test
-from .._io._target_lists import ELLIPSOID_95
 from .._stats import DELTA0, non_centrality
 from .._units import ARCSEC
 
@@ -326,7 +325,7 @@ def observation_csv(res, tested=None, *, kind: str = "target") -> str:
     lines = [
         f"# tlsjax {kind} observations of {source}: line = that file's line (1-based, header "
         "and comment lines counted); row = 1-based position among its observations",
-        f"# w = v / (sigma sqrt(r)); mdb = delta0 sigma / sqrt(r); external = delta0 "
+        "# w = v / (sigma sqrt(r)); mdb = delta0 sigma / sqrt(r); external = delta0 "
         "sqrt((1 - r) / r); external_ap_sigmas: largest effect on one AP (external_ap)",
         head,
     ]
