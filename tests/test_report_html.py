@@ -39,12 +39,12 @@ def test_report_holds_every_section(calibrated):
     assert page.count("data:image/png;base64,") == 2  # residuals and AP correlations
     for heading in (
         "Design and adjustment",
-        "Global test",
+        "Tests",
         "Additional parameters",
         "Variance components",
         "Redundancy numbers",
         "Reliability",
-        "Outliers",
+        "Removals",
         "Plots",
         "Scan poses",
         "Produced by",
@@ -68,13 +68,13 @@ def test_report_holds_every_section(calibrated):
         assert float(row[5]) == pytest.approx(abs(a["t"]), abs=0.05)
         assert row[7] == a["max_corr_with"]
     assert NOT_COMPUTED_OUTLIERS not in page
-    assert "not computed" not in page.split("Outliers")[1].split("Plots")[0]
+    assert "not computed" not in page.split(">Removals")[1].split("Plots")[0]
     # Provenance: the SHA-256 of the observation file, computed here independently.
     digest = hashlib.sha256((calibrated / "obs.csv").read_bytes()).hexdigest()
     assert digest in page and doc["provenance"]["inputs"][0]["sha256"] == digest
 
 
-NOT_COMPUTED_OUTLIERS = "data snooping: not computed"
+NOT_COMPUTED_OUTLIERS = "screening and data snooping: not computed"
 
 
 class _TableParser(html.parser.HTMLParser):

@@ -64,6 +64,8 @@ def run(tmp_path_factory):
             str(res_json),
             "--tables",
             str(tables),
+            "--report",
+            str(d / "report.html"),
         ]
     )
     assert rc == 0
@@ -74,6 +76,7 @@ def run(tmp_path_factory):
         "obs": _read_csv(tables / "observations.csv"),
         "groups": _read_csv(tables / "groups.csv"),
         "targets": _read_csv(tables / "targets.csv"),
+        "page": (d / "report.html").read_text(),
     }
 
 
@@ -135,6 +138,26 @@ def test_json_tables_match_the_csv(run):
         if a["residual"] is not None:
             assert a["residual"] * f == pytest.approx(float(b["residual"]), rel=1e-8)
     assert set(run["doc"]["targets"]) == {t["target"] for t in run["targets"]}
+
+
+def test_report_shows_the_test_sequence_and_each_removal_with_its_stage(run):
+    from test_report_html import _tables
+
+    doc, tables = run["doc"], _tables(run["page"])
+    tests = tables["tests"]
+    stages = [(r[0].split(" ")[0], r[1]) for r in tests[1:]]
+    # The a priori global test first, then one group test per group, for all observations.
+    assert stages[0] == ("global", "a priori sigmas, all observations")
+    first = doc["a_priori_tests"][0]
+    assert float(tests[1][2]) == pytest.approx(first["global"]["statistic"], abs=0.06)
+    groups = [r[0] for r in tests[1:] if r[1] == "a priori sigmas, all observations"][1:]
+    assert groups == [f"group {g} (factor)" for g in first["groups"]]
+    # sigma0 after VCE is printed as not a test, outside the table of tests.
+    assert "not a test" in run["page"].split(">Tests")[1].split("<h2>")[0]
+    assert not any("sigma0" in r[0] for r in tests)
+    removals = tables["removals"]
+    rows = {(r[2], r[5]): r[1] for r in removals[1:]}
+    assert rows[(str(run["blunder_line"]), "range")] == "screening (before VCE)"
 
 
 def test_plain_calibration_tables_from_the_api():
