@@ -6,6 +6,7 @@ Private import: ``tlsjax._cli.main`` is the ``tlsjax`` console script's entry po
 """
 
 import hashlib
+import html
 import html.parser
 import json
 import os
@@ -51,7 +52,11 @@ def test_report_holds_every_section(calibrated):
     ):
         assert f">{heading}" in page, heading
     # A1 has no independent scale: named as not estimable, never given a number.
-    assert "not estimable" in page and "A1</b>: scale is undefined" in page
+    assert "not estimable" in page and "<li>A1 is not estimable: scale is undefined" in page
+    # Every confounding in the HTML with the JSON's own sentence (the text summary prints it too).
+    assert doc["confoundings"] and all(
+        f"<li>{html.escape(c['text'], quote=True)}</li>" in page for c in doc["confoundings"]
+    )
     # The AP table, parsed: one row per AP of the JSON, value and sigma in report units (mm
     # and arc seconds, converted here), |t| and the correlation partner; A1 without numbers.
     table = _tables(page)["aps"]

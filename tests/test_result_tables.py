@@ -179,6 +179,28 @@ def test_plain_calibration_tables_from_the_api():
     assert r_g == pytest.approx(sum(r["redundancy"] for r in recs), rel=1e-9)
 
 
+def test_every_confounding_is_named_once_and_alike_everywhere():
+    from tlsjax._report._text import confoundings, summary
+
+    not_est = (("A1", "scale", "scale is undefined; add scale bars or control points"),)
+    weak = (("C0", "C3", 0.9993), ("C3", "C0", 0.9993), ("C4", "C2", 0.9977), ("A1", "scale", 1.0))
+    found = confoundings(not_est, weak)
+    assert [c["parameters"] for c in found] == [["A1", "scale"], ["C0", "C3"], ["C4", "C2"]]
+    # The JSON form of the same lists gives the same sentences.
+    as_json = confoundings(
+        [{"name": n, "confounded_with": w, "reason": r} for n, w, r in not_est],
+        [{"name": n, "correlated_with": w, "max_abs_corr": c} for n, w, c in weak],
+    )
+    assert as_json == found
+    sim = tj.simulate(seed=1, aps="A0 B6 B7 C0", tilted=False)
+    scanner = tj.Scanner(architecture="hybrid", aps="A0 A1 B6 B7 C0")
+    res = tj.calibrate(sim.network, tj.CalibrationModel(scanner))
+    doc = tj.result_to_dict(res)
+    text = summary(res)
+    assert doc["confoundings"] and all(f"warning: {c['text']}" in text for c in doc["confoundings"])
+    assert text.count("warning:") == len(doc["confoundings"])
+
+
 def test_version(capsys):
     with pytest.raises(SystemExit) as e:
         main(["--version"])

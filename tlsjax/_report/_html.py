@@ -33,6 +33,7 @@ from .._stats import DELTA0
 from .._units import ARCSEC, DISPLAY_UNITS
 from .._version import __version__
 from ._json import scanner_settings as scanner_settings
+from ._text import confoundings
 
 _GROUPS = ("range", "hz", "el")
 _GROUP_UNIT = {
@@ -284,22 +285,13 @@ def _section_aps(doc) -> str:
         )
     head = ("AP", "meaning", "value", "sigma", "unit", "|t|", "max |corr|", "with", "")
     out = "<h2>Additional parameters</h2>" + (_table(head, rows, "aps") if rows else _na("APs"))
-    if bad:
-        items = "".join(
-            f"<li><b>{_e(n)}</b>: {_e(w.get('reason') or '')} (confounded with {_e(w.get('confounded_with'))})</li>"
-            for n, w in bad.items()
-        )
-        out += f"<h3>Not estimable</h3><ul>{items}</ul>"
-    else:
-        out += "<p>Not estimable: none.</p>"
-    if weak:
-        items = "".join(
-            f"<li><b>{_e(n)}</b>: |corr| {_fmt(w.get('max_abs_corr'), 3)} with {_e(w.get('correlated_with'))}</li>"
-            for n, w in weak.items()
-        )
-        out += f"<h3>Weakly determined (max |corr| above the threshold)</h3><ul>{items}</ul>"
-    else:
-        out += "<p>Weakly determined: none.</p>"
+    found = doc.get("confoundings")
+    if found is None:  # a JSON of an older tlsjax
+        found = confoundings(doc.get("not_estimable"), doc.get("weakly_determined"))
+    for kind in ("not estimable", "weakly determined"):
+        items = "".join(f"<li>{_e(c['text'])}</li>" for c in found if c["kind"] == kind)
+        title = kind[0].upper() + kind[1:]
+        out += f"<h3>{title}</h3><ul>{items}</ul>" if items else f"<p>{title}: none.</p>"
     return out
 
 
