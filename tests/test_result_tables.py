@@ -207,3 +207,36 @@ def test_version(capsys):
     assert e.value.code == 0
     assert capsys.readouterr().out.strip() == f"tlsjax {tj.__version__}"
     json.dumps(tj.__version__)
+
+
+def test_dense_residual_panel_is_a_density_and_removed_points_never_set_the_scale():
+    """Private import: ``tlsjax._report._plots._residual_panel`` draws one panel of
+    ``tj.plot_residuals``; a plane network of 100k points is too slow to adjust in a unit test."""
+    import types
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from tlsjax._report._plots import _residual_panel
+
+    rng = np.random.default_rng(0)
+    n = 100_000
+    x = rng.uniform(1.0, 12.0, n)
+    v = rng.normal(0.0, 0.5e-3, n)  # range residuals [m]
+    used = np.ones(n, bool)
+    used[:40] = False
+    v[:40] = 0.2  # removed blunders of 200 mm
+    stub = types.SimpleNamespace(ap_names=("A0",))
+    fig, (a, b) = plt.subplots(1, 2)
+    _residual_panel(a, stub, x, v, used, None, 0, 1.0)
+    lo, hi = a.get_ylim()
+    assert lo < -1.5 and hi > 1.5 and hi < 5.0  # mm: the used residuals, not the 200 mm
+    assert any(type(c).__name__ == "PolyCollection" for c in a.collections)  # hexbin
+    a.legend()
+    labels = [t.get_text() for t in a.get_legend().get_texts()]
+    assert any("40, 40 beyond the axis" in t for t in labels), labels
+    _residual_panel(b, stub, x[:500], v[:500], used[:500], None, 0, 1.0)
+    assert not b.collections  # few points: one marker each
+    plt.close(fig)
