@@ -158,7 +158,7 @@ def test_report_renders_in_headless_chromium(calibrated, tmp_path):
         "--disable-component-update",
         "--disable-sync",
         f"--user-data-dir={tmp_path / 'profile'}",
-        "--window-size=1200,3000",
+        "--window-size=1200,5000",
         f"--screenshot={shot}",
         (calibrated / "report.html").as_uri(),
     ]
@@ -169,7 +169,7 @@ def test_report_renders_in_headless_chromium(calibrated, tmp_path):
     from PIL import Image
 
     rgb = np.asarray(Image.open(shot).convert("RGB"), dtype=float)
-    assert rgb.shape == (3000, 1200, 3)
+    assert rgb.shape == (5000, 1200, 3)
     gray = rgb.mean(axis=2)
     # Not a blank or an error page: text lines down the whole page (rows with dark ink,
     # separated by white ones: many separate runs of ink) ...

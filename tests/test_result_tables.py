@@ -158,6 +158,9 @@ def test_report_shows_the_test_sequence_and_each_removal_with_its_stage(run):
     removals = tables["removals"]
     rows = {(r[2], r[5]): r[1] for r in removals[1:]}
     assert rows[(str(run["blunder_line"]), "range")] == "screening (before VCE)"
+    groups = {r[0]: r for r in tables["groups"][1:]}
+    for g in doc["group_table"]:
+        assert float(groups[g["group"]][2]) == pytest.approx(g["redundancy"], abs=0.06)
 
 
 def test_plain_calibration_tables_from_the_api():

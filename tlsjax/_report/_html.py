@@ -298,8 +298,10 @@ def _section_aps(doc) -> str:
 def _section_variance(doc) -> str:
     vc = doc.get("variance_components") or {}
     if not vc:
-        return "<h2>Variance components</h2>" + _na(
-            "variance components", "run calibrate with --vce (target networks)"
+        return (
+            "<h2>Variance components</h2>"
+            + _na("variance components", "run calibrate with --vce (target networks)")
+            + _group_table(doc)
         )
     rows = []
     items = vc.items() if isinstance(vc, dict) else [(v.get("group"), v) for v in vc]
@@ -319,7 +321,28 @@ def _section_variance(doc) -> str:
             )
         )
     head = ("group", "factor [-]", "a priori sigma", "estimated sigma", "r_g", "n")
-    return "<h2>Variance components</h2>" + _table(head, rows)
+    return "<h2>Variance components</h2>" + _table(head, rows) + _group_table(doc)
+
+
+def _group_table(doc) -> str:
+    """Per observation group: n, r_g, the variance factor of the final adjustment with its
+    test, the factor as VCE estimated it and the a priori factor (the JSON's group_table)."""
+    rows = [
+        (
+            _e(g["group"]),
+            g["n"],
+            _fmt(g.get("redundancy"), 1),
+            _fmt(g.get("variance_factor"), 4),
+            _verdict(g.get("accepted")) if g.get("variance_factor") is not None else "&ndash;",
+            _fmt(g.get("vce_factor"), 4),
+            _fmt(g.get("a_priori_factor"), 4),
+        )
+        for g in doc.get("group_table") or []
+    ]
+    if not rows:
+        return ""
+    head = ("group", "n", "r_g", "factor, final", "test", "factor, VCE", "factor, a priori")
+    return "<h3>Observation groups</h3>" + _table(head, rows, "groups")
 
 
 def _section_redundancy(doc) -> str:
