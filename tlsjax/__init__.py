@@ -12,10 +12,10 @@ module except the command line.
    point and plane models, levelling, the datum).
 3. ``_adjustment``: one adjustment of a network (data and boundary checks, index plan,
    normal equations, solver, quality, result, approximate values, implicit differentiation).
-4. ``_simulation`` (networks with a known truth, Monte Carlo) and ``_clouds`` (planes from
-   point clouds): on layers 1-3.
+4. ``_simulation`` (networks with a known truth, Monte Carlo) and ``_io`` (files): on
+   layers 1-3.
 5. ``_inference`` (tests, VCE, snooping, selection, compatibility), ``_design`` (network
-   design) and ``_io`` (files): on layers 1-4.
+   design) and ``_clouds`` (planes and targets from point clouds): on layers 1-4.
 6. ``_report``: text, JSON, plots and the HTML report.
 7. this module (the public API), then ``_cli`` (the command line), which may use everything.
 """
@@ -43,7 +43,6 @@ from ._adjustment._result import CalibrationResult as CalibrationResult
 from ._adjustment._result import ResultCode as ResultCode
 from ._clouds._extract import ExtractionConfig as ExtractionConfig
 from ._clouds._extract import extract_planes as extract_planes
-from ._clouds._extracted import ExtractedPlanes as ExtractedPlanes
 from ._clouds._match import MatchingConfig as MatchingConfig
 from ._clouds._match import match_planes as match_planes
 from ._clouds._target_match import TargetMatching as TargetMatching
@@ -88,6 +87,7 @@ from ._io._correct import Calibration as Calibration
 from ._io._correct import correct_points as correct_points
 from ._io._correct_files import CorrectedScan as CorrectedScan
 from ._io._correct_files import correct_point_cloud as correct_point_cloud
+from ._io._extracted import ExtractedPlanes as ExtractedPlanes
 from ._io._las import write_las as write_las
 from ._io._plane_files import load_planes as load_planes
 from ._io._plane_files import save_planes as save_planes

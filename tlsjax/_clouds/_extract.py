@@ -32,9 +32,9 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from .._io._extracted import ExtractedPlanes
 from .._model._geometry import cartesian_from_spherical, fit_plane
 from .._optional import require
-from ._extracted import ExtractedPlanes
 
 
 @dataclasses.dataclass(frozen=True)

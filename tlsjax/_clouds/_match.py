@@ -17,6 +17,7 @@ import dataclasses
 
 import numpy as np
 
+from .._io._extracted import ExtractedPlanes
 from .._model._geometry import (
     cartesian_from_spherical,
     fit_plane,
@@ -24,7 +25,6 @@ from .._model._geometry import (
     rotation_matrix,
 )
 from .._units import DEG
-from ._extracted import ExtractedPlanes
 
 
 @dataclasses.dataclass(frozen=True)

@@ -6,9 +6,9 @@ import os
 
 import numpy as np
 
-from .._clouds._extracted import ExtractedPlanes
 from .._units import UNITS
 from ._csv import Located, number, parse_unit_column, read_rows
+from ._extracted import ExtractedPlanes
 
 _NPZ_ARRAYS = (
     "patch_scan",
