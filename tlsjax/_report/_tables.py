@@ -182,10 +182,15 @@ def _kind_arrays(res, tested, kind):
     m = net.plane_observations.shape[0]
     return (
         _plane_columns(res),
-        _lines(net.plane_lines, m),
+        _lines(net.plane_lines, m) if _is_csv(net.plane_source or net.source) else None,
         [net.scans[j] for j in net.plane_scan_index],
         [net.planes[k] for k in net.plane_index],
     )
+
+
+def _is_csv(source) -> bool:
+    # Plane points from an .npz of extract-planes or from memory have no file lines.
+    return str(source).lower().endswith((".csv", ".txt"))
 
 
 def _lines(lines, n):
