@@ -243,3 +243,28 @@ def test_dense_residual_panel_is_a_density_and_removed_points_never_set_the_scal
     _residual_panel(b, stub, x[:500], v[:500], used[:500], None, 0, 1.0)
     assert not b.collections  # few points: one marker each
     plt.close(fig)
+
+
+def test_plane_point_tables(tmp_path):
+    """Plane points through a plane CSV: one row per point and component, lines of that file,
+    redundancy numbers summing (with the levelling) to the degrees of freedom."""
+    design = tj.CloudDesign(angular_step=4 * np.pi / 180, aps=("A0", "B6", "B7", "C0"))
+    pc = tj.simulate_point_clouds(design, seed=1)
+    path = tmp_path / "planes.csv"
+    tj.write_observations(path, pc.to_table(max_points=25, seed=0))
+    net = tj.read_network(None, planes=path)
+    res = tj.calibrate(net, tj.CalibrationModel(pc.scanner))
+    assert res.ok
+    written = tj.write_tables(res, tmp_path / "tab")
+    names = sorted(p.rsplit("/", 1)[-1] for p in written)
+    assert names == ["groups.csv", "plane_points.csv", "planes.csv"]
+    rows = _read_csv(tmp_path / "tab" / "plane_points.csv")
+    assert len(rows) == 3 * net.plane_observations.shape[0]
+    lines = path.read_text().splitlines()
+    for r in rows[::151]:
+        cells = lines[int(r["line"]) - 1].split(",")
+        assert (cells[0], cells[1]) == (r["scan"], r["plane"])
+    total = sum(_num(r["redundancy"]) for r in rows) + float(np.sum(res.redundancy_levelling))
+    assert total == pytest.approx(res.dof, rel=1e-6)
+    groups = {g["group"]: g for g in tj.group_records(res)}
+    assert set(groups) == {"plane range", "plane hz", "plane el"}
