@@ -255,7 +255,7 @@ def _section_global(doc) -> str:
     if after_vce is not None:
         out += (
             f"<p>sigma0 after variance component estimation = {_fmt(after_vce.get('sigma0'), 4)}"
-            f": <b>not a test</b> ({_e(after_vce.get('note', ''))}).</p>"
+            f": <b>not a test</b> ({_e(str(after_vce.get('note', '')).removesuffix(': not a test'))}).</p>"
         )
     else:
         out += f"<p>a posteriori sigma0 of the final adjustment = {_fmt(sigma0, 4)}.</p>"
