@@ -129,13 +129,9 @@ def test_every_result_json_keeps_the_architecture(tmp_path):
         assert not c.notes, c.notes
     true = load_strict(truth)["aps"]
     np.testing.assert_allclose(tj.Calibration.from_json(truth).values, list(true.values()))
-    # `tlsjax compare` takes the architecture from the JSONs it compares.
-    from argparse import Namespace
-
-    from tlsjax._cli._compare import _stored_architecture
-
-    both = Namespace(architecture=None, set1=str(out), set2=str(tmp_path / "api.json"))
-    assert _stored_architecture(both) == "panoramic"
+    # `tlsjax compare` takes the architecture from the JSONs it compares (APSet.from_json).
+    for path in (out, tmp_path / "api.json"):
+        assert tj.APSet.from_json(path).scanner.architecture == "panoramic"
 
 
 def test_check_targets_cli_calibrate_targets_out_and_held_out_scans(tmp_path, capsys):

@@ -17,8 +17,8 @@ import pytest
 import tlsjax as tj
 from tlsjax import (
     CloudDesign,
-    ExtractionConfig,
-    MatchingConfig,
+    ExtractionOptions,
+    MatchingOptions,
     extract_planes,
     load_planes,
     match_planes,
@@ -45,14 +45,14 @@ def room():
 
 @pytest.fixture(scope="module")
 def matched(room):
-    ex = extract_planes(room.observations, ExtractionConfig(), seed=0)
+    ex = extract_planes(room.observations, ExtractionOptions(), seed=0)
     return match_planes(ex, room.eops)
 
 
 @pytest.fixture(scope="module")
 def small(room):
     # Two scans (of one station), at most 100 points per patch.
-    return extract_planes(room.observations[:2], ExtractionConfig(budget=100), seed=4)
+    return extract_planes(room.observations[:2], ExtractionOptions(budget=100), seed=4)
 
 
 def _true_labels(pc, planes):
@@ -62,7 +62,7 @@ def _true_labels(pc, planes):
 
 
 def test_every_plane_found_in_every_scan(room, matched):
-    cfg = ExtractionConfig()
+    cfg = ExtractionOptions()
     n_checked = 0
     for j, ids in enumerate(room.plane_ids):
         found = np.zeros(len(ids), dtype=bool)
@@ -116,7 +116,7 @@ def test_incidence_and_refinement(room, matched):
 def test_deterministic_and_budget(room, small):
     obs = room.observations[:2]
     a = small
-    b = extract_planes(obs, ExtractionConfig(budget=100), seed=4)
+    b = extract_planes(obs, ExtractionOptions(budget=100), seed=4)
     for name in ("patch_scan", "patch_normal", "point_index", "observations"):
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
     counts = np.bincount(a.point_patch)
@@ -146,7 +146,7 @@ def test_disjoint_coplanar_patches_and_overlap():
     obs = np.stack(
         [rho, np.mod(np.arctan2(x[:, 1], x[:, 0]), 2 * np.pi), np.arcsin(x[:, 2] / rho)], axis=1
     )
-    ex = extract_planes([obs], ExtractionConfig(min_points=50), seed=0)
+    ex = extract_planes([obs], ExtractionOptions(min_points=50), seed=0)
     assert len(ex.patch_scan) == 3
     normals = np.round(np.abs(ex.patch_normal), 6)
     assert sorted(map(tuple, normals)) == [(0, 0, 1), (0, 0, 1), (1, 0, 0)]
@@ -157,10 +157,10 @@ def test_disjoint_coplanar_patches_and_overlap():
         assert len(np.unique(label[ex.point_index[ex.point_patch == p]])) == 1
     np.testing.assert_allclose(np.sort(-ex.patch_distance), [1.5, 1.5, 4.0], atol=1e-9)
     # Coplanar patches of one scan are one plane (an occluded floor), with or without overlap.
-    merged = match_planes(ex, np.zeros((1, 6)), MatchingConfig(overlap_distance=0.5))
-    joined = match_planes(ex, np.zeros((1, 6)), MatchingConfig(overlap_distance=None))
+    merged = match_planes(ex, np.zeros((1, 6)), MatchingOptions(overlap_distance=0.5))
+    joined = match_planes(ex, np.zeros((1, 6)), MatchingOptions(overlap_distance=None))
     apart = match_planes(
-        ex, np.zeros((1, 6)), MatchingConfig(overlap_distance=0.5, merge_coplanar_in_scan=False)
+        ex, np.zeros((1, 6)), MatchingOptions(overlap_distance=0.5, merge_coplanar_in_scan=False)
     )
     assert len(merged.planes) == 2 and len(joined.planes) == 2 and len(apart.planes) == 3
     floor = [p for p in merged.summary() if abs(p["normal"][2]) > 0.9]
@@ -235,7 +235,7 @@ def test_table_and_npz_round_trip(tmp_path, room, small):
     for name in ("patch_plane", "point_index", "observations", "incidence", "planes", "poses"):
         np.testing.assert_array_equal(getattr(again, name), getattr(matched, name))
     with pytest.raises(ValueError, match="match_planes"):
-        extract_planes([matched.observations[:10]], ExtractionConfig(min_points=3)).to_table()
+        extract_planes([matched.observations[:10]], ExtractionOptions(min_points=3)).to_table()
     (tmp_path / "bad.npz").write_bytes(b"not a zip")
     with pytest.raises(ValueError, match="bad.npz"):
         load_planes(tmp_path / "bad.npz")
@@ -403,7 +403,7 @@ def test_clutter_gives_no_false_planes(room):
     label = np.concatenate([room.plane_ids[j], np.full(20000, -1)])
     ex = match_planes(extract_planes([obs], seed=0), room.eops[j : j + 1])
     counts = np.bincount(room.plane_ids[j], minlength=len(room.planes))
-    visible = np.flatnonzero(counts >= 2 * ExtractionConfig().min_points)
+    visible = np.flatnonzero(counts >= 2 * ExtractionOptions().min_points)
     assert len(ex.planes) == len(visible)
     for g in range(len(ex.planes)):
         lab = label[ex.point_index[ex.point_plane == g]]
@@ -432,4 +432,4 @@ def test_cli_on_a_real_scan(tmp_path, capsys):
     n, d = planes.planes[0, :3], planes.planes[0, 3]
     assert abs(n[2]) > np.cos(np.radians(1.0)) and 1.8 < abs(d) < 2.0
     for p in planes.summary():
-        assert p["rms"] < ExtractionConfig().max_rms and p["n_scans"] == 1
+        assert p["rms"] < ExtractionOptions().max_rms and p["n_scans"] == 1

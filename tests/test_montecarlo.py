@@ -1,20 +1,10 @@
-"""Batched Monte Carlo and the AP-set compatibility test (SPEC section 9)."""
-
-import json
+"""Batched Monte Carlo (SPEC section 9); the AP-set compatibility test is in test_compat.py."""
 
 import numpy as np
 import pytest
-from scipy import stats
 
 import tlsjax as tj
-from tlsjax import (
-    APSet,
-    CompatibilityOptions,
-    MonteCarloOptions,
-    compatibility_test,
-    monte_carlo,
-    monte_carlo_network,
-)
+from tlsjax import MonteCarloOptions, monte_carlo, monte_carlo_network
 
 ROOM = tj.Room(n_targets=30)
 N = 300
@@ -102,84 +92,3 @@ def test_true_aps_drawn_from_distribution(design, model):
     assert np.max(np.abs(r.ap_values[:, 0] - a0) / r.ap_sigmas[:, 0]) < 5
     with pytest.raises(ValueError, match="ap_sigma"):
         monte_carlo(design, model, MonteCarloOptions(runs=2, ap_sigma={"B9": 1.0}))
-
-
-# ------------------------------------------------------------------------------------------
-# Compatibility test
-
-
-@pytest.fixture(scope="module")
-def sets(mc):
-    n = mc.ap_names
-    return APSet(n, mc.ap_values[0], mc.ap_covariance[0]), APSet(
-        n, mc.ap_values[1], mc.ap_covariance[1]
-    )
-
-
-def test_null_distribution_has_the_nominal_size(sets):
-    # Under the null the propagated T_i ~ chi2(3) exactly (linear in the APs), so every check
-    # point is significant with probability alpha: the mean null share is alpha. This checks
-    # the autodiff covariance propagation through correction, conversion and the rigid fit.
-    s1, s2 = sets
-    r = compatibility_test(
-        s1, s2, ROOM, options=CompatibilityOptions(runs=400, chunk_size=100, progress=False)
-    )
-    assert r.n_failed == 0
-    # Shares of one simulation are strongly correlated: their sd is at most sqrt(alpha(1-alpha)).
-    assert abs(np.mean(r.null_shares) - 0.05) < 4 * np.sqrt(0.05 * 0.95 / 400)
-    assert r.compatible and r.median_share <= r.null_quantile
-    assert 0 < r.p_value <= 1
-
-
-def test_identical_and_clearly_different_sets(sets):
-    s1, _ = sets
-    opts = CompatibilityOptions(runs=100, chunk_size=50, progress=False)
-    same = compatibility_test(s1, s1, ROOM, options=opts)
-    assert np.all(same.shares == 0) and same.compatible and same.rms_mm[3] < 1e-9
-    assert same.naive_chi2 == pytest.approx(0.0, abs=1e-12)
-    v = s1.values.copy()
-    v[1] += 30 * np.sqrt(s1.covariance[1, 1])  # collimation B6 changed by 30 sigma
-    diff = compatibility_test(s1, APSet(s1.names, v, s1.covariance), ROOM, options=opts)
-    assert not diff.compatible and diff.p_value < 0.05 and diff.median_share > 0.5
-    assert not diff.naive_compatible
-    # Naive chi2 by hand: delta^T (C1 + C2)^-1 delta.
-    d = s1.values - v
-    chi2 = d @ np.linalg.solve(2 * s1.covariance, d)
-    assert diff.naive_chi2 == pytest.approx(chi2, rel=1e-9)
-    assert diff.naive_p_value == pytest.approx(stats.chi2.sf(chi2, 4), rel=1e-9)
-
-
-def test_absent_terms_are_zero_with_zero_variance(sets):
-    s1, _ = sets
-    sub = APSet(("A0", "C0"), s1.values[[0, 3]], s1.covariance[np.ix_([0, 3], [0, 3])])
-    v, C = sub.on(("A0", "B6", "B7", "C0"))
-    assert v[1] == v[2] == 0 and np.all(C[1:3] == 0) and C[0, 0] == s1.covariance[0, 0]
-    r = compatibility_test(
-        s1, sub, ROOM, options=CompatibilityOptions(runs=20, chunk_size=20, progress=False)
-    )
-    assert r.ap_names == ("A0", "B6", "B7", "C0") and r.n_failed == 0
-
-
-def test_json_input(tmp_path, sets):
-    s1, _ = sets
-    doc = {
-        "sigma0": 1.0,
-        "aps": {
-            n: {"value": float(v), "sigma": float(np.sqrt(s1.covariance[k, k])), "unit": "m"}
-            for k, (n, v) in enumerate(zip(s1.names, s1.values))
-        },
-    }
-    p = tmp_path / "a.json"
-    p.write_text(json.dumps(doc))
-    a = APSet.from_json(p)
-    np.testing.assert_allclose(a.covariance, np.diag(np.diag(s1.covariance)))
-    doc["ap_covariance"] = s1.covariance[::-1, ::-1].tolist()
-    doc["ap_covariance_names"] = list(s1.names[::-1])
-    p.write_text(json.dumps(doc))
-    np.testing.assert_allclose(APSet.from_json(p).covariance, s1.covariance)
-    bad = tmp_path / "bad.json"
-    bad.write_text(json.dumps({"aps": {"A0": {"value": 1.0}}}))
-    with pytest.raises(ValueError, match="bad.json"):
-        APSet.from_json(bad)
-    with pytest.raises(ValueError, match="nothere.json"):
-        APSet.from_json(tmp_path / "nothere.json")

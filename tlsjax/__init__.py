@@ -41,9 +41,9 @@ from ._adjustment._network import make_plane_network as make_plane_network
 from ._adjustment._result import RESULT_MESSAGES as RESULT_MESSAGES
 from ._adjustment._result import CalibrationResult as CalibrationResult
 from ._adjustment._result import ResultCode as ResultCode
-from ._clouds._extract import ExtractionConfig as ExtractionConfig
+from ._clouds._extract import ExtractionOptions as ExtractionOptions
 from ._clouds._extract import extract_planes as extract_planes
-from ._clouds._match import MatchingConfig as MatchingConfig
+from ._clouds._match import MatchingOptions as MatchingOptions
 from ._clouds._match import match_planes as match_planes
 from ._clouds._target_match import TargetMatching as TargetMatching
 from ._clouds._target_match import TargetMatchingOptions as TargetMatchingOptions
@@ -61,13 +61,15 @@ from ._design._design import TargetDesign as TargetDesign
 from ._design._optimize import DesignOptimisation as DesignOptimisation
 from ._design._optimize import DesignSpace as DesignSpace
 from ._design._optimize import optimize_design as optimize_design
+from ._inference._apset import APSet as APSet
 from ._inference._checkpoints import CheckpointReport as CheckpointReport
 from ._inference._checkpoints import TargetCheck as TargetCheck
 from ._inference._checkpoints import assess_checkpoints as assess_checkpoints
 from ._inference._checkpoints import check_targets as check_targets
-from ._inference._compat import APSet as APSet
 from ._inference._compat import CompatibilityOptions as CompatibilityOptions
 from ._inference._compat import CompatibilityResult as CompatibilityResult
+from ._inference._compat import compatibility_batch as compatibility_batch
+from ._inference._compat import compatibility_statistic as compatibility_statistic
 from ._inference._compat import compatibility_test as compatibility_test
 from ._inference._robust import PlaneScreening as PlaneScreening
 from ._inference._robust import PlaneScreeningOptions as PlaneScreeningOptions
@@ -141,3 +143,25 @@ from ._simulation._room import Simulation as Simulation
 from ._simulation._room import simulate as simulate
 from ._simulation._truth import SimulationTruth as SimulationTruth
 from ._version import __version__ as __version__
+
+# Names of earlier releases, kept one release with a DeprecationWarning (issue 34): notebooks that
+# use them keep working while they move to the one word for settings objects, "Options".
+_DEPRECATED = {
+    "ExtractionConfig": ("ExtractionOptions", ExtractionOptions),
+    "MatchingConfig": ("MatchingOptions", MatchingOptions),
+}
+
+
+def __getattr__(name):
+    if name in _DEPRECATED:
+        import warnings
+
+        new, obj = _DEPRECATED[name]
+        warnings.warn(
+            f"tlsjax.{name} is deprecated and will be removed in the next release; "
+            f"use tlsjax.{new}",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return obj
+    raise AttributeError(f"module 'tlsjax' has no attribute {name!r}")

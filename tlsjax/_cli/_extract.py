@@ -7,7 +7,7 @@ import dataclasses
 
 import numpy as np
 
-from .._clouds._extract import ExtractionConfig
+from .._clouds._extract import ExtractionOptions
 
 
 def add_extract_parser(subparsers) -> argparse.ArgumentParser:
@@ -34,10 +34,10 @@ def add_extract_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--distance-threshold",
         type=float,
-        default=ExtractionConfig.distance_threshold,
+        default=ExtractionOptions.distance_threshold,
         help="RANSAC inlier distance [m]",
     )
-    p.add_argument("--min-points", type=int, default=ExtractionConfig.min_points)
+    p.add_argument("--min-points", type=int, default=ExtractionOptions.min_points)
     p.add_argument("--csv", help="also write the plane observations CSV (SPEC section 11)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cli_extract)
@@ -78,7 +78,7 @@ def cli_extract(args) -> int:
     """
     import sys
 
-    from .._clouds._extract import ExtractionConfig, extract_planes
+    from .._clouds._extract import ExtractionOptions, extract_planes
     from .._clouds._match import match_planes
     from .._io._json import check_output_file
     from .._io._plane_files import save_planes
@@ -103,7 +103,7 @@ def cli_extract(args) -> int:
         poses = None
     if poses is None and args.csv:
         raise ValueError("matching planes across scans needs scan poses: give --poses poses.csv")
-    config = ExtractionConfig(
+    config = ExtractionOptions(
         distance_threshold=args.distance_threshold, min_points=args.min_points, budget=args.budget
     )
     planes = extract_planes(

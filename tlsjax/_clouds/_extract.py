@@ -38,7 +38,7 @@ from .._optional import require
 
 
 @dataclasses.dataclass(frozen=True)
-class ExtractionConfig:
+class ExtractionOptions:
     """Settings of the per-scan plane extraction (lengths in metres).
 
     ``distance_threshold``: RANSAC inlier distance; it must cover noise and the plane's
@@ -71,10 +71,10 @@ class ExtractionConfig:
         for name in ("distance_threshold", "min_extent", "max_rms", "cluster_steps", "rejection"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
-                raise ValueError(f"ExtractionConfig.{name} must be positive, got {v}")
+                raise ValueError(f"ExtractionOptions.{name} must be positive, got {v}")
         if not 0 < self.max_surface_variation <= 1.0 / 3.0:
             raise ValueError(
-                f"ExtractionConfig.max_surface_variation must be in (0, 1/3], got {self.max_surface_variation}"
+                f"ExtractionOptions.max_surface_variation must be in (0, 1/3], got {self.max_surface_variation}"
             )
         for name in (
             "ransac_iterations",
@@ -85,15 +85,15 @@ class ExtractionConfig:
         ):
             if int(getattr(self, name)) < 1:
                 raise ValueError(
-                    f"ExtractionConfig.{name} must be a positive integer, got {getattr(self, name)}"
+                    f"ExtractionOptions.{name} must be a positive integer, got {getattr(self, name)}"
                 )
         if self.min_points < 3:
             raise ValueError(
-                f"ExtractionConfig.min_points must be at least 3, got {self.min_points}"
+                f"ExtractionOptions.min_points must be at least 3, got {self.min_points}"
             )
         if self.budget is not None and int(self.budget) < 3:
             raise ValueError(
-                f"ExtractionConfig.budget must be None or at least 3 points, got {self.budget}"
+                f"ExtractionOptions.budget must be None or at least 3 points, got {self.budget}"
             )
 
 
@@ -118,7 +118,7 @@ def _refine(x, rejection, max_iter=20):
     return keep, n, d, rms, w
 
 
-def _extract_scan(o3d, obs, config: ExtractionConfig, seed_seq, bar=None):
+def _extract_scan(o3d, obs, config: ExtractionOptions, seed_seq, bar=None):
     """Patches of one scan: list of (indices, n, d, rms); ``bar`` (tqdm) counts the points
     assigned to patches or left over.
 
@@ -190,7 +190,7 @@ def _extract_scan(o3d, obs, config: ExtractionConfig, seed_seq, bar=None):
 
 def extract_planes(
     scans: Sequence,
-    config: ExtractionConfig | None = None,
+    config: ExtractionOptions | None = None,
     *,
     names: Sequence[str] | None = None,
     seed: int = 0,
@@ -209,7 +209,7 @@ def extract_planes(
     from tqdm.auto import tqdm
 
     o3d = _require_open3d()
-    config = config or ExtractionConfig()
+    config = config or ExtractionOptions()
     names = tuple(names) if names is not None else tuple(f"S{j + 1}" for j in range(len(scans)))
     if len(names) != len(scans):
         raise ValueError(f"{len(names)} scan names for {len(scans)} scans")

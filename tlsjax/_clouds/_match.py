@@ -28,7 +28,7 @@ from .._units import DEG
 
 
 @dataclasses.dataclass(frozen=True)
-class MatchingConfig:
+class MatchingOptions:
     """Thresholds for joining patches into global planes: ``max_angle`` [rad] between normals,
     ``max_offset`` [m] of a centroid from the other plane, ``overlap_distance`` h [m] between
     the nearest points of two patches, tested on a voxel grid of size h (patches closer than h
@@ -45,13 +45,13 @@ class MatchingConfig:
     def __post_init__(self):
         if not (0 < self.max_angle < np.pi / 2):
             raise ValueError(
-                f"MatchingConfig.max_angle must be in (0, 90 deg), got {self.max_angle / DEG:g} deg"
+                f"MatchingOptions.max_angle must be in (0, 90 deg), got {self.max_angle / DEG:g} deg"
             )
         if not self.max_offset > 0:
-            raise ValueError(f"MatchingConfig.max_offset must be positive, got {self.max_offset}")
+            raise ValueError(f"MatchingOptions.max_offset must be positive, got {self.max_offset}")
         if self.overlap_distance is not None and not self.overlap_distance > 0:
             raise ValueError(
-                f"MatchingConfig.overlap_distance must be positive or None, got {self.overlap_distance}"
+                f"MatchingOptions.overlap_distance must be positive or None, got {self.overlap_distance}"
             )
 
 
@@ -136,7 +136,7 @@ def _overlapping(X, point_patch, P, iu, ju, h):
 
 
 def match_planes(
-    planes: ExtractedPlanes, poses, config: MatchingConfig | None = None
+    planes: ExtractedPlanes, poses, config: MatchingOptions | None = None
 ) -> ExtractedPlanes:
     """Join the patches of all scans into global planes, given scan poses (s, 6) =
     (Xs, Ys, Zs, omega, phi, kappa) with ``x = R (X - S)`` (SPEC section 1).
@@ -148,7 +148,7 @@ def match_planes(
     (A little over 60 lines: candidate pairs, joining, the object-space fit and the numbering,
     one sequence.)
     """
-    config = config or MatchingConfig()
+    config = config or MatchingOptions()
     poses = np.asarray(poses, dtype=np.float64)
     if poses.shape != (len(planes.scans), 6) or not np.all(np.isfinite(poses)):
         raise ValueError(

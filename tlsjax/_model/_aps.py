@@ -475,6 +475,21 @@ def ap_corrections(coefficients, names: tuple[str, ...], l, scanner):
     return jnp.stack(out, axis=-1)
 
 
+def ap_basis_matrix(names: tuple[str, ...], l, scanner):
+    """``dDelta/da`` at observations ``l[..., 3]``: (..., 3, n), column k the basis of
+    ``names[k]`` in its group's row, so ``ap_corrections(a, ...) == ap_basis_matrix(...) @ a``.
+    Each basis is evaluated once (autodiff of :func:`ap_corrections` with respect to the
+    coefficients multiplies every term by every unit vector: n^2 products per observation)."""
+    rho, theta, alpha = l[..., 0], l[..., 1], l[..., 2]
+    cols = []
+    for name in names:
+        term = _REGISTRY[name]
+        b = term.basis(rho, theta, alpha, scanner)
+        g = GROUP_INDEX[term.group]
+        cols.append(jnp.stack([b if i == g else jnp.zeros_like(b) for i in range(3)], axis=-1))
+    return jnp.stack(cols, axis=-1)
+
+
 def corrected_observations(coefficients, names: tuple[str, ...], l, scanner):
     """``l - Delta(l)``: the observations with the modelled systematic errors removed, the
     input of the Gauss-Helmert plane condition (SPEC section 4); ``l`` itself without APs."""
