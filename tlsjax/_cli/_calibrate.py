@@ -261,8 +261,7 @@ def file_architecture(given, *paths) -> str:
 
 def write_targets(res, path):
     """The adjusted targets as CSV (``--targets-out``); none for a failed adjustment."""
-    from .._io._target_lists import write_target_csv
-    from .._report._json import datum_text, target_ellipsoids, target_scan_counts
+    from .._report._tables import targets_csv
 
     if not res.ok:
         print(f"--targets-out {path}: not written (the adjustment failed: no estimates)")
@@ -270,16 +269,7 @@ def write_targets(res, path):
     if not len(res.targets):
         print(f"--targets-out {path}: not written (no targets in this network)")
         return
-    axes, _ = target_ellipsoids(res.target_covariance)
-    write_target_csv(
-        path,
-        res.targets,
-        res.target_xyz,
-        res.target_sigmas,
-        axes,
-        target_scan_counts(res),
-        datum_text(res),
-    )
+    targets_csv(res, path)
     print(f"wrote {path}")
 
 

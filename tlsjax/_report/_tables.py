@@ -24,6 +24,7 @@ sigmas, critical value and removals), else of the plain adjustment with its a pr
 from __future__ import annotations
 
 import math
+import os
 
 import numpy as np
 
@@ -401,17 +402,33 @@ def planes_csv(res) -> str:
     return "\n".join(lines) + "\n"
 
 
+def targets_csv(res, path) -> None:
+    """The adjusted targets with sigmas and 1-sigma ellipsoid semi-axes as CSV
+    (:func:`tlsjax._io._target_lists.write_target_csv`; axes empty where the covariance blocks
+    were not computed)."""
+    from .._io._target_lists import write_target_csv
+    from ._json import datum_text, target_ellipsoids, target_scan_counts
+
+    cov = res.target_covariance
+    axes, _ = target_ellipsoids(np.full((len(res.targets), 3, 3), np.nan) if cov is None else cov)
+    write_target_csv(
+        path,
+        res.targets,
+        res.target_xyz,
+        res.target_sigmas,
+        axes,
+        target_scan_counts(res),
+        datum_text(res),
+    )
+
+
 def write_tables(res, folder, tested=None) -> list[str]:
     """Write the CSV tables into ``folder`` (created): ``observations.csv`` (target
     observations), ``plane_points.csv``, ``groups.csv``, ``targets.csv`` (adjusted targets
     with sigmas and 1-sigma ellipsoid semi-axes; x :data:`ELLIPSOID_95` for 95 %) and
     ``planes.csv``, each where the network has them. None for a failed adjustment (its
     numbers would look plausible and be wrong). Returns the paths written."""
-    import os
-
     from .._io._json import write_text_atomic
-    from .._io._target_lists import write_target_csv
-    from ._json import datum_text, target_ellipsoids, target_scan_counts
 
     if not res.ok:
         return []
@@ -426,19 +443,7 @@ def write_tables(res, folder, tested=None) -> list[str]:
     if net.has_targets:
         put("observations.csv", observation_csv(res, tested, kind="target"))
         path = os.path.join(os.fspath(folder), "targets.csv")
-        cov = res.target_covariance
-        axes, _ = target_ellipsoids(
-            np.full((len(res.targets), 3, 3), np.nan) if cov is None else cov
-        )
-        write_target_csv(
-            path,
-            res.targets,
-            res.target_xyz,
-            res.target_sigmas,
-            axes,
-            target_scan_counts(res),
-            datum_text(res),
-        )
+        targets_csv(res, path)
         written.append(path)
     if net.has_planes:
         put("plane_points.csv", observation_csv(res, kind="plane"))
