@@ -120,3 +120,26 @@ def perturbed_start(res, target_scale, eop_shift=0.0, ap_factor=1.0, seed=0):
     return np.concatenate(
         [X.reshape(-1) + d, res.eops.reshape(-1) + eop_shift, res.ap_values * ap_factor]
     )
+
+
+def tiny_planes(rng, n: int):
+    """A small valid extracted-planes object (two scans, one patch each on one plane x = 5 m,
+    n points), for tests of the planes file and its readers."""
+    import tlsjax as tj
+
+    half = n // 2
+    return tj.ExtractedPlanes(
+        scans=("S1", "S2"),
+        patch_scan=np.array([0, 1]),
+        patch_normal=np.array([[1.0, 0, 0], [1.0, 0, 0]]),
+        patch_distance=np.array([5.0, 5.0]),
+        patch_rms=np.full(2, 1e-3),
+        patch_inliers=np.array([half, n - half]),
+        patch_plane=np.array([0, 0]),
+        point_patch=np.repeat([0, 1], [half, n - half]),
+        point_index=np.arange(n),
+        observations=np.column_stack([np.full(n, 5.0), rng.uniform(-0.3, 0.3, (n, 2))]),
+        incidence=np.zeros(n),
+        poses=np.zeros((2, 6)),
+        planes=np.array([[1.0, 0, 0, 5.0]]),
+    )

@@ -16,7 +16,7 @@ def load_strict(path):
 
 def check_tree(root) -> int:
     """Parse every ``*.json`` under ``root`` strictly; returns how many were checked. Leftover
-    temporary files of an atomic write (``.tlsjax-*.tmp``) are an error too. Files under a
+    temporary files of an atomic write (``.tlsjax-*``) are an error too. Files under a
     folder named ``not_written_by_tlsjax`` (deliberately broken inputs of a test) are skipped."""
     root = pathlib.Path(root)
     n = 0
@@ -27,6 +27,6 @@ def check_tree(root) -> int:
             except ValueError as err:
                 raise AssertionError(f"{path} is not strict JSON: {err}") from None
             n += 1
-    left = sorted(root.rglob(".tlsjax-*.tmp"))
+    left = sorted(root.rglob(".tlsjax-*"))
     assert not left, f"temporary files of an interrupted write left behind: {left}"
     return n

@@ -214,7 +214,7 @@ def test_bad_inputs_one_line(tmp_path, sim, capsys):
         ([str(tmp_path / "multi.json"), str(src)], "choose one with --instrument"),
         ([str(cal), str(tmp_path / "s.foo")], "unknown point-cloud format"),
         ([str(cal), str(tmp_path / "missing.ptx")], "missing.ptx: no such file"),
-        ([str(cal), str(src), "--out", str(tmp_path)], "would overwrite the input"),
+        ([str(cal), str(src), "--out", str(tmp_path)], "never writes over its inputs"),
     ]
     for argv, pattern in cases:
         if "--out" not in argv:

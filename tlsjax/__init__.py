@@ -109,6 +109,7 @@ from ._model._aps import PRESETS as PRESETS
 from ._model._aps import register_ap as register_ap
 from ._model._aps import registered_aps as registered_aps
 from ._model._aps import resolve_aps as resolve_aps
+from ._model._plausibility import PlausibilityWarning as PlausibilityWarning
 from ._model._scanner import Scanner as Scanner
 from ._report._html import report_from_json as report_from_json
 from ._report._html import write_html_report as write_html_report

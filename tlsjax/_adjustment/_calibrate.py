@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import warnings
 
 import equinox as eqx
 import jax
@@ -21,9 +22,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._jit import jit
+from .._model._plausibility import PlausibilityWarning
 from ._config import CalibrationModel, SolverOptions
 from ._families import Params, grid_layout, on_grid
-from ._network import Network, check_calibration_arguments
+from ._network import Network, check_calibration_arguments, network_design_warnings
 from ._plan import UNIT_NORMAL_STRENGTH, build_plan, initial_params
 from ._quality import quality_from, summary_from
 from ._result import CalibrationResult, assemble, result_code_of
@@ -243,7 +245,12 @@ def calibrate(
     (targets (t, 3), eops (s, 6)[, planes (k, 4)]) instead of the computed approximate values.
     """
     check_calibration_arguments(network, model, options, "calibrate")
+    for note in network_design_warnings(network, model):  # the rules of _model._plausibility
+        warnings.warn(note, PlausibilityWarning, stacklevel=2)
     res = analyze(network, model, options).solve(initial=initial)
     if throw and not res.ok:
         raise RuntimeError(res.message)
+    _, implausible = res.plausibility()  # the rules of _model._plausibility, as the CLI's
+    if implausible:
+        warnings.warn(implausible, PlausibilityWarning, stacklevel=2)
     return res

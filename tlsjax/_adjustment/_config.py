@@ -44,6 +44,12 @@ class CalibrationModel:
             raise ValueError(f"datum {self.datum!r} is not one of {DATUMS}")
         if self.datum == "fixed-scan" and self.fixed_scan is None:
             raise ValueError("datum 'fixed-scan' needs fixed_scan=<scan name>")
+        if self.fixed_scan is not None and self.datum != "fixed-scan":
+            # Accepted and ignored it would look like a fixed-scan datum and be another one.
+            raise ValueError(
+                f"fixed_scan={self.fixed_scan!r} takes effect only with datum='fixed-scan' "
+                f"(datum is {self.datum!r}); pass datum='fixed-scan' or leave fixed_scan out"
+            )
         if not 0 < self.correlation_threshold <= 1:
             raise ValueError(
                 f"correlation_threshold must be in (0, 1], got {self.correlation_threshold}"

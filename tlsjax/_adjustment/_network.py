@@ -9,11 +9,13 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import warnings
 from collections import defaultdict
 from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from .._model._plausibility import PlausibilityWarning, check_ranges, design_warnings
 from .._units import ARCSEC
 
 #: Default a priori sigmas (SPEC section 8): 0.5 mm range at normal incidence, 20" for the angles.
@@ -143,6 +145,8 @@ def _check_rows(obs, sigmas, incidence, defaults, where, what, source):
     if bad.size:
         i = bad[0]
         raise ValueError(f"{where(i)}: range of {what(i)} must be positive, got {obs[i, 0]}")
+    for note in check_ranges(obs[:, 0], where, what, source):  # unit mix-ups (_plausibility)
+        warnings.warn(note, PlausibilityWarning, stacklevel=4)
     sig = np.empty_like(obs)
     sig[:] = defaults
     if sigmas is not None:
@@ -163,11 +167,14 @@ def _check_rows(obs, sigmas, incidence, defaults, where, what, source):
                 f"{source}: incidence must have one angle per row ({n}), got {inc.shape[0]}"
             )
         inc = np.nan_to_num(inc, nan=0.0)
-        bad = np.flatnonzero(~np.isfinite(inc) | (np.abs(inc) >= np.pi / 2))
+        # The angle between the line of sight and the surface normal: 0 at normal incidence,
+        # never negative (a negative value is a sign or convention mistake, not an angle).
+        bad = np.flatnonzero(~np.isfinite(inc) | (inc < 0) | (inc >= np.pi / 2))
         if bad.size:
             i = bad[0]
             raise ValueError(
-                f"{where(i)}: incidence angle of {what(i)} must be in (-90, 90) deg, got {np.degrees(inc[i])} deg"
+                f"{where(i)}: incidence angle of {what(i)} must be in [0, 90) deg (the angle "
+                f"between the line of sight and the surface normal), got {np.degrees(inc[i]):.6g} deg"
             )
         sig[:, 0] = sig[:, 0] / np.cos(inc)
     return sig
@@ -273,7 +280,26 @@ def _names(values, argument: str, what: str, n: int, source: str) -> list[str]:
     return names
 
 
+def refuse_traced(value, where: str) -> None:
+    """A one-line ValueError when ``value`` holds JAX tracers: the network, its checks and
+    the approximate values are host-side numpy, so they cannot run under ``jax.jit``, ``grad``
+    or ``vmap``; the differentiable, jittable, vmappable adjustment is named instead."""
+    import jax
+
+    if isinstance(value, Network):
+        value = [getattr(value, f.name) for f in dataclasses.fields(value)]
+    leaves = jax.tree_util.tree_leaves(value)
+    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+        raise ValueError(
+            f"{where} runs on the host and cannot be traced by jax.jit, grad or vmap; build the "
+            "network outside the transformation and use f = tlsjax.differentiable_adjustment("
+            "tlsjax.analyze(net, model)) with f(tlsjax.network_inputs(adj)) inside it (jitted, "
+            "differentiable, vmappable)"
+        )
+
+
 def _as_observations(observations, source: str) -> np.ndarray:
+    refuse_traced(observations, "make_network")
     try:
         obs = np.asarray(observations, dtype=np.float64)
     except (TypeError, ValueError) as err:
@@ -844,6 +870,12 @@ def _check_left_after_dropping(scans, keep, p_scans, dropped, source) -> None:
 def make_plane_network(planes, **kwargs) -> Network:
     """A plane network (no targets) from a plane ObservationTable; keywords as :func:`make_network`
     (sigmas, levelling, instruments through the table)."""
+    if getattr(planes, "kind", None) != "plane":
+        raise TypeError(
+            f"make_plane_network: planes must be a plane ObservationTable, got "
+            f"{type(planes).__name__}; read one with tlsjax.read_planes(path), or take "
+            "ExtractedPlanes.to_table() or PointClouds.to_table()"
+        )
     kwargs.setdefault("source", planes.source)
     return make_network((), (), np.zeros((0, 3)), planes=planes, **kwargs)
 
@@ -870,11 +902,26 @@ def _check_connected(scan_names, target_names, scan_index, target_index, source)
         )
 
 
+def network_design_warnings(network, model) -> list[str]:
+    """:func:`tlsjax._model._plausibility.design_warnings` of a network and a model."""
+    from ._config import CalibrationModel  # _config is above this module
+
+    scanners = (model or CalibrationModel()).scanner
+    scanners = list(scanners.values()) if isinstance(scanners, Mapping) else [scanners]
+    return design_warnings(
+        n_scans=len(network.scans),
+        n_targets=len(network.targets),
+        n_planes=len(network.planes),
+        n_aps=sum(len(s.aps) for s in scanners),
+    )
+
+
 def check_calibration_arguments(network, model, options, where: str = "calibrate") -> None:
     """Types of the arguments of an entry point, and the network's angles against the
     architecture of each instrument's scanner (SPEC section 1); one-line TypeError/ValueError."""
     from ._config import CalibrationModel, SolverOptions  # _config is above this module
 
+    refuse_traced(network, where)
     if not isinstance(network, Network):
         hint = (
             f"read the file with tlsjax.read_network({os.fspath(network)!r})"

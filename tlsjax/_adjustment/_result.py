@@ -9,6 +9,8 @@ import enum
 import jax.numpy as jnp
 import numpy as np
 
+from .._model._aps import get_ap
+from .._model._plausibility import ap_findings, implausible_summary, likely_causes
 from ._diagnose import confounded_partners, failure_diagnosis
 from ._network import Network
 from ._plan import Plan
@@ -181,6 +183,38 @@ class CalibrationResult:
         out["total"] = {"mean": total / max(self.n_observations, 1), "sum": total}
         return out
 
+    def plausibility(self) -> tuple:
+        """``(findings, summary)``: the APs whose estimate is beyond what instruments have
+        (:mod:`tlsjax._model._plausibility`, level "warning" or "impossible") and one line
+        naming them with the likely cause in the design or the data; ``((), "")`` when every
+        estimate is plausible or the adjustment failed (it has no estimates)."""
+        if not self.ok:
+            return (), ""
+        base = [n.split("[")[0] for n in self.ap_names]
+        findings = ap_findings(
+            self.ap_names, self.ap_values, self.ap_units, [get_ap(b).description for b in base]
+        )
+        if not findings:
+            return (), ""
+        net = self.network
+        ranges = [] if net is None else [net.observations[:, 0], net.plane_observations[:, 0]]
+        ranges = np.concatenate(ranges) if ranges else np.zeros(0)
+        causes = likely_causes(
+            n_scans=len(self.scans),
+            n_stations=_n_stations(self.eops),
+            n_primitives=len(self.targets) + len(self.planes),
+            n_aps=len(self.ap_names),
+            kind="targets"
+            if not self.planes
+            else "planes"
+            if not self.targets
+            else "targets and planes",
+            not_estimable=self.not_estimable,
+            weakly_determined=self.weakly_determined,
+            median_range=float(np.median(ranges)) if ranges.size else None,
+        )
+        return findings, implausible_summary(findings, causes)
+
     def ap(self, name: str) -> dict:
         i = self.ap_names.index(name)
         return {
@@ -191,6 +225,17 @@ class CalibrationResult:
             "max_abs_corr": self.ap_max_abs_corr[i],
             "max_corr_with": self.ap_max_corr_with[i],
         }
+
+
+def _n_stations(eops, tolerance: float = 0.05) -> int | None:
+    """Distinct scanner positions among the scans (within ``tolerance`` metres)."""
+    if eops is None or not len(eops) or not np.all(np.isfinite(eops[:, :3])):
+        return None
+    stations: list = []
+    for x in np.asarray(eops)[:, :3]:
+        if not any(np.linalg.norm(x - y) < tolerance for y in stations):
+            stations.append(x)
+    return len(stations)
 
 
 def _ap_estimates(plan: Plan, q, state, s0sq):

@@ -5,7 +5,9 @@ Every subcommand is a thin layer over the public API. Bad input is reported as o
 naming the file, line, scan, target or parameter (exit code 2), and so is every file-system
 failure (naming the path); a calibration that fails (non-convergence, rank defect, variance
 components that stop early) exits with 1 after writing what it has. An unexpected error is one
-line too (exit code 3); ``TLSJAX_DEBUG=1`` shows its traceback.
+line too (exit code 3); ``TLSJAX_DEBUG=1`` shows its traceback. Ctrl-C stops a command with
+exit code 130 and leaves no half-written file (every output is written to a temporary file and
+renamed when complete).
 """
 
 from __future__ import annotations
@@ -13,9 +15,11 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import warnings
 
 from .._version import __version__
 from ._calibrate import add_calibrate_parser
+from ._checks import reset_warnings, warn
 from ._common import EXIT_BAD_INPUT, EXIT_INTERNAL, use_host_devices
 from ._compare import add_compare_parser
 from ._correct import add_correct_parser
@@ -45,12 +49,22 @@ def _enable_compilation_cache():
         pass
 
 
+#: Exit code of a command stopped by Ctrl-C (128 + SIGINT, as shells report it).
+EXIT_INTERRUPTED = 130
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with a one-line error (the option and why, exit code 2) instead of the usage
+    block: the usage is one ``--help`` away, and a long block hides the line that matters."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(
-        prog="tlsjax", description="Terrestrial laser scanner self-calibration in JAX."
-    )
+    ap = _Parser(prog="tlsjax", description="Terrestrial laser scanner self-calibration in JAX.")
     ap.add_argument("--version", action="version", version=f"tlsjax {__version__}")
-    sub = ap.add_subparsers(dest="command", required=True)
+    sub = ap.add_subparsers(dest="command", required=True, parser_class=_Parser)
     for add in (
         add_demo_parser,
         add_simulate_parser,
@@ -74,14 +88,38 @@ def _one_line(text) -> str:
     return lines[0] if lines else ""
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    # Warnings of tlsjax (implausible magnitudes, point-cloud notes) are one "warning:" line
+    # each, as the commands print their own; others keep Python's format.
+    from .._io._point_clouds import PointCloudWarning
+    from .._model._plausibility import PlausibilityWarning
+
+    if issubclass(category, (PlausibilityWarning, PointCloudWarning)):
+        warn(str(message))
+    else:
+        sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     if getattr(args, "devices", None):
         use_host_devices(args.devices)
     _enable_compilation_cache()
+    reset_warnings()
     prefix = f"tlsjax {args.command}: error:"
     try:
-        return args.func(args)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            return args.func(args)
+    except KeyboardInterrupt:
+        # Every output is written to a temporary file and renamed when complete, so an
+        # interrupted run leaves the previous files as they were and no half-written one.
+        print(
+            f"tlsjax {args.command}: interrupted (Ctrl-C); no file was left half-written (an "
+            "output not yet complete keeps its previous content)",
+            file=sys.stderr,
+        )
+        return EXIT_INTERRUPTED
     except ValueError as exc:
         print(f"{prefix} {_one_line(exc)}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -6,8 +6,13 @@ import argparse
 import dataclasses
 import os
 import time
+import warnings
 
+import numpy as np
+
+from .._model._plausibility import PlausibilityWarning
 from .._units import ARCSEC
+from ._checks import correlation, positive_float, positive_int, probability, refuse_unless, warn
 from ._common import EXIT_FAILED, EXIT_OK, scanner_args
 
 
@@ -31,8 +36,14 @@ def add_calibrate_parser(sub):
         default="physical",
         help='APs to estimate, e.g. "A0 B6 B7 C0" or a preset (default: physical)',
     )
-    c.add_argument("--datum", choices=("auto", "inner", "fixed-scan"), default="auto")
-    c.add_argument("--fixed-scan", help="scan held fixed with --datum fixed-scan")
+    c.add_argument(
+        "--datum",
+        choices=("auto", "inner", "fixed-scan"),
+        default="auto",
+        help="inner constraints on the targets/planes, or a fixed scan (default auto: inner, or "
+        "fixed-scan when --fixed-scan is given)",
+    )
+    c.add_argument("--fixed-scan", help="scan held fixed (implies --datum fixed-scan)")
     c.add_argument("--json", help="write the result JSON here")
     c.add_argument("--plots", help="write residual and correlation plots into this folder")
     c.add_argument(
@@ -47,26 +58,26 @@ def add_calibrate_parser(sub):
     )
     c.add_argument(
         "--sigma-range-mm",
-        type=float,
-        default=0.5,
-        help="a priori range sigma [mm] where the file has none",
+        type=positive_float,
+        default=None,
+        help="a priori range sigma [mm] where the file has none (default 0.5)",
     )
     c.add_argument(
         "--sigma-hz-arcsec",
-        type=float,
-        default=20.0,
-        help='a priori hz sigma ["] where the file has none',
+        type=positive_float,
+        default=None,
+        help='a priori hz sigma ["] where the file has none (default 20)',
     )
     c.add_argument(
         "--sigma-el-arcsec",
-        type=float,
-        default=20.0,
-        help='a priori el sigma ["] where the file has none',
+        type=positive_float,
+        default=None,
+        help='a priori el sigma ["] where the file has none (default 20)',
     )
-    c.add_argument("--max-iterations", type=int, default=30)
+    c.add_argument("--max-iterations", type=positive_int, default=30)
     c.add_argument(
         "--correlation-threshold",
-        type=float,
+        type=correlation,
         default=0.99,
         help="flag APs whose max |correlation| exceeds this (default 0.99)",
     )
@@ -89,8 +100,8 @@ def add_calibrate_parser(sub):
     )
     c.add_argument(
         "--screen-alpha",
-        type=float,
-        default=0.001,
+        type=probability,
+        default=None,
         help="family-wise significance level of the screening before VCE (default 0.001)",
     )
     c.add_argument(
@@ -100,8 +111,8 @@ def add_calibrate_parser(sub):
     )
     c.add_argument(
         "--snoop-alpha",
-        type=float,
-        default=0.001,
+        type=probability,
+        default=None,
         help="significance level of each w-test (default 0.001: critical value 3.29)",
     )
     c.add_argument(
@@ -113,7 +124,7 @@ def add_calibrate_parser(sub):
     c.add_argument(
         "--snoop-removal",
         choices=("observation", "target"),
-        default="observation",
+        default=None,
         help="remove one scalar observation or all three of the target in that scan",
     )
     c.add_argument(
@@ -122,18 +133,20 @@ def add_calibrate_parser(sub):
         help="stepwise AP selection starting from --aps, adding from --select-candidates",
     )
     c.add_argument(
-        "--select-candidates", default="chow2013-noscale", help="candidate terms (names or presets)"
+        "--select-candidates",
+        default=None,
+        help="candidate terms (names or presets; default chow2013-noscale)",
     )
     c.add_argument(
         "--select-alpha",
-        type=float,
-        default=0.01,
-        help="significance level of the selection t-tests",
+        type=probability,
+        default=None,
+        help="significance level of the selection t-tests (default 0.01)",
     )
     c.add_argument(
         "--max-correlation",
-        type=float,
-        default=0.9,
+        type=correlation,
+        default=None,
         help="a candidate more correlated than this with the model is not added (default 0.9)",
     )
     c.add_argument(
@@ -157,22 +170,83 @@ def add_calibrate_parser(sub):
     return c
 
 
-def _calibrate(args) -> int:
-    """Run ``tlsjax calibrate``: read, adjust (or adjust and test), print and write. A little over
-    60 lines: one sequence of steps of the command, each a call."""
-    from .._adjustment._calibrate import calibrate
-    from .._adjustment._config import CalibrationModel, SolverOptions
-    from .._io._json import check_output_dir, check_output_file
-    from .._io._tables import read_network
-    from .._model._scanner import Scanner
+#: Defaults of the options that are None when not given (so that a given one can be judged).
+_DEFAULTS = {
+    "sigma_range_mm": 0.5,
+    "sigma_hz_arcsec": 20.0,
+    "sigma_el_arcsec": 20.0,
+    "screen_alpha": 0.001,
+    "snoop_alpha": 0.001,
+    "snoop_removal": "observation",
+    "select_candidates": "chow2013-noscale",
+    "select_alpha": 0.01,
+    "max_correlation": 0.9,
+}
+#: The files --plots writes.
+PLOT_FILES = ("residuals.png", "ap_correlations.png")
+#: The files --tables may write.
+TABLE_FILES = ("observations.csv", "plane_points.csv", "groups.csv", "targets.csv", "planes.csv")
 
+
+def _check_options(args) -> None:
+    """Refuse options that cannot take effect together (before any file is read), then fill
+    the defaults of those left out."""
     if args.observations is None and args.planes is None:
         raise ValueError("give an observation CSV, --planes FILE, or both")
-    check_outputs(args.json, args.plots, args.report)  # before any work: fails in a second
-    check_output_file(args.targets_out, "--targets-out ")
-    check_output_dir(args.tables, "--tables ")
-    args.architecture = file_architecture(args.architecture, args.observations, args.planes)
-    scanner = Scanner(architecture=args.architecture, aps=args.aps, unit_length=args.unit_length)
+    if not str(args.aps).replace(",", " ").split():
+        raise ValueError(
+            f'--aps {args.aps!r}: no AP named; give names (e.g. "A0 B6 B7 C0") or a preset '
+            "(physical, chow2013, chow2013-noscale, lichti2006, nist)"
+        )
+    if args.fixed_scan is not None and args.datum == "auto":
+        args.datum = "fixed-scan"
+    refuse_unless(
+        args.fixed_scan is None or args.datum == "fixed-scan", "--fixed-scan", "--datum fixed-scan"
+    )
+    if args.datum == "fixed-scan" and args.fixed_scan is None:
+        raise ValueError("--datum fixed-scan needs the scan to hold: --fixed-scan SCAN")
+    for option, given in (
+        ("--bonferroni", args.bonferroni),
+        ("--snoop-alpha", args.snoop_alpha is not None),
+        ("--snoop-removal", args.snoop_removal is not None),
+    ):
+        refuse_unless(not given or args.snoop, option, "--snoop")
+    for option, value in (
+        ("--select-candidates", args.select_candidates),
+        ("--select-alpha", args.select_alpha),
+        ("--max-correlation", args.max_correlation),
+    ):
+        refuse_unless(value is None or args.select, option, "--select")
+    refuse_unless(args.screen_alpha is None or args.screen, "--screen-alpha", "--screen")
+    args.given = {k for k in _DEFAULTS if getattr(args, k) is not None}
+    for k, v in _DEFAULTS.items():
+        if getattr(args, k) is None:
+            setattr(args, k, v)
+
+
+def _warn_ignored_sigmas(args, net) -> None:
+    """A --sigma-* option given while every row of the files has its own sigma of that group
+    changes nothing: say so (the file's sigmas are used)."""
+    from .._io._tables import read_observations
+
+    paths = [p for p in (args.observations, args.planes) if p and p.lower().endswith(".csv")]
+    tables = [read_observations(p) for p in paths]
+    for col, (option, unit) in enumerate(
+        (("sigma_range_mm", "mm"), ("sigma_hz_arcsec", '"'), ("sigma_el_arcsec", '"'))
+    ):
+        if option not in args.given or not tables:
+            continue
+        if all(t.sigmas is not None and not np.isnan(t.sigmas[:, col]).any() for t in tables):
+            flag = "--" + option.replace("_", "-")
+            warn(
+                f"{flag} {getattr(args, option):g} {unit} is ignored: every row of "
+                f"{', '.join(paths)} has its own {('range', 'hz', 'el')[col]} sigma"
+            )
+
+
+def _read(args):
+    from .._io._tables import read_network
+
     net = read_network(
         args.observations,
         args.scans,
@@ -195,24 +269,98 @@ def _calibrate(args) -> int:
             "--snoop of a combined network is not supported: the plane points are screened "
             "(--screen); snoop the targets in a target-only calibration"
         )
+    if not net.has_planes and not args.vce:
+        refuse_unless("screen_alpha" not in args.given, "--screen-alpha", "--vce (or --planes)")
+    _warn_ignored_sigmas(args, net)
     if net.dropped:
         print(
             f"dropped {len(net.dropped)} target(s) seen in one scan only: {', '.join(net.dropped)}"
         )
-    model = CalibrationModel(
-        scanner,
-        datum=args.datum,
-        fixed_scan=args.fixed_scan,
-        correlation_threshold=args.correlation_threshold,
-    )
-    solver = SolverOptions(max_iterations=args.max_iterations)
-    t0 = time.perf_counter()
     parts = [f"{len(net.scans)} scans"]
     if net.has_targets:
         parts.append(f"{len(net.targets)} targets, {net.observations.shape[0]} target observations")
     if net.has_planes:
         parts.append(f"{len(net.planes)} planes, {net.plane_observations.shape[0]} plane points")
     print(f"{net.source}: " + ", ".join(parts))
+    return net
+
+
+def _calibrate(args) -> int:
+    """Run ``tlsjax calibrate``: check the options and outputs, read, adjust (or adjust and
+    test), print and write; one sequence of steps, each a call."""
+    from .._adjustment._config import CalibrationModel
+    from .._adjustment._network import network_design_warnings
+    from .._model._scanner import Scanner
+
+    _check_options(args)
+    check_outputs(  # before any work: fails in a second
+        args.json,
+        args.plots,
+        args.report,
+        inputs=(
+            ("observations", args.observations),
+            ("--planes", args.planes),
+            ("--scans", args.scans),
+        ),
+        more=[("--targets-out", args.targets_out), ("--tables", args.tables, TABLE_FILES)],
+    )
+    args.architecture = file_architecture(args.architecture, args.observations, args.planes)
+    scanner = Scanner(architecture=args.architecture, aps=args.aps, unit_length=args.unit_length)
+    net = _read(args)
+    model = CalibrationModel(
+        scanner,
+        datum=args.datum,
+        fixed_scan=args.fixed_scan,
+        correlation_threshold=args.correlation_threshold,
+    )
+    for note in network_design_warnings(net, model):
+        warn(note)
+    if args.fixed_scan is not None and args.fixed_scan not in net.scans:
+        raise ValueError(
+            f"--fixed-scan {args.fixed_scan}: no such scan (scans: {', '.join(net.scans)})"
+        )
+    t0 = time.perf_counter()
+    extra, res, tested, mask, mdb = _run(args, net, model, scanner)
+    print(f"({time.perf_counter() - t0:.2f} s)")
+    withheld = None
+    if tested is not None and res.ok and not tested.ok:
+        withheld = (
+            f"the variance components failed ({tested.vce_result.message}); the adjustment with "
+            "the last weights that worked converged, but those weights are not estimated, so its "
+            "estimates and sigmas are not a calibration"
+        )
+    report(res, after_vce=tested is not None and tested.weights_fitted, withheld=withheld)
+    extra.update(_report_fields(res, scanner, args, mask, mdb))
+    failed = not res.ok or withheld is not None or impossible(res)
+    extra.update(_table_fields(res, tested, failed))
+    write_outputs(
+        res, args.json, args.plots, extra=extra, scanner=scanner, mask=mask, withheld=withheld
+    )
+    if (
+        args.targets_out and failed and res.ok
+    ):  # no target estimates of a run that is no calibration
+        print(f"--targets-out {args.targets_out}: not written (the run is no calibration)")
+    elif args.targets_out:
+        write_targets(res, args.targets_out)
+    if args.tables:
+        _write_tables(res, args.tables, tested, failed)
+    if args.report:
+        _write_report(res, args.report, extra, scanner, mask, withheld)
+    return EXIT_FAILED if failed else EXIT_OK
+
+
+def impossible(res) -> bool:
+    """True when an estimated AP has a magnitude no working instrument has (_plausibility):
+    the run is then no calibration (exit 1, JSON ``estimates`` says why)."""
+    return any(f.level == "impossible" for f in res.plausibility()[0])
+
+
+def _run(args, net, model, scanner):
+    """Selection, then plane screening, testing (VCE, snooping) or a plain calibration."""
+    from .._adjustment._calibrate import calibrate
+    from .._adjustment._config import SolverOptions
+
+    solver = SolverOptions(max_iterations=args.max_iterations)
     extra, mask, tested, mdb = {}, None, None, None
     if args.select:
         model, scanner = _select(args, net, model, scanner, extra)
@@ -223,24 +371,10 @@ def _calibrate(args) -> int:
         res, mask, mdb = tested.calibration, tested.mask, tested.mdb
         extra.update(tested.json_fields())
     else:
-        res = calibrate(net, model, solver)
-    print(f"({time.perf_counter() - t0:.2f} s)")
-    report(res, after_vce=tested is not None and tested.weights_fitted)
-    extra.update(_report_fields(res, scanner, args, mask, mdb))
-    extra.update(_table_fields(res, tested))
-    if extra.get("outliers"):
-        from .._report._tables import with_lines
-
-        extra["outliers"] = with_lines(extra["outliers"], res)
-    write_outputs(res, args.json, args.plots, extra=extra, scanner=scanner, mask=mask)
-    if args.targets_out:
-        write_targets(res, args.targets_out)
-    if args.tables:
-        _write_tables(res, args.tables, tested)
-    if args.report:
-        _write_report(res, args.report, extra, scanner, mask)
-    ok = res.ok and (tested is None or tested.ok)
-    return EXIT_OK if ok else EXIT_FAILED
+        with warnings.catch_warnings():  # the summary names implausible estimates itself
+            warnings.simplefilter("ignore", PlausibilityWarning)
+            res = calibrate(net, model, solver)
+    return extra, res, tested, mask, mdb
 
 
 def file_architecture(given, *paths) -> str:
@@ -323,23 +457,28 @@ def _test(args, net, model, solver):
     return tested
 
 
-def report(res, *, after_vce: bool = False, truth=None):
+def report(res, *, after_vce: bool = False, truth=None, withheld=None):
     """Print the summary and the AP table; a failed adjustment prints no estimates (they would
-    look plausible and be wrong)."""
+    look plausible and be wrong), nor does a run whose estimates are ``withheld`` (the reason)."""
     from .._report._text import ap_table, summary
 
     print(summary(res, after_vce=after_vce))
+    if withheld:
+        print(f"error: {withheld}")
     print()
-    print(ap_table(res, truth=truth))
+    print(ap_table(res, truth=truth, withheld=withheld))
 
 
-def check_outputs(json_path=None, plots_dir=None, report_path=None):
-    """Refuse unwritable output paths before any work (one line naming the path)."""
-    from .._io._json import check_output_dir, check_output_file
+def check_outputs(json_path=None, plots_dir=None, report_path=None, *, inputs=(), more=()):
+    """Refuse, before any work, output paths that cannot be written, that are one of the
+    ``inputs`` ((label, path)) or that two outputs share (one line naming the path)."""
+    from .._io._outputs import check_outputs as check
 
-    check_output_file(json_path, "--json ")
-    check_output_dir(plots_dir, "--plots ")
-    check_output_file(report_path, "--report ")
+    check(
+        [("--json", json_path), ("--plots", plots_dir, PLOT_FILES), ("--report", report_path)]
+        + list(more),
+        inputs,
+    )
 
 
 def _report_fields(res, scanner, args, mask, mdb) -> dict:
@@ -356,33 +495,39 @@ def _report_fields(res, scanner, args, mask, mdb) -> dict:
     return fields
 
 
-def _table_fields(res, tested) -> dict:
-    """The per-observation and per-group tables in the JSON (none for a failed adjustment)."""
-    from .._report._tables import table_json
+def _table_fields(res, tested, failed: bool) -> dict:
+    """The per-observation and per-group tables in the JSON (none for a run that is no
+    calibration), and the input file's line beside each removal's row."""
+    from .._report._tables import table_json, with_lines
 
-    return table_json(res, tested) if res.ok else {}
+    out = {} if failed else table_json(res, tested)
+    if tested is not None and tested.outliers:
+        out["outliers"] = with_lines(tested.outliers_json(), res)
+    return out
 
 
-def _write_tables(res, folder, tested):
+def _write_tables(res, folder, tested, failed: bool):
     from .._report._tables import write_tables
 
-    paths = write_tables(res, folder, tested)
+    paths = [] if failed else write_tables(res, folder, tested)
     if paths:
         print(f"wrote {len(paths)} tables into {folder}: {', '.join(map(os.path.basename, paths))}")
     else:
-        print(f"--tables {folder}: not written (the adjustment failed: no estimates)")
+        print(f"--tables {folder}: not written (the run is no calibration: no estimates)")
 
 
-def _write_report(res, path, extra, scanner, mask):
+def _write_report(res, path, extra, scanner, mask, withheld=None):
     import base64
     import tempfile
 
     from .._report._html import write_html_report
-    from .._report._json import result_to_dict
+    from .._report._json import result_to_dict, withhold_estimates
     from .._report._plots import plot_residuals
 
     doc = result_to_dict(res)
     doc.update(extra)
+    if withheld:
+        withhold_estimates(doc, withheld)
     with tempfile.TemporaryDirectory() as tmp:  # the AP correlations are drawn from the JSON
         png = plot_residuals(res, os.path.join(tmp, "residuals.png"), scanner=scanner, mask=mask)
         with open(png, "rb") as fh:
@@ -391,21 +536,21 @@ def _write_report(res, path, extra, scanner, mask):
     print(f"wrote {path}")
 
 
-def write_outputs(res, json_path, plots_dir, *, extra=None, scanner=None, mask=None):
-    from .._report._json import write_json
+def write_outputs(res, json_path, plots_dir, *, extra=None, scanner=None, mask=None, withheld=None):
+    """The result JSON (estimates nulled with the reason when ``withheld``) and the plots."""
+    from .._io._json import write_json_file
+    from .._report._json import result_to_dict, withhold_estimates
     from .._report._plots import plot_ap_correlations, plot_residuals
 
     if json_path:
-        write_json(res, json_path, extra=extra)
+        doc = result_to_dict(res)
+        doc.update(extra or {})
+        if withheld:
+            withhold_estimates(doc, withheld)
+        write_json_file(json_path, doc, "--json ")
         print(f"wrote {json_path}")
     if plots_dir:
-        try:
-            a = plot_residuals(
-                res, os.path.join(plots_dir, "residuals.png"), scanner=scanner, mask=mask
-            )
-            b = plot_ap_correlations(res, os.path.join(plots_dir, "ap_correlations.png"))
-        except OSError as err:
-            raise ValueError(
-                f"--plots {plots_dir}: cannot be written ({err.strerror or err})"
-            ) from None
+        a, b = (os.path.join(plots_dir, name) for name in PLOT_FILES)
+        plot_residuals(res, a, scanner=scanner, mask=mask)
+        plot_ap_correlations(res, b)
         print(f"wrote {a} and {b}")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 
+from ._checks import positive_float, positive_int
+
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERNAL = 0, 1, 2, 3
 
 
@@ -16,7 +18,7 @@ def scanner_args(p, default="hybrid", default_help="hybrid"):
     )
     p.add_argument(
         "--unit-length",
-        type=float,
+        type=positive_float,
         default=1.2,
         metavar="M",
         help="unit length U [m] of the cyclic range terms A3/A4 (default 1.2)",
@@ -33,7 +35,7 @@ def available_cpus() -> int:
 def devices_arg(p):
     p.add_argument(
         "--devices",
-        type=int,
+        type=positive_int,
         default=available_cpus(),
         metavar="N",
         help="split the CPU into N JAX devices and shard the realisations over them "

@@ -12,6 +12,14 @@ from .._inference._compat import CompatibilityOptions, compatibility_test
 from .._model._scanner import Scanner
 from .._simulation._room import Room
 from .._units import ARCSEC
+from ._checks import (
+    non_negative_float,
+    non_negative_int,
+    positive_float,
+    positive_int,
+    probability,
+    state_cost,
+)
 from ._common import devices_arg
 
 
@@ -23,10 +31,18 @@ def add_compare_parser(subparsers):
     p.add_argument("set1", help="AP-set JSON or result JSON (calibrate --json) of calibration 1")
     p.add_argument("set2", help="AP-set JSON or result JSON (calibrate --json) of calibration 2")
     p.add_argument("--room", default="14x11x3", help="room LxWxH in metres (default 14x11x3)")
-    p.add_argument("--runs", type=int, default=1000, help="number of simulations N (default 1000)")
-    p.add_argument("--alpha", type=float, default=0.05, help="significance level (default 0.05)")
-    p.add_argument("--targets", type=int, default=100, help="targets per simulation (default 100)")
-    p.add_argument("--control", type=int, default=10, help="control points (default 10)")
+    p.add_argument(
+        "--runs", type=positive_int, default=1000, help="number of simulations N (default 1000)"
+    )
+    p.add_argument(
+        "--alpha", type=probability, default=0.05, help="significance level (default 0.05)"
+    )
+    p.add_argument(
+        "--targets", type=positive_int, default=100, help="targets per simulation (default 100)"
+    )
+    p.add_argument(
+        "--control", type=non_negative_int, default=10, help="control points (default 10)"
+    )
     p.add_argument(
         "--architecture",
         default=None,
@@ -35,7 +51,7 @@ def add_compare_parser(subparsers):
     )
     p.add_argument(
         "--unit-length",
-        type=float,
+        type=positive_float,
         default=None,
         help="override the unit length U [m] of A3/A4 (default: each file's own)",
     )
@@ -44,19 +60,21 @@ def add_compare_parser(subparsers):
     )
     p.add_argument(
         "--sigma-range-mm",
-        type=float,
+        type=non_negative_float,
         default=None,
         help="range noise at normal incidence [mm] (default: the files' data noise, else 0.5)",
     )
     p.add_argument(
         "--sigma-angle-arcsec",
-        type=float,
+        type=non_negative_float,
         default=None,
         help="angle noise [\"] (default: the files' data noise, else 20); 0 with "
         "--sigma-range-mm 0 gives the pure object-space test",
     )
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--draws", type=int, default=100_000, help="draws of the null (default 100000)")
+    p.add_argument("--seed", type=non_negative_int, default=0)
+    p.add_argument(
+        "--draws", type=positive_int, default=100_000, help="draws of the null (default 100000)"
+    )
     p.add_argument("--json", default=None, help="write the result as strict JSON to this file")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     devices_arg(p)
@@ -86,13 +104,25 @@ def _scanner_override(args, s: APSet):
 
 def cli_compare(args) -> int:
     """CLI handler: prints the report; exit code 0 compatible, 1 not compatible."""
-    from .._io._json import check_output_file, write_json_file
+    from .._io._json import write_json_file
+    from .._io._outputs import check_outputs
 
-    check_output_file(args.json, "--json ")  # before the simulations run
+    check_outputs([("--json", args.json)], [("set1", args.set1), ("set2", args.set2)])
     sets = [
         _scanner_override(args, APSet.from_json(f, instrument=args.instrument))
         for f in (args.set1, args.set2)
     ]
+    a = len(set(sets[0].names) | set(sets[1].names))
+    state_cost(  # each simulation: two scans of --targets targets, Jacobians at the targets
+        "the compatibility test",
+        "--runs",
+        args.runs,
+        rows=2 * args.targets,
+        parameters=6 + 2 * a,
+        devices=args.devices,
+        result_bytes=8.0 * args.targets * 3 * (2 + 2 * a),
+        usual="1,000 is usual",
+    )
     room = Room.parse(args.room)
     options = CompatibilityOptions(
         runs=args.runs,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import sys
 
+from ._checks import warn
 from ._common import EXIT_OK
 
 
@@ -45,28 +46,30 @@ def add_correct_parser(sub):
 def cli_correct(args) -> int:
     from .._io._correct import Calibration
     from .._io._correct_files import correct_point_cloud
+    from .._io._outputs import check_outputs
     from .._io._plane_files import read_poses
     from .._io._point_clouds import point_cloud_format
 
-    cal = Calibration.from_json(
-        args.calibration, architecture=args.architecture, instrument=args.instrument
+    names = [os.path.basename(p) for p in args.scans]
+    if len(set(names)) != len(names):
+        raise ValueError(f"scan files with the same name would overwrite each other in {args.out}")
+    written = names + [n + ".sigma_mm.txt" for n in names] if args.precision else names
+    check_outputs(  # before any work: never over an input, every file writable
+        [("--out", args.out, written)],
+        [("calibration", args.calibration), ("--poses", args.poses)]
+        + [("scan", p) for p in args.scans],
     )
     for path in args.scans:  # refuse unknown formats and missing files before writing anything
         point_cloud_format(path)
         if not os.path.isfile(path):
             raise FileNotFoundError(2, "No such file or directory", path)
+    cal = Calibration.from_json(
+        args.calibration, architecture=args.architecture, instrument=args.instrument
+    )
     poses = read_poses(args.poses) if args.poses else None
-    names = [os.path.basename(p) for p in args.scans]
-    if len(set(names)) != len(names):
-        raise ValueError(f"scan files with the same name would overwrite each other in {args.out}")
-    try:
-        os.makedirs(args.out, exist_ok=True)
-    except OSError as err:
-        raise ValueError(f"{args.out}: cannot create the output folder ({err.strerror})") from None
-    aps = ", ".join(f"{n}" for n in cal.scanner.aps) or "none"
-    print(f"{args.calibration}: {cal.scanner.architecture} scanner, APs {aps}")
+    print(f"{args.calibration}: {cal.scanner.architecture} scanner; applying {cal.describe()}")
     for note in cal.notes:
-        print(f"warning: {note}", file=sys.stderr)
+        warn(note)
     for path in args.scans:
         out = os.path.join(args.out, os.path.basename(path))
         try:
@@ -85,5 +88,5 @@ def cli_correct(args) -> int:
         for scan in scans:
             print(scan.line())
             for note in scan.notes:
-                print(f"warning: {note}", file=sys.stderr)
+                warn(note)
     return EXIT_OK

@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import json
-import pathlib
-
 import numpy as np
 
+from ._checks import non_negative_int, positive_float, positive_int, state_cost
 from ._common import EXIT_FAILED, EXIT_OK, scanner_args
 
 
@@ -17,7 +15,9 @@ def add_design_parser(sub):
         "criterion of the AP covariance of the simulated room",
     )
     p.add_argument("--room", default="14x11x3", help="room L x W x H [m] (default 14x11x3)")
-    p.add_argument("--targets", type=int, default=120, help="number of targets (default 120)")
+    p.add_argument(
+        "--targets", type=positive_int, default=120, help="number of targets (default 120)"
+    )
     p.add_argument("--aps", default="A0 B6 B7 C0", help="APs of the model (names or presets)")
     p.add_argument(
         "--criterion", default="max_sigma", choices=("max_sigma", "trace", "max_correlation")
@@ -45,18 +45,21 @@ def add_design_parser(sub):
     p.add_argument("--fixed-stations", action="store_true", help="keep the station positions")
     p.add_argument("--headings", action="store_true", help="also optimise kappa")
     p.add_argument("--move-targets", action="store_true", help="also slide targets on their faces")
-    p.add_argument("--tilt-limit-deg", type=float, default=60.0)
-    p.add_argument("--clearance", type=float, default=0.5, help="station clearance [m]")
+    p.add_argument("--tilt-limit-deg", type=positive_float, default=60.0)
+    p.add_argument("--clearance", type=positive_float, default=0.5, help="station clearance [m]")
     p.add_argument(
         "--fov-deg", default=None, help='elevation field of view in scanner space, e.g. "-40,90"'
     )
-    p.add_argument("--max-incidence-deg", type=float, default=None)
-    p.add_argument("--starts", type=int, default=8)
-    p.add_argument("--steps", type=int, default=150)
-    p.add_argument("--learning-rate", type=float, default=0.1)
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--max-incidence-deg", type=positive_float, default=None)
+    p.add_argument("--starts", type=positive_int, default=8)
+    p.add_argument("--steps", type=positive_int, default=150)
+    p.add_argument("--learning-rate", type=positive_float, default=0.1)
+    p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument(
-        "--verify-seed", type=int, default=1, help="noise seed of the independent calibrations"
+        "--verify-seed",
+        type=non_negative_int,
+        default=1,
+        help="noise seed of the independent calibrations",
     )
     p.add_argument("--json", default=None, help="write the result as JSON to this file")
     p.add_argument("--no-progress", action="store_true")
@@ -150,9 +153,22 @@ def cli_design(args) -> int:
     """CLI handler: optimise, print the design and the independent check, write JSON."""
     import tlsjax as tj
 
+    from .._io._json import write_json_file
+    from .._io._outputs import check_outputs
     from .._units import ARCSEC, DEG
 
+    check_outputs([("--json", args.json)])  # before the optimisation runs
     dn, space, crit = _build(args)
+    state_cost(  # the optimiser's steps cost about two adjustments' worth each
+        "the design optimisation",
+        "--steps",
+        2 * args.starts * args.steps,
+        rows=len(dn.scan_index),
+        parameters=6 + len(dn.scanner.aps),
+        devices=1,
+        result_bytes=0,
+        usual="8 starts x 150 steps is usual",
+    )
     out = tj.optimize_design(
         dn,
         crit,
@@ -199,5 +215,5 @@ def cli_design(args) -> int:
             else {n: (float(s) if np.isfinite(s) else None) for n, s in zip(res.ap_names, sig)},
         }
     if args.json:
-        pathlib.Path(args.json).write_text(json.dumps(summary, indent=2, allow_nan=False) + "\n")
+        write_json_file(args.json, summary, "--json ")  # strict, atomic
     return EXIT_OK if ok else EXIT_FAILED

@@ -8,6 +8,8 @@ import dataclasses
 import numpy as np
 
 from .._clouds._extract import ExtractionOptions
+from ._checks import non_negative_int, positive_float, positive_int
+from ._common import EXIT_FAILED
 
 
 def add_extract_parser(subparsers) -> argparse.ArgumentParser:
@@ -29,15 +31,17 @@ def add_extract_parser(subparsers) -> argparse.ArgumentParser:
         "default: the poses stored in the files",
     )
     p.add_argument("--architecture", choices=("hybrid", "panoramic"), default="hybrid")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--budget", type=int, default=None, help="most points kept per plane patch")
+    p.add_argument("--seed", type=non_negative_int, default=0)
+    p.add_argument(
+        "--budget", type=positive_int, default=None, help="most points kept per plane patch"
+    )
     p.add_argument(
         "--distance-threshold",
-        type=float,
+        type=positive_float,
         default=ExtractionOptions.distance_threshold,
         help="RANSAC inlier distance [m]",
     )
-    p.add_argument("--min-points", type=int, default=ExtractionOptions.min_points)
+    p.add_argument("--min-points", type=positive_int, default=ExtractionOptions.min_points)
     p.add_argument("--csv", help="also write the plane observations CSV (SPEC section 11)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=cli_extract)
@@ -80,12 +84,14 @@ def cli_extract(args) -> int:
 
     from .._clouds._extract import ExtractionOptions, extract_planes
     from .._clouds._match import match_planes
-    from .._io._json import check_output_file
+    from .._io._outputs import check_outputs
     from .._io._plane_files import save_planes
     from .._io._tables import write_observations
 
-    check_output_file(args.out, "--out ")  # before the extraction runs
-    check_output_file(args.csv, "--csv ")
+    check_outputs(  # before the extraction runs
+        [("--out", args.out), ("--csv", args.csv)],
+        [("scan", p) for p in args.scans] + [("--poses", args.poses)],
+    )
     clouds, table = read_scan_files(args.scans, args.architecture, args.poses)
     names = [c.name for c in clouds]
     if len(set(names)) != len(names):
@@ -113,6 +119,16 @@ def cli_extract(args) -> int:
         seed=args.seed,
         progress=not args.no_progress and sys.stderr.isatty(),
     )
+    if len(planes.patch_scan) == 0:  # a non-result: no file, exit 1, the likely causes
+        print(
+            f"tlsjax extract-planes: no plane found in {len(names)} scan(s) ("
+            f"{sum(len(c.points) for c in clouds)} points): no patch of --min-points "
+            f"{args.min_points} points within --distance-threshold {args.distance_threshold} m. "
+            "Likely: clouds too sparse or not in metres, or a threshold too tight for the noise; "
+            f"nothing written to {args.out}",
+            file=sys.stderr,
+        )
+        return EXIT_FAILED
     if poses is not None:
         planes = match_planes(planes, poses)
     save_planes(args.out, planes)

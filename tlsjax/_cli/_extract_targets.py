@@ -11,6 +11,7 @@ import numpy as np
 from .._clouds._target_match import TargetMatchingOptions
 from .._clouds._targets import TargetExtractionOptions
 from .._units import DEG
+from ._checks import fraction, non_negative_int, positive_float, positive_int
 from ._common import EXIT_FAILED, EXIT_OK
 
 
@@ -29,13 +30,13 @@ def add_targets_parser(subparsers) -> argparse.ArgumentParser:
         "scans", nargs="+", help="point-cloud files (PTX/E57 files may hold several scans)"
     )
     p.add_argument("--out", required=True, help="target observation CSV (SPEC section 11)")
-    p.add_argument("--spheres", nargs="+", type=float, default=(), metavar="R",
+    p.add_argument("--spheres", nargs="+", type=positive_float, default=(), metavar="R",
                    help="nominal sphere radii [m], e.g. 0.0725 0.1")  # fmt: skip
     p.add_argument("--checkerboards", action="store_true", help="look for 2 x 2 checkerboards")
     p.add_argument("--circles", action="store_true", help="look for white discs on a dark ground")
-    p.add_argument("--pattern-size", type=float, default=TargetExtractionOptions.pattern_size,
+    p.add_argument("--pattern-size", type=positive_float, default=TargetExtractionOptions.pattern_size,
                    metavar="M", help="side of a checkerboard or circle plate [m] (default 0.15)")  # fmt: skip
-    p.add_argument("--circle-radius", type=float, default=None, metavar="M",
+    p.add_argument("--circle-radius", type=positive_float, default=None, metavar="M",
                    help="radius of the white disc [m] (default: any from 0.1 to 0.45 of the size)")  # fmt: skip
     p.add_argument("--sphere-model", choices=("offset", "known", "free"), default="offset",
                    help="sphere fit whose centre is written (default offset: radius known plus a "
@@ -50,21 +51,23 @@ def add_targets_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--table", help="per-target table CSV (default: <out>_table.csv)")
     p.add_argument("--plots", help="folder for one PNG per scan of what was found")
-    p.add_argument("--min-points", type=int, default=TargetExtractionOptions.min_points)
-    p.add_argument("--min-coverage", type=float, default=TargetExtractionOptions.min_coverage)
-    p.add_argument("--max-rms-mm", type=float, default=TargetExtractionOptions.max_rms * 1e3)
-    p.add_argument("--max-radius-misfit-mm", type=float,
+    p.add_argument("--min-points", type=positive_int, default=TargetExtractionOptions.min_points)
+    p.add_argument("--min-coverage", type=fraction, default=TargetExtractionOptions.min_coverage)
+    p.add_argument(
+        "--max-rms-mm", type=positive_float, default=TargetExtractionOptions.max_rms * 1e3
+    )
+    p.add_argument("--max-radius-misfit-mm", type=positive_float,
                    default=TargetExtractionOptions.max_radius_misfit * 1e3)  # fmt: skip
-    p.add_argument("--max-incidence-deg", type=float,
+    p.add_argument("--max-incidence-deg", type=positive_float,
                    default=TargetExtractionOptions.max_incidence / DEG)  # fmt: skip
     p.add_argument(
-        "--sigma-range-mm", type=float, default=TargetExtractionOptions.sigma_range * 1e3
+        "--sigma-range-mm", type=positive_float, default=TargetExtractionOptions.sigma_range * 1e3
     )
-    p.add_argument("--tolerance-mm", type=float, default=TargetMatchingOptions.tolerance * 1e3,
+    p.add_argument("--tolerance-mm", type=positive_float, default=TargetMatchingOptions.tolerance * 1e3,
                    help="matching tolerance of distances between targets [mm] (default 20)")  # fmt: skip
     p.add_argument("--length-unit", choices=("m", "mm"), default="m")
     p.add_argument("--angle-unit", choices=("rad", "deg", "gon", "arcsec"), default="deg")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=non_negative_int, default=0)
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
     p.set_defaults(func=cli_targets)
     return p
@@ -119,18 +122,19 @@ def cli_targets(args) -> int:
     """Run ``tlsjax extract-targets``; returns the exit code."""
     from .._clouds._target_match import match_targets
     from .._clouds._targets import extract_targets_from_files
-    from .._io._json import check_output_dir, check_output_file
+    from .._io._outputs import check_outputs
     from .._io._plane_files import read_poses
     from .._io._tables import write_observations
     from .._io._target_files import write_target_table
     from .._io._target_lists import read_reference
-    from .._report._target_plots import plot_all_targets
+    from .._report._target_plots import picture_name, plot_all_targets
 
     options, matching = _options(args)
     table_path = args.table or os.path.splitext(args.out)[0] + "_table.csv"
-    check_output_file(args.out, "--out ")
-    check_output_file(table_path, "--table ")
-    check_output_dir(args.plots, "--plots ")
+    inputs = [("scan", p) for p in args.scans]
+    inputs += [("--poses", args.poses), ("--target-list", args.target_list)]
+    outputs = [("--out", args.out), ("--table", table_path)]
+    check_outputs(outputs + [("--plots", args.plots, ())], inputs)  # before the extraction
     target_list = read_reference(args.target_list) if args.target_list else None
     poses = read_poses(args.poses) if args.poses else None
     progress = not args.no_progress and sys.stderr.isatty()
@@ -140,6 +144,9 @@ def cli_targets(args) -> int:
     for note in found.notes:
         print(f"warning: {note}", file=sys.stderr)
     targets = match_targets(found, matching, target_list=target_list)
+    if args.plots:  # the picture names come from the scans: checked once they are known
+        names = [picture_name(s) for s in targets.scans]
+        check_outputs(outputs + [("--plots", args.plots, names)], inputs)
     write_target_table(table_path, targets)
     if args.plots:
         plot_all_targets(targets, args.plots)

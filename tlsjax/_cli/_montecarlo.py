@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from .._simulation._montecarlo import MonteCarloOptions
+from ._checks import non_negative_int, positive_int, state_cost
 from ._common import devices_arg
 
 
@@ -12,7 +13,9 @@ def add_montecarlo_parser(subparsers):
         "montecarlo", help="Monte Carlo self-calibration of the simulated room (SPEC section 9)"
     )
     p.add_argument("--room", default="14x11x3", help="room LxWxH in metres (default 14x11x3)")
-    p.add_argument("--targets", type=int, default=120, help="number of targets (default 120)")
+    p.add_argument(
+        "--targets", type=positive_int, default=120, help="number of targets (default 120)"
+    )
     p.add_argument(
         "--aps", default="A0 B6 B7 C0", help="APs in the data and the model (names or presets)"
     )
@@ -20,15 +23,18 @@ def add_montecarlo_parser(subparsers):
     p.add_argument(
         "--levelled", action="store_true", help="all scans levelled (default: tilted variant)"
     )
-    p.add_argument("--runs", type=int, default=1000)
+    p.add_argument("--runs", type=positive_int, default=1000)
     p.add_argument(
         "--chunk-size",
-        type=int,
+        type=positive_int,
         default=MonteCarloOptions.chunk_size,
         help="realisations per compiled call (default: from the design, about 4 MB of Jacobian rows per device)",
     )
     p.add_argument(
-        "--seed", type=int, default=0, help="seed of the realisations (the design uses seed 0)"
+        "--seed",
+        type=non_negative_int,
+        default=0,
+        help="seed of the realisations (the design uses seed 0)",
     )
     p.add_argument("--png", default=None, help="write the plot to this PNG file")
     p.add_argument("--json", default=None, help="write the summary as JSON to this file")
@@ -42,13 +48,13 @@ def cli_montecarlo(args) -> int:
     """CLI handler: prints the table; exit code 0 when every realisation converged. Failed
     realisations are explained by a plain calibration of the noise-free design (the reason
     ``tlsjax calibrate`` would give, e.g. an AP that needs an independent scale)."""
-    from .._io._json import check_output_file, write_json_file
+    from .._io._json import write_json_file
+    from .._io._outputs import check_outputs
     from .._report._plots import plot_monte_carlo
     from .._simulation._montecarlo import monte_carlo
     from .._simulation._room import Room, simulate
 
-    check_output_file(args.json, "--json ")  # before the realisations run
-    check_output_file(args.png, "--png ")
+    check_outputs([("--json", args.json), ("--png", args.png)])  # before the realisations run
     if args.runs < 2:
         raise ValueError(
             f"--runs {args.runs}: an empirical sigma needs at least 2 realisations (1,000 is usual)"
@@ -56,6 +62,17 @@ def cli_montecarlo(args) -> int:
     room = Room.parse(args.room, n_targets=args.targets)
     sim = simulate(
         room, architecture=args.architecture, tilted=not args.levelled, aps=args.aps, seed=0
+    )
+    a = len(sim.scanner.aps)
+    state_cost(
+        "the Monte Carlo run",
+        "--runs",
+        args.runs,
+        rows=len(sim.network.observations),
+        parameters=6 + a,
+        devices=args.devices,
+        result_bytes=8.0 * (a * a + 3 * a + 4),  # values, sigmas, truth, covariance, s0^2, code
+        usual="1,000 is usual",
     )
     res = monte_carlo(
         sim,
@@ -74,12 +91,7 @@ def cli_montecarlo(args) -> int:
         summary["diagnosis"] = _diagnose(sim)
         print(f"why realisations fail: {summary['diagnosis']}")
     if args.png:
-        try:
-            plot_monte_carlo(res, args.png)
-        except OSError as err:
-            raise ValueError(
-                f"--png {args.png}: cannot be written ({err.strerror or err})"
-            ) from None
+        plot_monte_carlo(res, args.png)  # atomic; the folder is created if missing
     if args.json:
         write_json_file(args.json, summary, "--json ")  # strict: undefined values are null
         print(f"wrote {args.json}")

@@ -7,7 +7,18 @@ import os
 import time
 
 from ._calibrate import check_outputs, report, write_outputs
+from ._checks import non_negative_int, positive_int
 from ._common import EXIT_FAILED, EXIT_OK, scanner_args
+
+#: The files demo writes into --out.
+_DEMO_FILES = (
+    "report.json",
+    "residuals.png",
+    "ap_correlations.png",
+    "observations.csv",
+    "scans.csv",
+    "truth.json",
+)
 
 
 def add_demo_parser(sub):
@@ -25,7 +36,7 @@ def add_demo_parser(sub):
         default="chow2013-noscale",
         help="APs present in the data and estimated (default: chow2013-noscale, 23 terms)",
     )
-    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--seed", type=non_negative_int, default=0)
     d.add_argument(
         "--levelled",
         action="store_true",
@@ -46,11 +57,13 @@ def add_simulate_parser(sub):
     )
     s.add_argument("--truth", help="JSON with the true APs, targets and scan poses")
     s.add_argument("--room", default="14x11x3", help="room L x W x H [m] (default 14x11x3)")
-    s.add_argument("--targets", type=int, default=120, help="number of targets (default 120)")
+    s.add_argument(
+        "--targets", type=positive_int, default=120, help="number of targets (default 120)"
+    )
     s.add_argument(
         "--aps", default="A0 B6 B7 C0", help="APs present in the data (names or presets)"
     )
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=non_negative_int, default=0)
     s.add_argument("--levelled", action="store_true", help="levelled scans only (default: tilted)")
     s.add_argument("--no-noise", action="store_true", help="noiseless observations")
     s.add_argument("--scale-bars", type=int, default=0, help=argparse.SUPPRESS)
@@ -64,7 +77,7 @@ def add_simulate_parser(sub):
 def _write_simulation(
     sim, obs_path, scans_path, truth_path=None, length_unit="m", angle_unit="deg"
 ):
-    from .._io._json import make_parent, write_json_file
+    from .._io._json import write_json_file
     from .._io._tables import (
         levelling_of_network,
         table_from_network,
@@ -72,9 +85,6 @@ def _write_simulation(
         write_scans,
     )
 
-    for p in (obs_path, scans_path, truth_path):
-        if p:
-            make_parent(p)
     write_observations(
         obs_path,
         table_from_network(sim.network, sim.scanner.architecture),
@@ -101,7 +111,7 @@ def _write_simulation(
 
 
 def _simulate(args) -> int:
-    from .._io._json import check_output_file
+    from .._io._outputs import check_outputs
     from .._simulation._room import Room, simulate
 
     if args.scale_bars:
@@ -109,12 +119,7 @@ def _simulate(args) -> int:
             "--scale-bars: the target CSV contract has no scale-bar columns yet; use the Python API"
         )
     scans_path = args.scans_out or os.path.splitext(args.out)[0] + "_scans.csv"
-    for path, option in (
-        (args.out, "--out "),
-        (scans_path, "--scans-out "),
-        (args.truth, "--truth "),
-    ):
-        check_output_file(path, option)
+    check_outputs([("--out", args.out), ("--scans-out", scans_path), ("--truth", args.truth)])
     room = Room.parse(args.room, n_targets=args.targets)
     sim = simulate(
         room,
@@ -140,7 +145,7 @@ def _demo(args) -> int:
     from .._adjustment._config import CalibrationModel
     from .._simulation._room import simulate
 
-    check_outputs(os.path.join(args.out, "report.json"), args.out)
+    check_outputs(more=[("--out", args.out, _DEMO_FILES)])
     t0 = time.perf_counter()
     sim = simulate(
         architecture=args.architecture,

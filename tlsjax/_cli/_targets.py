@@ -10,6 +10,7 @@ and every later run read without vendor options of their own.
 
 from __future__ import annotations
 
+from ._checks import positive_int, warn
 from ._common import EXIT_FAILED, EXIT_OK
 
 
@@ -54,11 +55,11 @@ def add_import_targets_parser(sub):
 
 
 def _import_targets(args) -> int:
-    from .._io._json import check_output_file, make_parent
+    from .._io._outputs import check_outputs
     from .._io._tables import write_observations
     from .._io._target_lists import read_target_list
 
-    check_output_file(args.out, "--out ")
+    check_outputs([("--out", args.out)], [("list", p) for p in args.lists])
     table = read_target_list(
         args.lists,
         args.architecture,
@@ -68,7 +69,6 @@ def _import_targets(args) -> int:
     )
     for note in table.notes:
         print(note)
-    make_parent(args.out, "--out ")
     write_observations(args.out, table, length_unit="m", angle_unit=args.angle_unit)
     n_scans = len(set(table.scans))
     face2 = int((table.observations[:, 2] > 1.5707963267948966).sum())
@@ -121,7 +121,9 @@ def add_check_targets_parser(sub):
     p.add_argument(
         "--exclude", nargs="+", default=(), metavar="TARGET", help="targets to leave out"
     )
-    p.add_argument("--min-points", type=int, default=4, help="check points per scan (default 4)")
+    p.add_argument(
+        "--min-points", type=positive_int, default=4, help="check points per scan (default 4)"
+    )
     p.add_argument("--instrument", help="AP block of a calibration with several instruments")
     p.add_argument("--json", help="write the comparison as JSON")
     p.set_defaults(func=_check_targets)
@@ -131,15 +133,24 @@ def add_check_targets_parser(sub):
 def _check_targets(args) -> int:
     from .._inference._checkpoints import check_targets
     from .._io._correct import Calibration
-    from .._io._json import check_output_file, write_json_file
+    from .._io._json import write_json_file
+    from .._io._outputs import check_outputs
     from .._io._tables import read_observations, read_scans
     from .._io._target_lists import read_reference
     from .._report._json import scanner_settings
 
-    check_output_file(args.json, "--json ")
+    check_outputs(
+        [("--json", args.json)],
+        [
+            ("calibration", args.calibration),
+            ("observations", args.observations),
+            ("--reference", args.reference),
+            ("--scans", args.scans),
+        ],
+    )
     cal = Calibration.from_json(args.calibration, instrument=args.instrument)
     for note in cal.notes:
-        print(f"warning: {note}")
+        warn(note)
     table = read_observations(args.observations)
     if table.kind != "target":
         raise ValueError(f"{args.observations}: a {table.kind} file; check-targets needs targets")

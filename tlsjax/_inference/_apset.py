@@ -375,11 +375,10 @@ def _from_apset_doc(cls, doc, source, architecture):
 
 
 def _from_result_doc(cls, doc, source, instrument, architecture):
-    if doc.get("converged") is False or doc.get("estimates", "valid") != "valid":
-        raise ValueError(
-            f"the calibration did not succeed ({doc.get('message') or doc.get('estimates')}); "
-            "its APs cannot be compared"
-        )
+    estimates = doc.get("estimates", "valid")
+    if doc.get("converged") is False or estimates != "valid":
+        why = estimates if estimates != "valid" else doc.get("message")  # "withheld: ..." first
+        raise ValueError(f"the calibration did not succeed ({why}); its APs cannot be compared")
     aps = doc["aps"]
     idx, names = _instrument_block(tuple(aps), instrument, source)
     keys = [tuple(aps)[i] for i in idx]

@@ -321,10 +321,10 @@ class TestedCalibration:
             )
         for w in self.warnings:
             lines.append(f"warning: {w}")
-        for t in self.ap_tests:
-            lines.append(
-                f"  {t.name}: t = {t.t:.2f} ({'significant' if t.significant else 'not significant'} at |t| > {t.critical:.2f})"
-            )
+        if not self.ok:  # no t-tests of estimates that are not a calibration
+            lines.append("  no AP t-tests: the run failed, its estimates are not a calibration")
+        for t in self.ap_tests if self.ok else ():
+            lines.append(f"  {t.describe()}")
         return "\n".join(lines)
 
 

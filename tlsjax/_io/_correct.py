@@ -26,11 +26,13 @@ from __future__ import annotations
 import dataclasses
 import functools
 import os
+import warnings
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._adjustment._network import refuse_traced
 from .._jit import jit
 from .._model._aps import ap_corrections, get_ap
 from .._model._geometry import (
@@ -38,7 +40,9 @@ from .._model._geometry import (
     rotation_matrix,
     scanner_observations,
 )
+from .._model._plausibility import PlausibilityWarning, ap_findings
 from .._model._scanner import ARCHITECTURES, Scanner
+from .._units import display
 from ._json import read_result_json
 from ._point_clouds import MAP_SCALE_RANGE
 
@@ -65,6 +69,7 @@ class Calibration:
                 f"{self.source}: {len(self.scanner.aps)} APs need as many finite values, got {v}"
             )
         object.__setattr__(self, "values", v)
+        self._judge_plausibility()
         if self.covariance is not None:
             C = np.asarray(self.covariance, dtype=np.float64)
             if C.shape != (len(v), len(v)) or not np.all(np.isfinite(C)):
@@ -73,15 +78,64 @@ class Calibration:
                 )
             object.__setattr__(self, "covariance", 0.5 * (C + C.T))
 
+    def _judge_plausibility(self) -> None:
+        """The rules of :mod:`tlsjax._model._plausibility`, as ``calibrate`` applies them: an
+        AP no working instrument has is refused (applying it would corrupt every point), one
+        larger than instruments have is a warning (``notes``, :class:`PlausibilityWarning`)."""
+        names = self.scanner.aps
+        terms = [get_ap(n) for n in names]
+        findings = ap_findings(
+            names, self.values, [t.unit for t in terms], [t.description for t in terms]
+        )
+        if any(f.level == "impossible" for f in findings):
+            raise ValueError(
+                f"{self.source}: refusing to apply it: "
+                + "; ".join(f.text for f in findings if f.level == "impossible")
+                + " (a calibration whose estimates were implausible or withheld, or values in "
+                "the wrong unit: the JSON holds SI units, metres and radians)"
+            )
+        for f in findings:
+            note = f"{self.source}: {f.text}; applied as given"
+            warnings.warn(note, PlausibilityWarning, stacklevel=4)
+            object.__setattr__(self, "notes", tuple(self.notes) + (note,))
+
+    def describe(self) -> str:
+        """What is applied, in words: each AP's value in display units."""
+        if not self.scanner.aps:
+            return "no APs: the identity correction"
+        parts = []
+        for name, v in zip(self.scanner.aps, self.values):
+            shown, unit = display(v, get_ap(name).unit)
+            parts.append(f"{name} = {shown:.4g} {unit}")
+        return ", ".join(parts)
+
     @classmethod
     def from_result(cls, result, scanner: Scanner) -> Calibration:
         """From a :class:`~tlsjax.CalibrationResult` and the scanner it was calibrated with;
-        non-estimable APs (no value) are applied as zero."""
+        non-estimable APs (no value; the adjustment held them at zero) are applied as zero
+        and named in ``notes``. A failed adjustment is refused: it has no estimates."""
+        if not result.ok:
+            raise ValueError(
+                f"the calibration failed (result {result.result}: {result.message}); its numbers "
+                "are not estimates and are not applied"
+            )
         names = tuple(result.ap_names)
-        vals = np.nan_to_num(np.asarray(result.ap_values, dtype=np.float64), nan=0.0)
+        vals = np.asarray(result.ap_values, dtype=np.float64)
+        notes = tuple(
+            f"AP {n} is not estimable in this calibration (its adjustment held it at zero): "
+            "applied as zero"
+            for n, v in zip(names, vals)
+            if not np.isfinite(v)
+        )
         cov = getattr(result, "ap_covariance", None)
         cov = None if cov is None else np.nan_to_num(np.asarray(cov, dtype=np.float64), nan=0.0)
-        return cls(dataclasses.replace(scanner, aps=names), vals, cov, "<CalibrationResult>")
+        return cls(
+            dataclasses.replace(scanner, aps=names),
+            np.nan_to_num(vals, nan=0.0),
+            cov,
+            "<CalibrationResult>",
+            notes,
+        )
 
     @classmethod
     def from_json(cls, path, *, architecture=None, instrument=None) -> Calibration:
@@ -107,12 +161,23 @@ def _scanner_from_doc(doc, source, architecture, names, instrument=None):
         )
     if arch not in ARCHITECTURES:
         raise ValueError(f"{source}: scanner architecture {arch!r} is not one of {ARCHITECTURES}")
-    kw = {k: float(settings[k]) for k in ("unit_length", "unit_length_2") if k in settings}
+    kw = {}
+    for k in ("unit_length", "unit_length_2"):
+        if k in settings:
+            v = settings[k]
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0:
+                raise ValueError(f"{source}: scanner.{k} must be a positive number [m], got {v!r}")
+            kw[k] = float(v)
     return Scanner(architecture=arch, aps=names, **kw), notes
 
 
 def _calibration_from_json(source, architecture, instrument) -> Calibration:
-    doc = read_result_json(source)
+    # A simulation's truth and a target check (which records the APs it applied) carry an
+    # AP set too; the other kinds of tlsjax JSON are named and refused.
+    doc = read_result_json(source, accept=("truth", "target check"))
+    estimates = doc.get("estimates", "valid")
+    if estimates != "valid":  # withheld (a failed run) or implausible: never applied
+        raise ValueError(f"{source}: no calibration to apply: the estimates are {estimates}")
     aps = doc["aps"]
     blocks = sorted({n.split("[", 1)[1].rstrip("]") for n in aps if "[" in n})
     if blocks and instrument is None:
@@ -139,11 +204,16 @@ def _calibration_from_json(source, architecture, instrument) -> Calibration:
         entry = aps[k] if isinstance(aps[k], dict) else {"value": aps[k]}
         v = entry.get("value")
         if v is None:
-            notes.append(f"{source}: AP {k} is not estimable (no value): applied as zero")
+            notes.append(
+                f"{source}: AP {k} is not estimable in this calibration (no value; its "
+                "adjustment held it at zero): applied as zero"
+            )
             v = 0.0
         if not isinstance(v, (int, float)) or not np.isfinite(v):
             raise ValueError(f"{source}: AP {k} has no numeric value ({v!r})")
         values.append(float(v))
+    if keys and all(isinstance(aps[k], dict) and aps[k].get("value") is None for k in keys):
+        raise ValueError(f"{source}: no AP has a value (every estimate is null): nothing to apply")
     return Calibration(
         scanner, np.array(values), _covariance(doc, keys, source), source, tuple(notes)
     )
@@ -191,7 +261,26 @@ def correct_points(
     when ``pose`` (6,) is given) and, with ``precision``, the sigma (n,) [m] of each corrected
     position from the AP covariance (zeros otherwise). Points at the origin or non-finite are
     returned unchanged with sigma 0. ``on_chunk(n)`` is called after each chunk (progress)."""
-    X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    refuse_traced(points, "correct_points")
+    if not isinstance(calibration, Calibration):
+        raise TypeError(
+            f"correct_points: calibration must be a tlsjax Calibration, got "
+            f"{type(calibration).__name__}; read one with tlsjax.Calibration.from_json(path)"
+        )
+    try:
+        X = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"correct_points: points must be numbers [m] ({err})") from None
+    if X.ndim != 2 or X.shape[1] != 3:
+        raise ValueError(
+            f"correct_points: points must have shape (n, 3) [x, y, z in m], got {X.shape}"
+        )
+    if pose is not None:
+        pose = np.asarray(pose, dtype=np.float64).reshape(-1)
+        if pose.shape != (6,) or not np.all(np.isfinite(pose)):
+            raise ValueError(
+                "correct_points: pose must be 6 finite numbers (X, Y, Z [m], omega, phi, kappa [rad])"
+            )
     if precision and calibration.covariance is None:
         raise ValueError(f"{calibration.source}: no AP covariance or sigmas to propagate")
     valid = np.all(np.isfinite(X), axis=1) & ~np.all(X == 0.0, axis=1)

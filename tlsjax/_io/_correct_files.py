@@ -20,6 +20,7 @@ import os
 import numpy as np
 
 from ._correct import Calibration, correct_points
+from ._outputs import atomic_output, same_file
 from ._point_clouds import point_cloud_format
 
 _TEXT_CHUNK = 1 << 18  # lines per chunk of a PTX or XYZ file
@@ -100,28 +101,29 @@ def correct_point_cloud(
         raise ValueError(f"{dst}: the output must have the input's format ({kind})")
     if not os.path.isfile(src):
         raise FileNotFoundError(2, "No such file or directory", src)
-    if os.path.exists(dst) and os.path.samefile(src, dst):
-        raise ValueError(f"{dst}: the output would overwrite the input")
+    if same_file(src, dst) or same_file(src, dst + ".sigma_mm.txt"):
+        raise ValueError(f"{dst}: the output would overwrite the input {src}")
     stem = os.path.splitext(os.path.basename(src))[0]
     poses = poses or {}
-    args = (src, dst, calibration, precision, progress)
     if kind == "pcd":
         raise ValueError(f"{src}: correcting PCD files is not supported; convert to PLY")
-    try:
-        if kind == "las":
-            return (_correct_las(*args, stem, poses.get(stem)),)
-        if kind in ("ptx", "xyz"):
-            return _correct_text(*args, stem, kind)
-        if kind == "ply":
-            return (_correct_ply(*args, stem),)
-        return _correct_e57(*args, stem)
-    except BaseException as err:
-        for leftover in (dst, dst + ".sigma_mm.txt"):  # no half-written output stays behind
-            if os.path.exists(leftover) and not os.path.samefile(leftover, src):
-                os.remove(leftover)
-        if isinstance(err, ValueError) and not str(err).startswith(src):
-            raise ValueError(f"{src}: {err}") from None
-        raise
+    # Written to a temporary file (and side file) renamed when complete: an error or Ctrl-C
+    # leaves no half-written output and a previous output as it was.
+    with atomic_output(dst, companions=(".sigma_mm.txt",)) as tmp:
+        args = (src, tmp, calibration, precision, progress)
+        try:
+            if kind == "las":
+                scans = (_correct_las(*args, stem, poses.get(stem)),)
+            elif kind in ("ptx", "xyz"):
+                scans = _correct_text(*args, stem, kind)
+            elif kind == "ply":
+                scans = (_correct_ply(*args, stem),)
+            else:
+                scans = _correct_e57(*args, stem)
+        except ValueError as err:
+            message = str(err).replace(tmp, dst)
+            raise ValueError(message if message.startswith(src) else f"{src}: {message}") from None
+    return tuple(dataclasses.replace(c, output=dst) for c in scans)
 
 
 # --- LAS/LAZ -----------------------------------------------------------------------------

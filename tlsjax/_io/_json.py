@@ -13,10 +13,15 @@ import dataclasses
 import enum
 import json
 import math
-import os
-import tempfile
 
 import numpy as np
+
+from ._outputs import (  # noqa: F401  (re-exported: the CLI modules import them from here)
+    check_output_dir,
+    check_output_file,
+    make_parent,
+    write_text_atomic,
+)
 
 
 def to_json_value(obj):
@@ -52,107 +57,6 @@ def dumps_strict(obj, indent: int = 2) -> str:
     return json.dumps(to_json_value(obj), indent=indent, allow_nan=False) + "\n"
 
 
-def _nearest_existing(path: str) -> str:
-    parent = os.path.dirname(os.path.abspath(path))
-    while not os.path.exists(parent):
-        up = os.path.dirname(parent)
-        if up == parent:
-            break
-        parent = up
-    return parent
-
-
-def _check_folder_writable(folder: str, path: str, option: str) -> None:
-    """The folder that will hold ``path`` (or its nearest existing ancestor) must be a writable
-    directory; a file on the way is named."""
-    ancestor = _nearest_existing(folder) if not os.path.exists(folder) else folder
-    if not os.path.isdir(ancestor):
-        raise ValueError(
-            f"{option}{path}: cannot be written: {ancestor} is a file, not a directory"
-        )
-    if not os.access(ancestor, os.W_OK | os.X_OK):
-        raise ValueError(f"{option}{path}: cannot be written: no permission to write in {ancestor}")
-    # Permissions do not tell everything (a read-only mount, a pseudo file system, root):
-    # creating and removing a file there does.
-    try:
-        with tempfile.TemporaryFile(dir=ancestor):
-            pass
-    except OSError as err:
-        raise ValueError(
-            f"{option}{path}: cannot be written: no file can be created in {ancestor} "
-            f"({err.strerror or err})"
-        ) from None
-
-
-def check_output_file(path, option: str = "") -> None:
-    """Refuse, before any work, an output file path that cannot be written: a directory, a path
-    through a file, a folder without write permission, a read-only file. ``option`` (e.g.
-    ``"--json "``) prefixes the one-line ValueError."""
-    if path is None:
-        return
-    path = os.fspath(path)
-    if not path or path.endswith(os.sep):
-        raise ValueError(f"{option}{path!r}: not a file name")
-    if os.path.isdir(path):
-        raise ValueError(f"{option}{path}: is a directory; give a file name")
-    if os.path.exists(path) and not os.access(path, os.W_OK):
-        raise ValueError(f"{option}{path}: cannot be written: the file is read-only")
-    folder = os.path.dirname(os.path.abspath(path))
-    _check_folder_writable(folder, path, option)
-
-
-def check_output_dir(path, option: str = "") -> None:
-    """Refuse, before any work, an output folder that is a file, lies under a file or cannot
-    be written to."""
-    if path is None:
-        return
-    path = os.fspath(path)
-    if os.path.exists(path) and not os.path.isdir(path):
-        raise ValueError(f"{option}{path}: is a file, not a directory")
-    _check_folder_writable(os.path.abspath(path), path, option)
-
-
-def make_parent(path, option: str = "") -> None:
-    """Create the folder of ``path``; a failure is one ValueError naming the path."""
-    folder = os.path.dirname(os.path.abspath(os.fspath(path)))
-    try:
-        os.makedirs(folder, exist_ok=True)
-    except OSError as err:
-        raise ValueError(
-            f"{option}{os.fspath(path)}: cannot create its folder ({err.strerror})"
-        ) from None
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
-
-
-def write_text_atomic(path, text: str, option: str = "") -> None:
-    """Write ``text`` to ``path`` through a temporary file in the same folder and
-    ``os.replace``: the file is complete or untouched. OSError -> one-line ValueError."""
-    path = os.fspath(path)
-    check_output_file(path, option)
-    make_parent(path, option)
-    folder = os.path.dirname(os.path.abspath(path))
-    tmp = None
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=".tlsjax-", suffix=".tmp", dir=folder)
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes it private; a result file is not
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-        tmp = None
-    except OSError as err:
-        raise ValueError(f"{option}{path}: cannot be written ({err.strerror or err})") from None
-    finally:
-        if tmp is not None and os.path.exists(tmp):
-            os.unlink(tmp)
-
-
 def write_json_file(path, obj, option: str = "") -> dict:
     """Write ``obj`` as strict JSON (NaN/inf -> null), atomically; returns what was written."""
     value = to_json_value(obj)
@@ -161,15 +65,114 @@ def write_json_file(path, obj, option: str = "") -> dict:
     return value
 
 
-def read_result_json(source) -> dict:
-    """A tlsjax result JSON as a dict; a one-line ValueError naming the file otherwise."""
+#: The other JSON files tlsjax writes, told from a calibration result (which has "result") by
+#: their keys: (name, test, description).
+_OTHER_KINDS = (
+    ("montecarlo", ("runs", "successful"), "a Monte Carlo summary (tlsjax montecarlo --json)"),
+    ("compare", ("p_value", "compatible"), "an AP-set compatibility test (tlsjax compare --json)"),
+    ("design", ("criterion", "start_value"), "a design optimisation (tlsjax design --json)"),
+    ("truth", ("targets", "eops", "units"), "the truth of a simulation (tlsjax simulate --truth)"),
+)
+_AP_NUMBERS = ("value", "sigma", "t", "max_abs_corr")
+_TOP_NUMBERS = ("sigma0", "dof", "n_observations", "n_unknowns", "iterations", "result")
+_TOP_MAPPINGS = ("eops", "redundancy", "scanner", "global_test", "planes", "reliability")
+_TOP_LISTS = ("outliers", "not_estimable", "weakly_determined", "rank_deficient")
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def json_kind(doc) -> str:
+    """ "result" (a calibration), "target check", or one of the names of :data:`_OTHER_KINDS`;
+    "unknown" for anything else."""
+    if not isinstance(doc, dict):
+        return "unknown"
+    if "result" in doc:
+        return "result"
+    if doc.get("kind") == "target check":
+        return "target check"
+    for name, keys, _ in _OTHER_KINDS:
+        if all(k in doc for k in keys):
+            return name
+    return "unknown"
+
+
+def _check_result_doc(doc, source, accept=()) -> str:
+    """The contract fields of a result JSON (SPEC section 11) have their JSON types: each AP an
+    object whose value, sigma, t and max_abs_corr are numbers or null (a plain number in a
+    simulation's truth); one-line ValueError. ``accept``: other kinds that carry an AP set and
+    may be read too ("truth", "target check"). Returns the kind."""
+    if not isinstance(doc, dict):
+        raise ValueError(
+            f"{source}: not a tlsjax result JSON (the top level is a {type(doc).__name__}, "
+            "not an object)"
+        )
+    kind = json_kind(doc)
+    described = {name: text for name, _, text in _OTHER_KINDS}
+    described["target check"] = "a target check (tlsjax check-targets --json)"
+    if kind in described and kind not in accept:
+        raise ValueError(
+            f"{source}: {described[kind]}, not a calibration result; give the JSON that "
+            "`tlsjax calibrate --json` writes"
+        )
+    if not isinstance(doc.get("aps"), dict):
+        raise ValueError(f"{source}: not a tlsjax result JSON (no 'aps' object)")
+    for name, entry in doc["aps"].items():
+        if kind == "truth" and _is_number(entry):
+            continue
+        if not isinstance(entry, dict):
+            raise ValueError(
+                f"{source}: AP {name}: expected an object with value, sigma, unit, got {entry!r}"
+            )
+        for key in _AP_NUMBERS:
+            v = entry.get(key)
+            if v is not None and not _is_number(v):
+                raise ValueError(f"{source}: AP {name}: {key} is not a number or null ({v!r})")
+    for key in _TOP_NUMBERS:
+        v = doc.get(key)
+        if v is not None and not _is_number(v):
+            raise ValueError(f"{source}: '{key}' is not a number or null ({v!r})")
+    names, cov = doc.get("ap_covariance_names"), doc.get("ap_covariance")
+    if names is not None and not (
+        isinstance(names, list) and all(isinstance(n, str) for n in names)
+    ):
+        raise ValueError(f"{source}: 'ap_covariance_names' must be a list of AP names")
+    if cov is not None and not (
+        isinstance(cov, list)
+        and all(isinstance(r, list) and len(r) == len(cov) for r in cov)
+        and all(v is None or _is_number(v) for r in cov for v in r)
+        and (names is None or len(names) == len(cov))
+    ):
+        raise ValueError(
+            f"{source}: 'ap_covariance' must be a square matrix of numbers or null, one row per "
+            "name in 'ap_covariance_names'"
+        )
+    for keys, want in ((_TOP_MAPPINGS, dict), (_TOP_LISTS, list)):
+        for key in keys:
+            v = doc.get(key)
+            if v is not None and not isinstance(v, want):
+                raise ValueError(
+                    f"{source}: '{key}' must be a JSON {'object' if want is dict else 'array'}, "
+                    f"got {type(v).__name__}"
+                )
+    return kind
+
+
+def read_result_json(source, *, accept=()) -> dict:
+    """A tlsjax result JSON as a dict; a one-line ValueError naming the file otherwise (not
+    JSON, another kind of tlsjax JSON unless in ``accept``, a contract field of the wrong
+    type)."""
     try:
         with open(source, encoding="utf-8") as fh:
             doc = json.load(fh)
     except FileNotFoundError:
         raise
+    except IsADirectoryError:
+        raise ValueError(f"{source}: is a directory, not a result JSON") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
         raise ValueError(f"{source}: not a readable result JSON ({err})") from None
-    if not isinstance(doc, dict) or not isinstance(doc.get("aps"), dict):
-        raise ValueError(f"{source}: not a tlsjax result JSON (no 'aps' object)")
+    except RecursionError:
+        raise ValueError(f"{source}: not a readable result JSON (nested too deeply)") from None
+    _check_result_doc(doc, source, accept)
     return doc

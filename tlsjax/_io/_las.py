@@ -158,4 +158,7 @@ def write_las(path, points, pose=None, *, attributes=None, scale: float = 1e-4) 
     las.x, las.y, las.z = X[:, 0], X[:, 1], X[:, 2]
     for k, v in (attributes or {}).items():
         las[k] = v
-    las.write(os.fspath(path))
+    from ._outputs import atomic_output
+
+    with atomic_output(path) as tmp:
+        las.write(tmp)

@@ -9,6 +9,7 @@ import numpy as np
 from .._units import UNITS
 from ._csv import Located, number, parse_unit_column, read_rows
 from ._extracted import ExtractedPlanes
+from ._outputs import atomic_output
 
 _NPZ_ARRAYS = (
     "patch_scan",
@@ -34,18 +35,77 @@ def save_planes(path, planes: ExtractedPlanes) -> None:
         arrays["poses"] = planes.poses
     if planes.planes is not None:
         arrays["planes"] = planes.planes
-    with open(path, "wb") as fh:
+    with atomic_output(path) as tmp, open(tmp, "wb") as fh:  # a file object: no ".npz" added
         np.savez(fh, **arrays)
 
 
+#: Array -> (trailing shape, kind): "i" integer indices, "f" finite floats.
+_NPZ_SHAPES = {
+    "patch_scan": ((), "i"),
+    "patch_normal": ((3,), "f"),
+    "patch_distance": ((), "f"),
+    "patch_rms": ((), "f"),
+    "patch_inliers": ((), "i"),
+    "patch_plane": ((), "i"),
+    "point_patch": ((), "i"),
+    "point_index": ((), "i"),
+    "observations": ((3,), "f"),
+    "incidence": ((), "f"),
+}
+
+
+def _check_npz(data: dict, source: str) -> None:
+    """Shapes, kinds and index ranges of the arrays agree with each other (a truncated or
+    edited file is named here, not as an IndexError deep inside)."""
+    for k, (tail, kind) in _NPZ_SHAPES.items():
+        a = data[k]
+        if a.ndim != 1 + len(tail) or a.shape[1:] != tail:
+            raise ValueError(f"{source}: array {k} has shape {a.shape}, expected (n, {tail})")
+        if kind == "i" and not np.issubdtype(a.dtype, np.integer):
+            raise ValueError(f"{source}: array {k} holds {a.dtype}, not integer indices")
+        if kind == "f" and not (np.issubdtype(a.dtype, np.number) and np.isfinite(a).all()):
+            raise ValueError(f"{source}: array {k} is not all finite numbers")
+    if data["scans"].ndim != 1:
+        raise ValueError(f"{source}: array scans must list the scan names")
+    n_patch, n_point = len(data["patch_scan"]), len(data["point_patch"])
+    for k in ("patch_normal", "patch_distance", "patch_rms", "patch_inliers", "patch_plane"):
+        if len(data[k]) != n_patch:
+            raise ValueError(f"{source}: {k} has {len(data[k])} rows for {n_patch} patches")
+    for k in ("point_index", "observations", "incidence"):
+        if len(data[k]) != n_point:
+            raise ValueError(f"{source}: {k} has {len(data[k])} rows for {n_point} points")
+    n_planes = len(data["planes"]) if data.get("planes") is not None else 0
+    for k, n, low in (
+        ("point_patch", n_patch, 0),
+        ("patch_scan", len(data["scans"]), 0),
+        ("patch_plane", n_planes, -1),
+    ):
+        a = data[k]
+        if a.size and (a.min() < low or a.max() >= max(n, 0)):
+            raise ValueError(f"{source}: {k} indexes outside 0..{n - 1}")
+    for k, width in (("planes", 4), ("poses", 6)):
+        a = data.get(k)
+        if a is not None and (a.ndim != 2 or a.shape[1] != width or not np.isfinite(a).all()):
+            raise ValueError(f"{source}: array {k} must be finite (n, {width}), got {a.shape}")
+
+
 def load_planes(path) -> ExtractedPlanes:
-    """Read an ``.npz`` written by :func:`save_planes`."""
+    """Read an ``.npz`` written by :func:`save_planes`; a file that is not one, or whose
+    arrays disagree, is a one-line ValueError naming it."""
+    import zipfile
+
     source = os.fspath(path)
     try:
         with np.load(source, allow_pickle=False) as z:
             data = {k: z[k] for k in z.files}
-    except (OSError, ValueError) as err:
+    except FileNotFoundError:
+        raise
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as err:
         raise ValueError(f"{source}: not a tlsjax planes .npz file ({err})") from None
+    except Exception as err:  # a corrupt archive raises whatever its decompressor raises
+        raise ValueError(
+            f"{source}: not a readable .npz file ({type(err).__name__}: {err})"
+        ) from None
     if data.get("format") is None or str(data["format"]) != _NPZ_FORMAT:
         raise ValueError(
             f"{source}: not a tlsjax planes .npz file (missing format tag {_NPZ_FORMAT!r})"
@@ -53,6 +113,7 @@ def load_planes(path) -> ExtractedPlanes:
     missing = [k for k in _NPZ_ARRAYS + ("scans",) if k not in data]
     if missing:
         raise ValueError(f"{source}: missing arrays {', '.join(missing)}")
+    _check_npz(data, source)
     return ExtractedPlanes(
         scans=tuple(str(s) for s in data["scans"]),
         **{k: data[k] for k in _NPZ_ARRAYS},

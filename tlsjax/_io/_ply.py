@@ -87,4 +87,7 @@ def write_ply(path, points, *, attributes=None, text: bool = False) -> None:
     for k, a in attributes.items():
         arr[k] = a
     el = plyfile.PlyElement.describe(arr, "vertex")
-    plyfile.PlyData([el], text=text).write(str(path))
+    from ._outputs import atomic_output
+
+    with atomic_output(path) as tmp:
+        plyfile.PlyData([el], text=text).write(tmp)

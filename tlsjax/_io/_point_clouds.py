@@ -45,6 +45,7 @@ import numpy as np
 
 from .._model._geometry import rotation_matrix, scanner_observations
 from .._model._scanner import ARCHITECTURES
+from ._outputs import atomic_output
 from ._raw_scan import RawScan, pose_from_transform
 
 #: A median range beyond this [m] is not a terrestrial laser scan in its own frame: the
@@ -366,13 +367,14 @@ def read_point_clouds(
 
 def write_xyz(path, points) -> None:
     """Write scanner-space points (n, 3) [m] as plain text ``x y z`` with 17 significant digits."""
-    np.savetxt(path, np.asarray(points, dtype=np.float64), fmt="%.17g")
+    with atomic_output(path) as tmp:
+        np.savetxt(tmp, np.asarray(points, dtype=np.float64), fmt="%.17g")
 
 
 def write_ptx(path, scans) -> None:
     """Write scans as one PTX file. ``scans``: list of ``(points (n, 3) scanner space, pose (6,) or
     None)``; each scan is written as n columns x 1 row with intensity 0.5 and 17 digits."""
-    with open(path, "w", encoding="utf-8") as fh:
+    with atomic_output(path) as tmp, open(tmp, "w", encoding="utf-8") as fh:
         for points, pose in scans:
             pts = np.asarray(points, dtype=np.float64)
             pose = np.zeros(6) if pose is None else np.asarray(pose, dtype=np.float64)

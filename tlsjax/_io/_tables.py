@@ -29,6 +29,7 @@ from ._csv import (
     read_rows,
     row_cells,
 )
+from ._outputs import atomic_output
 
 _OBS_NUMERIC = ("range", "hz", "el", "sigma_range", "sigma_hz", "sigma_el", "incidence")
 _OBS_TEXT = ("scan", "target", "plane", "instrument")
@@ -324,7 +325,7 @@ def write_observations(path, table: ObservationTable, *, length_unit="m", angle_
     ):
         raise ValueError("table columns have different lengths")
 
-    with open(path, "w", newline="", encoding="utf-8") as fh:
+    with atomic_output(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
         if table.architecture is not None:
             fh.write(architecture_comment(table.kind, table.architecture) + "\n")
         writer = csv.writer(fh, delimiter=",", lineterminator="\n")
@@ -347,7 +348,7 @@ def write_scans(path, levelling: dict, *, angle_unit="arcsec") -> None:
             f"angle_unit {angle_unit!r} is not an angle unit; accepted: {accepted_units('angle')}"
         )
     f = UNITS[angle_unit][1]
-    with open(path, "w", newline="", encoding="utf-8") as fh:
+    with atomic_output(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh, delimiter=",", lineterminator="\n")
         writer.writerow(["scan"] + [f"{q}_{angle_unit}" for q in _SCAN_NUMERIC])
         for scan, d in levelling.items():

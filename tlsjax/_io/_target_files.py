@@ -14,6 +14,7 @@ import csv
 import numpy as np
 
 from .._units import ARCSEC, DEG
+from ._outputs import atomic_output
 
 _TABLE = (
     ("scan", None, None),
@@ -52,8 +53,9 @@ def _cell(value, factor):
 
 
 def write_target_table(path, targets) -> None:
-    """Write the per-target table of :class:`~tlsjax.ExtractedTargets` (module docstring)."""
-    with open(path, "w", newline="", encoding="utf-8") as fh:
+    """Write the per-target table of :class:`~tlsjax.ExtractedTargets` (module docstring),
+    atomically."""
+    with atomic_output(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
         w = csv.writer(fh, lineterminator="\n")
         w.writerow([c for c, _, _ in _TABLE])
         for row in targets.table():

@@ -45,6 +45,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from .._adjustment._network import ObservationTable
+from .._model._plausibility import MAX_RANGE, MIN_MEDIAN_RANGE
 from .._model._scanner import ARCHITECTURES
 from ._point_clouds import observations_from_points
 
@@ -65,7 +66,8 @@ _UNIT_ALIASES = {
 }
 
 #: Unit detection (:func:`detect_length_unit`): a list whose typical length (median range in
-#: the scanner frame, RMS distance from the centroid in object space) is at most this many file
+#: the scanner frame, median distance from the median point in object space: one wrong cell
+#: cannot change the unit of the others) is at most this many file
 #: units is in metres (in millimetres it would be a target network within 30 cm) ...
 METRES_UP_TO = 300.0
 #: ... and at least this many is in millimetres (in metres it would be kilometres).
@@ -370,11 +372,11 @@ def _unit(length_unit, header_units, xyz_file, frame, source):
     if header is not None:
         return header, f"{header} (from the header)"
     if frame == "scanner":
-        typical, what = float(np.median(np.linalg.norm(xyz_file, axis=1))), "median range"
+        with np.errstate(over="ignore"):  # a wrong cell of 1e300: refused by its line later
+            typical, what = float(np.median(np.linalg.norm(xyz_file, axis=1))), "median range"
     else:
-        c = xyz_file - xyz_file.mean(axis=0)
-        typical = float(np.sqrt(np.mean(np.sum(c * c, axis=1))))
-        what = "RMS distance from the centroid"
+        typical = float(np.median(_spread(xyz_file)))
+        what = "median distance from the median point"
     unit = detect_length_unit(typical)
     if unit is None:
         raise ValueError(
@@ -472,7 +474,45 @@ def _point_list(lines: _Lines, sep, layout, frame, length_unit) -> PointList:
     if ignored:
         notes.append("ignored columns: " + ", ".join(ignored))
     xyz = xyz_file * LENGTH_UNITS[unit]
+    _check_magnitudes(xyz, frame, source, names, data_lines, unit_note)
     return PointList(source, names, xyz, scans, sigma, data_lines, unit, tuple(notes))
+
+
+def _spread(xyz: np.ndarray) -> np.ndarray:
+    """Distance of each point from the coordinate-wise median point (robust to a few wrong
+    cells, unlike the centroid)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        return np.linalg.norm(xyz - np.median(xyz, axis=0), axis=1)
+
+
+def _check_magnitudes(xyz, frame, source, names, data_lines, unit_note) -> None:
+    """The plausibility rules of the observation CSV (``_model/_plausibility``) for a point
+    list [m]: a point farther than :data:`MAX_RANGE` from its scanner (scanner frame) or from
+    the list's median point (object space) is a wrong cell or unit, named by its line; a
+    scanner-frame list whose median range is closer than any scanner measures is a unit
+    mix-up."""
+    if frame == "scanner":
+        with np.errstate(over="ignore", invalid="ignore"):
+            dist = np.linalg.norm(xyz, axis=1)
+        what = "from the scanner"
+    else:
+        dist, what = _spread(xyz), "from the median point of the list"
+    far = np.flatnonzero(~(dist <= MAX_RANGE))
+    if far.size:
+        k = int(far[0])
+        far_m = f"{dist[k]:.4g} m" if np.isfinite(dist[k]) else "more than 1e308 m"
+        raise ValueError(
+            f"{source}, line {data_lines[k]}: point {names[k]} lies {far_m} {what} "
+            f"(units: {unit_note}), beyond any laser scan ({MAX_RANGE / 1e3:g} km): check the "
+            "coordinates on that line and the length unit"
+        )
+    median = float(np.median(dist))
+    if frame == "scanner" and median < MIN_MEDIAN_RANGE:
+        raise ValueError(
+            f"{source}: the points have a median range of {median * 1e3:.3g} mm (units: "
+            f"{unit_note}), closer than any scanner measures: probably metres read as "
+            "millimetres; give --length-unit m (length_unit='m') or fix the header's unit"
+        )
 
 
 def _uses_decimal_comma(rows, col) -> bool:

@@ -269,6 +269,8 @@ def _section_aps(doc) -> str:
     for name, a in (doc.get("aps") or {}).items():
         label, f = _ap_display(a.get("unit"))
         flag = "not estimable" if name in bad else ("weakly determined" if name in weak else "")
+        if a.get("note"):  # why a number is missing or a t is no verdict, as in the JSON
+            flag = a["note"]
         t = a.get("t")
         rows.append(
             (
@@ -284,7 +286,10 @@ def _section_aps(doc) -> str:
             )
         )
     head = ("AP", "meaning", "value", "sigma", "unit", "|t|", "max |corr|", "with", "")
-    out = "<h2>Additional parameters</h2>" + (_table(head, rows, "aps") if rows else _na("APs"))
+    out = "<h2>Additional parameters</h2>"
+    if doc.get("estimates", "valid") != "valid":
+        out += f'<p class="flag"><b>No calibration:</b> {_e(doc["estimates"])}</p>'
+    out += _table(head, rows, "aps") if rows else _na("APs")
     found = doc.get("confoundings")
     if found is None:  # a JSON of an older tlsjax
         found = confoundings(doc.get("not_estimable"), doc.get("weakly_determined"))
@@ -576,12 +581,10 @@ def render_html(doc: dict, plots: dict | None = None) -> str:
 
 def write_html_report(doc: dict, path, *, plots: dict | None = None) -> str:
     """Write :func:`render_html` to ``path`` (atomically: a temporary file renamed)."""
+    from .._io._outputs import write_text_atomic
+
     path = os.fspath(path)
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    tmp = path + ".tmp"
-    with open(tmp, "w", encoding="utf-8") as fh:
-        fh.write(render_html(doc, plots))
-    os.replace(tmp, path)
+    write_text_atomic(path, render_html(doc, plots))
     return path
 
 
@@ -589,7 +592,7 @@ def png_files(folder) -> dict:
     """The PNG plots of a ``--plots`` folder as title -> base64."""
     out = {}
     for name in sorted(os.listdir(folder)):
-        if name.lower().endswith(".png"):
+        if name.lower().endswith(".png") and not name.startswith("."):
             with open(os.path.join(folder, name), "rb") as fh:
                 title = os.path.splitext(name)[0].replace("_", " ")
                 out[title] = base64.b64encode(fh.read()).decode("ascii")
@@ -598,7 +601,21 @@ def png_files(folder) -> dict:
 
 def report_from_json(json_path, html_path, *, plots_dir=None) -> str:
     """``tlsjax report``: the HTML report of a result JSON file."""
+    from .._io._outputs import check_outputs
+
     source = os.fspath(json_path)
+    check_outputs([("--html", html_path)], [("calibration", source)])
     doc = read_result_json(source)
     plots = png_files(plots_dir) if plots_dir else None
-    return write_html_report(doc, html_path, plots=plots)
+    try:
+        html = render_html(doc, plots)
+    except (AttributeError, TypeError, KeyError, IndexError, ValueError) as err:
+        # The contract fields are checked on reading; a field the report reads that has the
+        # wrong JSON type is named here rather than as a traceback.
+        raise ValueError(
+            f"{source}: not a well-formed tlsjax result JSON ({type(err).__name__}: {err})"
+        ) from None
+    from .._io._outputs import write_text_atomic
+
+    write_text_atomic(html_path, html, "--html ")
+    return os.fspath(html_path)

@@ -8,7 +8,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from .._inference._statistics import global_test
+from .._inference._statistics import ap_notes, global_test
 from .._io._json import to_json_value, write_json_file
 from .._io._target_lists import ELLIPSOID_95
 from .._model._aps import get_ap
@@ -122,7 +122,19 @@ def result_to_dict(res, *, alpha: float = 0.05) -> dict:
     d = _result_dict(res, alpha)
     if int(res.result) not in _ESTIMATES_VALID:
         _withhold_estimates(d, res.message)
+    else:
+        _judge_plausibility(d, res)
     return to_json_value(d)
+
+
+def _judge_plausibility(d: dict, res) -> None:
+    """``plausibility``: the AP magnitudes beyond what instruments have (the rules of
+    :mod:`tlsjax._model._plausibility`); an impossible one makes ``estimates`` say so, and
+    ``tlsjax correct`` then refuses to apply them."""
+    findings, summary = res.plausibility()
+    d["plausibility"] = [{"ap": f.name, "level": f.level, "text": f.text} for f in findings]
+    if any(f.level == "impossible" for f in findings):
+        d["estimates"] = f"implausible: {summary}"
 
 
 def _withhold_estimates(d: dict, reason: str) -> None:
@@ -130,6 +142,7 @@ def _withhold_estimates(d: dict, reason: str) -> None:
     for a in d["aps"].values():
         for k in ("value", "sigma", "t", "max_abs_corr", "max_corr_with"):
             a[k] = None
+        a["note"] = "withheld: the adjustment failed"
     for e in d["eops"].values():
         for k in EOP_NAMES:
             e[k] = None
@@ -155,9 +168,19 @@ def _undetermined(res) -> set:
     return out
 
 
+def withhold_estimates(d: dict, reason: str) -> None:
+    """Null every estimate of a result JSON dict in place, ``estimates`` saying why (e.g. a
+    run whose variance components failed: its numbers are not a calibration)."""
+    _withhold_estimates(d, reason)
+    d["estimates"] = f"withheld: {reason}"
+    for a in d["aps"].values():
+        a["note"] = f"withheld: {reason}"
+
+
 def _result_dict(res, alpha: float) -> dict:
     """The result JSON of SPEC section 11, field by field (long because the contract has many
     fields; there is no logic beyond the conversions)."""
+    notes = ap_notes(res)
     aps = {}
     for i, name in enumerate(res.ap_names):
         base = name.split("[")[0]
@@ -169,6 +192,9 @@ def _result_dict(res, alpha: float) -> dict:
             "max_abs_corr": _num(res.ap_max_abs_corr[i]),
             "max_corr_with": res.ap_max_corr_with[i] or None,
             "description": get_ap(base).description,
+            # Why a quantity is null or its t is no verdict (not estimable, fixed, weakly
+            # determined); null when the AP has an ordinary estimate and t-test.
+            "note": notes.get(name) or None,
         }
     undetermined = _undetermined(res)
     eops = {

@@ -260,8 +260,14 @@ def plot_ap_correlations(result, path):
 
 
 def _save(fig, path):
-    os.makedirs(os.path.dirname(os.path.abspath(path)) or ".", exist_ok=True)
-    fig.savefig(path, dpi=110)
+    """Save ``fig`` atomically (a temporary file renamed when complete; the folder created if
+    missing), as PNG unless the name ends in another format matplotlib writes."""
+    from .._io._outputs import atomic_output
+
+    ext = os.path.splitext(os.fspath(path))[1].lower().lstrip(".")
+    fmt = ext if ext in fig.canvas.get_supported_filetypes() else "png"
+    with atomic_output(path) as tmp:
+        fig.savefig(tmp, dpi=110, format=fmt)
 
 
 def plot_monte_carlo(result, path=None):
@@ -304,7 +310,7 @@ def plot_monte_carlo(result, path=None):
         axes[-1][k].axis("off")
     fig.tight_layout()
     if path is not None:
-        fig.savefig(path, dpi=110)
+        _save(fig, path)
     return fig
 
 

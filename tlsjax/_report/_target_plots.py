@@ -52,12 +52,18 @@ def plot_targets(targets, scan, path) -> None:
     plt.close(fig)
 
 
+def picture_name(scan: str) -> str:
+    """File name of the picture of scan ``scan``: its name with characters other than letters,
+    digits, ``_.-`` replaced by ``_``, then ``.png``."""
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", scan) + ".png"
+
+
 def plot_all_targets(targets, folder) -> list[str]:
     """:func:`plot_targets` for every scan into ``folder/<scan>.png``; returns the paths."""
     os.makedirs(folder, exist_ok=True)
     paths = []
     for j, name in enumerate(targets.scans):
-        path = os.path.join(folder, re.sub(r"[^A-Za-z0-9_.-]", "_", name) + ".png")
+        path = os.path.join(folder, picture_name(name))
         plot_targets(targets, j, path)
         paths.append(path)
     return paths

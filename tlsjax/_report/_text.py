@@ -7,6 +7,8 @@ SI units and states them (SPEC section 11).
 
 from __future__ import annotations
 
+import numpy as np
+
 from .._inference._statistics import global_test
 from .._units import display
 
@@ -51,9 +53,18 @@ def confoundings(not_estimable, weakly_determined) -> list[dict]:
     return out
 
 
-def ap_table(res, truth: dict | None = None) -> str:
+def _number(x: float, width: int, digits: int) -> str:
+    """A right-aligned number, or "undefined" where it is not one (never "nan")."""
+    return f"{x:{width}.{digits}f}" if np.isfinite(x) else f"{'undefined':>{width}}"
+
+
+def ap_table(res, truth: dict | None = None, *, withheld: str | None = None) -> str:
     """The papers' AP table (Chow et al. 2013, tables 3-6): estimate, standard deviation,
-    t statistic and the largest absolute correlation with the parameter it is with."""
+    t statistic and the largest absolute correlation with the parameter it is with.
+
+    A failed adjustment (or ``withheld``: the reason its estimates are not a calibration, e.g.
+    variance components that failed) shows no numbers; a quantity that is not defined is said
+    to be so in words, with the reason the JSON gives (``aps.<name>.note``)."""
     head = f"{'AP':<8} {'estimate':>12} {'sigma':>10} {'unit':<4} {'|t|':>8} {'max |corr|':>10}  {'with':<14}"
     if truth is not None:
         head += f" {'true':>10}"
@@ -61,8 +72,12 @@ def ap_table(res, truth: dict | None = None) -> str:
     if int(res.result) not in (0, 2):
         # A failed adjustment's numbers would look plausible and be wrong.
         return "\n".join(lines + [f"no estimates: the adjustment failed ({res.message})"])
+    if withheld:
+        return "\n".join(lines + [f"no estimates: {withheld}"])
     not_est = {n: r for n, _, r in res.not_estimable}
     weak = {n for n, _, _ in res.weakly_determined}
+    found = res.plausibility()[0] if hasattr(res, "plausibility") else ()
+    implausible = {f.name: f.level for f in found}
     for i, name in enumerate(res.ap_names):
         if name in not_est:
             lines.append(f"{name:<8} not estimable: {not_est[name]}")
@@ -73,14 +88,17 @@ def ap_table(res, truth: dict | None = None) -> str:
         v, u = display(res.ap_values[i], res.ap_units[i])
         s, _ = display(res.ap_sigmas[i], res.ap_units[i])
         row = (
-            f"{name:<8} {v:12.4f} {s:10.4f} {u:<4} {abs(res.ap_t[i]):8.1f} {res.ap_max_abs_corr[i]:10.3f}  "
+            f"{name:<8} {_number(v, 12, 4)} {_number(s, 10, 4)} {u:<4} "
+            f"{_number(abs(res.ap_t[i]), 8, 1)} {_number(res.ap_max_abs_corr[i], 10, 3)}  "
             f"{res.ap_max_corr_with[i]:<14}"
         )
         if truth is not None:
             tv = truth.get(name.split("[")[0])
             row += f" {display(tv, res.ap_units[i])[0]:10.4f}" if tv is not None else f" {'':>10}"
         if name in weak:
-            row += "  (weakly determined)"
+            row += "  (weakly determined: t not interpretable)"
+        if name in implausible:
+            row += f"  ({'impossible' if implausible[name] == 'impossible' else 'implausible'} magnitude)"
         lines.append(row)
     return "\n".join(lines)
 
@@ -112,7 +130,9 @@ def summary(res, alpha: float = 0.05, *, after_vce: bool = False) -> str:
             f"{'accepted' if gt['accepted'] else 'REJECTED'} (p = {gt['p_value']:.3f})"
         )
     groups = ", ".join(
-        f"{g} {red[g]['mean']:.3f}" for g in ("range", "hz", "el", "levelling") if g in red
+        f"{g} {_number(red[g]['mean'], 0, 3).strip()}"
+        for g in ("range", "hz", "el", "levelling")
+        if g in red
     )
     if groups:
         out.append(f"mean redundancy numbers: {groups}")
@@ -124,6 +144,10 @@ def summary(res, alpha: float = 0.05, *, after_vce: bool = False) -> str:
         )
     for c in confoundings(res.not_estimable, res.weakly_determined):
         out.append(f"warning: {c['text']}")
+    findings, implausible = res.plausibility() if hasattr(res, "plausibility") else ((), "")
+    if findings:
+        level = "error" if any(f.level == "impossible" for f in findings) else "warning"
+        out.append(f"{level}: implausible estimates: {implausible}")
     if res.rank_deficient:
         out.append("error: the network does not determine " + ", ".join(res.rank_deficient))
     return "\n".join(out)
