@@ -64,7 +64,7 @@ def test_report_holds_every_section(calibrated):
     for row in table[1:]:
         a = doc["aps"][row[0]]
         if a["value"] is None:
-            assert row[2] == row[3] == "\u2013" and row[8] == "not estimable", row
+            assert row[2] == row[3] == "\u2013" and row[8].startswith("not estimable"), row
             continue
         f = 1e3 if a["unit"] == "m" else 180 * 3600 / np.pi
         assert float(row[2]) == pytest.approx(a["value"] * f, abs=1e-3), row
