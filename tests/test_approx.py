@@ -18,13 +18,9 @@ import pytest
 from networks import SIX_SCANS, ST1, ST2
 
 import tlsjax as tj
-from tlsjax._adjustment._approx import (
-    ApproxConfig,
-    _Prims,
-    _register,
-    approximate,
-    approximate_network,
-)
+from tlsjax._adjustment._approx import ApproxConfig, approximate, approximate_network
+from tlsjax._adjustment._approx._local import Prims
+from tlsjax._adjustment._approx._register import register
 from tlsjax._adjustment._network import ObservationTable
 from tlsjax._model._geometry import rotation_matrix
 
@@ -266,7 +262,7 @@ def test_normals_of_either_sign_give_one_registration():
 
     def prims(normals, centres, signs):
         k = len(normals)
-        return _Prims(
+        return Prims(
             np.arange(k),
             normals * signs[:, None],
             np.ones(k, dtype=bool),
@@ -280,7 +276,7 @@ def test_normals_of_either_sign_give_one_registration():
 
     for _ in range(5):
         sa, sb = rng.choice([-1.0, 1.0], size=(2, 7))
-        fit = _register(prims(n, c, sa), prims(nb, cb, sb), ApproxConfig())
+        fit = register(prims(n, c, sa), prims(nb, cb, sb), ApproxConfig(), rng)
         assert fit.determined and fit.n_inliers == 7
         np.testing.assert_allclose(fit.R, R, atol=1e-9)
         np.testing.assert_allclose(fit.t, t, atol=1e-9)
@@ -337,3 +333,48 @@ def test_a_mislabelled_target_is_reported():
     assert all(abs(i.distance - gap) < 0.05 and i.kind == "target" for i in a.inconsistent)
     dp, da = pose_errors(a.eops, sim.true_eops)
     assert dp < 0.03 and da < 0.3 * DEG
+
+
+def test_blunders_among_common_targets_are_flagged_per_observation():
+    """A target 3 m off in one scan and a target observation filed under the wrong scan: the
+    registration flags exactly those two rows (``target_inlier``, network row order), names
+    them, and the poses stay as good as without them."""
+    design = tj.NetworkDesign(room=ROOM, scans=SIX_SCANS, n_targets=30, common_targets=True)
+    sim = tj.simulate_design(design, seed=9)
+    net = sim.network
+    scans = np.array(net.scans)[net.scan_index]
+    names = np.array(net.targets)[net.target_index]
+    obs = net.observations.copy()
+    row = lambda s, t: int(np.flatnonzero((scans == s) & (names == t))[0])
+    obs[row("S1", "T003"), 0] += 3.0
+    moved, dropped = row("S4", "T010"), row("S6", "T010")
+    scans[moved] = "S6"
+    keep = np.arange(len(obs)) != dropped
+    bad = tj.make_network(list(scans[keep]), list(names[keep]), obs[keep])
+    a = approximate(bad)
+    bad_scans = np.array(bad.scans)[bad.scan_index]
+    bad_names = np.array(bad.targets)[bad.target_index]
+    flagged = set(zip(bad_scans[~a.target_inlier], bad_names[~a.target_inlier]))
+    assert flagged == {("S1", "T003"), ("S6", "T010")}
+    assert {(i.scan, i.name) for i in a.inconsistent} == flagged
+    assert a.target_inlier.shape == (len(bad.observations),)
+    assert len(a.registrations) == len(bad.scans) - 1
+    dp, da = pose_errors(a.eops[[bad.scans.index(s) for s in net.scans]], sim.true_eops)
+    assert dp < 0.03 and da < 0.3 * DEG
+
+
+def test_robust_fit_recovers_the_motion_with_a_third_of_the_points_wrong():
+    from tlsjax._adjustment._approx._rigid import robust_fit
+
+    rng = np.random.default_rng(3)
+    xb = rng.uniform(-8, 8, size=(24, 3))
+    R = rotation_matrix(0.4, -0.2, 2.5, xp=np)
+    t = np.array([3.0, -1.0, 0.4])
+    xa = xb @ R.T + t
+    wrong = rng.choice(24, 8, replace=False)
+    xa[wrong] += rng.normal(scale=2.0, size=(8, 3))
+    tol = np.full(24, 0.05)
+    R_est, t_est, inlier, _ = robust_fit(xb, xa, tol, np.ones(24), np.random.default_rng(0), 12)
+    np.testing.assert_array_equal(np.flatnonzero(~inlier), np.sort(wrong))
+    np.testing.assert_allclose(R_est, R, atol=1e-12)
+    np.testing.assert_allclose(t_est, t, atol=1e-11)

@@ -39,7 +39,8 @@ def test_realisation_equals_calibrate(design, model, mc):
         np.testing.assert_allclose(
             mc.ap_values[k], ref.ap_values, rtol=0, atol=1e-8 * ref.ap_sigmas.min()
         )
-        np.testing.assert_allclose(mc.ap_sigmas[k], ref.ap_sigmas, rtol=1e-8)
+        # The design's covariance scaled by the realisation's own s0^2 (the chord method).
+        np.testing.assert_allclose(mc.ap_sigmas[k], ref.ap_sigmas, rtol=2e-3)
         assert mc.sigma0_sq[k] == pytest.approx(ref.sigma0**2, rel=1e-8)
         assert mc.dof == ref.dof
 

@@ -16,12 +16,11 @@ import dataclasses
 import functools
 import warnings
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._jit import jit
+from .._jit import compiler_options, jit
 from .._model._plausibility import PlausibilityWarning
 from ._config import CalibrationModel, SolverOptions
 from ._families import Params, grid_layout, on_grid
@@ -40,12 +39,25 @@ def _run(spec, problem, params0, options, full_covariance):
     return state, quality_from(spec, problem, grid, state.params, lin, full_covariance)
 
 
+@functools.cache
+def _flat_run(spec, treedef, full_covariance: bool):
+    """:func:`_run` as a compiled function of the flattened (problem, params0, options): a call
+    then flattens no pytree of equinox modules in Python (the dispatch of a compiled call with
+    a few dozen arguments costs about 20 us instead of about 1 ms)."""
+
+    def run(*leaves):
+        problem, params0, options = jax.tree.unflatten(treedef, leaves)
+        return _run(spec, problem, params0, options, full_covariance)
+
+    return jax.jit(run, compiler_options=compiler_options())
+
+
 def estimate(spec, problem, params0, options):
     """The adjustment of :func:`_run` with only its estimable summary (:func:`._quality.summary`)
     and its result code, computed in the graph: what a batch of realisations (Monte Carlo)
     needs of each. Pure, so it can be vmapped; the codes are those of :func:`calibrate`."""
     grid = on_grid(problem)
-    state, lin = adjust_linearised(spec, grid, params0, options, final_pass=False)
+    state, lin = adjust_linearised(spec, grid, params0, options)
     s = summary_from(spec, grid, state.params, lin, state.cost)
     return state, s, result_code(spec, problem, state, s)
 
@@ -64,11 +76,8 @@ def result_code(spec, problem, state, s):
 
 
 def _replace(module, **changes):
-    """``dataclasses.replace`` for an ``eqx.Module``."""
-    names = list(changes)
-    return eqx.tree_at(
-        lambda m: [getattr(m, k) for k in names], module, [changes[k] for k in names]
-    )
+    """``dataclasses.replace`` for an ``eqx.Module`` (a dataclass)."""
+    return dataclasses.replace(module, **changes)
 
 
 class Adjustment:
@@ -92,14 +101,17 @@ class Adjustment:
         # The layout of each family's sums, chosen once from the static structure (grid or
         # segment sums, :func:`._families.grid_layout`).
         layouts = tuple(grid_layout(f, plan.spec.n_scans) for f in plan.problem.families)
-        self.plan = dataclasses.replace(plan, problem=_replace(plan.problem, layouts=layouts))
+        # The plan is built in numpy; its arrays go to the device in one call.
+        problem = jax.device_put(_replace(plan.problem, layouts=layouts))
+        self.plan = dataclasses.replace(plan, problem=problem)
         self._params0 = None
+        self._leaves = None
 
     @property
     def initial(self) -> Params:
         """Approximate values (computed on first use, :mod:`._approx`)."""
         if self._params0 is None:
-            self._params0 = initial_params(self.network, self.plan)
+            self._params0 = jax.device_put(initial_params(self.network, self.plan))
         return self._params0
 
     def problem(
@@ -190,22 +202,28 @@ class Adjustment:
 
     def run(self, problem=None, params0=None):
         """The compiled call: (solver state, quality) as arrays."""
-        return _run(
-            self.plan.spec,
+        args = (
             self.plan.problem if problem is None else problem,
             self.initial if params0 is None else params0,
             self.options.arrays(),
-            self.options.full_covariance,
         )
+        if problem is None and params0 is None:
+            if self._leaves is None:  # the plan's own arguments, flattened once
+                self._leaves = jax.tree.flatten(args)
+            leaves, treedef = self._leaves
+        else:
+            leaves, treedef = jax.tree.flatten(args)
+        return _flat_run(self.plan.spec, treedef, self.options.full_covariance)(*leaves)
 
     def solve(self, *, initial=None, **weights) -> CalibrationResult:
         """Adjust (with the weights of :meth:`problem`, if given) and return the result.
         ``initial``: (targets (t, 3), eops (s, 6)[, planes (k, 4)]) or a ``Params`` to start from."""
-        problem = self.problem(**weights) if weights else self.plan.problem
+        problem = self.problem(**weights) if weights else None
         if initial is not None and not isinstance(initial, Params):
             initial = initial_params(self.network, self.plan, *initial)
-        state, q = self.run(problem, initial)
-        plan = dataclasses.replace(self.plan, problem=problem)
+        # One transfer of every output to the host.
+        state, q = jax.device_get(self.run(problem, initial))
+        plan = self.plan if problem is None else dataclasses.replace(self.plan, problem=problem)
         return assemble(self.network, self.model, plan, state, q)
 
 

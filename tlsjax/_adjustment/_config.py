@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping
 
-import jax.numpy as jnp
+import numpy as np
 
 from .._model._scanner import Scanner
 from ._families import Options
@@ -109,14 +109,20 @@ class SolverOptions:
             )
 
     def arrays(self) -> Options:
-        f = lambda v: jnp.asarray(v, dtype=jnp.float64)
-        return Options(
-            jnp.asarray(int(self.max_iterations)),
-            f(self.tolerance),
-            f(self.rank_tolerance),
-            f(self.damping_initial),
-            f(self.damping_increase),
-            f(self.damping_decrease),
-            f(self.damping_min),
-            f(self.damping_max),
-        )
+        """The settings as arrays (host arrays: a compiled call takes them without a device
+        transfer per field; cached, the options being frozen)."""
+        cached = self.__dict__.get("_arrays")
+        if cached is None:
+            f = lambda v: np.asarray(v, dtype=np.float64)
+            cached = Options(
+                np.asarray(int(self.max_iterations)),
+                f(self.tolerance),
+                f(self.rank_tolerance),
+                f(self.damping_initial),
+                f(self.damping_increase),
+                f(self.damping_decrease),
+                f(self.damping_min),
+                f(self.damping_max),
+            )
+            object.__setattr__(self, "_arrays", cached)
+        return cached

@@ -167,6 +167,17 @@ class Family(eqx.Module):
         holds weights at the linearisation point; ``frozen``: its :class:`._normal.Rows`)."""
         return self.residuals(spec, problem, params, fi, ap_jac=ap_jac)
 
+    def tangent_gradient(self, P, b):
+        """The part of a gradient ``b`` (n, p) that moves the primitives along their
+        constraint manifold (identity here). At a constrained solution the rest is the
+        constraint's reaction, which the retraction removes from every step."""
+        return b
+
+    def frozen_rows(self, rows, frozen):
+        """:meth:`cost_rows` from the rows already evaluated at the new estimate (``rows``) and
+        those of the linearisation point (``frozen``), with no further residual evaluation."""
+        return rows.e
+
     def active_rows(self):
         """Which residual rows are observations in the adjustment (weight > 0), (m, rows)."""
         return self.weight > 0
@@ -467,6 +478,19 @@ class PlaneFamily(Family):
         :class:`Rows`, whose ``B`` gives m)."""
         return (self._condition(spec, problem, params, fi) * self._whitening(frozen.B))[:, None]
 
+    def tangent_gradient(self, P, b):
+        """``b`` without its component along ``(n, 0)``, the gradient of ``|n|^2``: at the
+        solution the observations pull each normal along itself with the constraint's
+        Lagrange multiplier, and :meth:`retract` undoes every step's share of it."""
+        a = jnp.concatenate([P[:, :3], jnp.zeros_like(P[:, 3:])], axis=-1)
+        return b - a * (jnp.sum(a * b, axis=-1) / jnp.sum(a * a, axis=-1))[:, None]
+
+    def frozen_rows(self, rows, frozen):
+        """``g / sqrt(m)`` with m of the linearisation point: ``rows.e`` re-whitened."""
+        w_new, w_old = self._whitening(rows.B), self._whitening(frozen.B)
+        g = rows.e[:, 0] / jnp.where(w_new > 0, w_new, 1.0)
+        return jnp.where(w_new > 0, g * w_old, 0.0)[:, None]
+
     def observation_quality(self, spec, problem, params, fi, JQJ, rows):
         """Gauss-Helmert residuals ``v = -Sigma_l B^T g / m`` of the three observations; the
         condition's redundancy ``1 - a Q a^T`` split over them in the ratio
@@ -601,7 +625,7 @@ def grid_layout(fam: Family, n_scans: int) -> Layout | None:
     rows = np.where(valid, rows, first[np.arange(rows.size) // (n_scans * c)])
     pos = np.empty(m, dtype=np.int64)
     pos[order] = slot
-    return Layout(jnp.asarray(rows), jnp.asarray(valid), jnp.asarray(pos), (n, n_scans, c))
+    return Layout(rows, valid, pos, (n, n_scans, c))
 
 
 def on_grid(problem: Problem) -> Problem:

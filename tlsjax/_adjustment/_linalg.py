@@ -74,10 +74,36 @@ def rank_revealing_cholesky(A, fixed, tol):
 
 
 def rank_revealing_cholesky_damped(A, damping, fixed, tol):
-    """:func:`rank_revealing_cholesky` of ``A`` and, in the same loop, the Cholesky of
-    ``A + damping I`` with the same columns held (the rank is judged on the undamped matrix; a
-    damped one has no new dependencies). One loop instead of two: under ``vmap`` a
-    ``lax.cond`` between them would run both. Returns (L, dependent, pivots, L_damped)."""
+    """:func:`rank_revealing_cholesky` of ``A`` and the Cholesky of ``A + damping I`` with the
+    same columns held (the rank is judged on the undamped matrix; a damped one has no new
+    dependencies). Returns (L, dependent, pivots, L_damped).
+
+    Written by hand because LAPACK has no in-order rank-revealing Cholesky, but the common
+    case needs none: with the held columns replaced by unit columns, LAPACK's Cholesky
+    (``potrf``) gives the same factor, and its squared diagonal is the same in-order pivot
+    ``1 - R^2`` as long as no free column is dependent. That case (every pivot above ``tol``)
+    takes two library calls; otherwise the column loop of :func:`_rank_revealing_loop` runs
+    (measured on the 40 x 40 reduced system of the Chow room: 0.01-0.03 ms against 0.06-0.25 ms
+    for the loop). Under ``vmap`` both branches run.
+    """
+    n = A.shape[0]
+    free = ~fixed
+    eye = jnp.eye(n, dtype=A.dtype)
+    Ah = jnp.where(free[:, None] & free[None, :], A, 0.0) + jnp.where(fixed, 1.0, 0.0) * eye
+    L = jnp.linalg.cholesky(Ah)
+    piv = jnp.diagonal(L) ** 2
+    ok = jnp.all(jnp.isfinite(L)) & jnp.all(fixed | (piv > tol))
+
+    def fast():
+        Ld = jnp.linalg.cholesky(Ah + damping * jnp.where(fixed, 0.0, 1.0) * eye)
+        return L, fixed, piv, Ld
+
+    return lax.cond(ok, fast, lambda: _rank_revealing_loop(A, damping, fixed, tol))
+
+
+def _rank_revealing_loop(A, damping, fixed, tol):
+    """The column loop behind :func:`rank_revealing_cholesky_damped`: both factors in one
+    ``fori_loop`` (under ``vmap`` a ``lax.cond`` between two loops would run both)."""
     n = A.shape[0]
     idx = jnp.arange(n)
 

@@ -78,30 +78,26 @@ class Rows(eqx.Module):
     B: Array | None = None
 
 
-def _sums_on_grid(shape, e, Jp, Js, Ja):
-    """Normal-equation sums of a family on its grid (n primitives, s scans, c slots): reshapes
-    and sums over axes. Returns (N_pp, b_p, N_ps pairs (n, s, p, 6), N_pa, N_ss, N_sa, N_aa,
-    b_s, b_a)."""
+def _sums_on_grid(shape, Jp, Js, Ja):
+    """Normal-matrix sums of a family on its grid (n primitives, s scans, c slots): reshapes
+    and sums over axes. Returns (N_pp, N_ps pairs (n, s, p, 6), N_pa, N_ss, N_sa, N_aa)."""
     n, ns, c = shape
     g = lambda J: J.reshape(n, ns, -1, J.shape[-1])  # slots and rows in one axis
-    e, Jp, Js, Ja = e.reshape(n, ns, -1), g(Jp), g(Js), g(Ja)
+    Jp, Js, Ja = g(Jp), g(Js), g(Ja)
     # Contractions as einsums (dot_general): measured 2x faster than broadcast-multiply-sum
     # for these shapes on the CPU.
     es = jnp.einsum
     return (
         es("nskp,nskq->npq", Jp, Jp),
-        -es("nskp,nsk->np", Jp, e),
         es("nskp,nskq->nspq", Jp, Js),
         es("nskp,nska->npa", Jp, Ja),
         es("nskp,nskq->spq", Js, Js),
         es("nskp,nska->spa", Js, Ja),
         es("nskp,nskq->pq", Ja, Ja),
-        -es("nskp,nsk->sp", Js, e),
-        -es("nskp,nsk->p", Ja, e),
     )
 
 
-def _sums_by_segment(fam, ns, e, Jp, Js, Ja):
+def _sums_by_segment(fam, ns, Jp, Js, Ja):
     """The same sums for any index plan: segment sums over primitives, pairs and scans."""
     seg = jax.ops.segment_sum
     n, nq = fam.n, fam.pair_prim.shape[0]
@@ -109,15 +105,91 @@ def _sums_by_segment(fam, ns, e, Jp, Js, Ja):
     nps = jnp.zeros((n, ns, fam.p, 6)).at[fam.pair_prim, fam.pair_scan].set(nps_pairs)
     return (
         seg(outer(Jp, Jp), fam.prim, n),
-        -seg(matvec_t(Jp, e), fam.prim, n),
         nps,
         seg(outer(Jp, Ja), fam.prim, n),
         seg(outer(Js, Js), fam.scan, ns),
         seg(outer(Js, Ja), fam.scan, ns),
         jnp.sum(outer(Ja, Ja), axis=0),
-        -seg(matvec_t(Js, e), fam.scan, ns),
-        -jnp.sum(matvec_t(Ja, e), axis=0),
     )
+
+
+def _gradient_sums(grid, fam, ns, r: Rows):
+    """``-J^T e`` of a family's rows: per primitive (n, p), per scan (s, 6) and APs (a,)."""
+    if grid:
+        n, ns_, c = grid
+        g = lambda J: J.reshape(n, ns_, -1, J.shape[-1])
+        e = r.e.reshape(n, ns_, -1)
+        es = jnp.einsum
+        return (
+            -es("nskp,nsk->np", g(r.Jp), e),
+            -es("nskp,nsk->sp", g(r.Js), e),
+            -es("nskp,nsk->p", g(r.Ja), e),
+        )
+    seg = jax.ops.segment_sum
+    return (
+        -seg(matvec_t(r.Jp, r.e), fam.prim, fam.n),
+        -seg(matvec_t(r.Js, r.e), fam.scan, ns),
+        -jnp.sum(matvec_t(r.Ja, r.e), axis=0),
+    )
+
+
+def rows_at(spec: Spec, problem: Problem, params: Params, ap_jac: tuple | None = None) -> tuple:
+    """Per family the residual rows and Jacobian blocks at ``params`` (:class:`Rows`)."""
+    return tuple(
+        Rows(*fam.linear_rows(spec, problem, params, fi, None if ap_jac is None else ap_jac[fi]))
+        for fi, fam in enumerate(problem.families)
+    )
+
+
+def _grids(problem: Problem):
+    return problem.grids or (None,) * len(problem.families)
+
+
+def gradient(spec: Spec, problem: Problem, params: Params, rows: tuple):
+    """The right-hand sides ``b = -J^T e`` of the normal equations at ``params`` from its rows
+    (observations, priors on the primitives, levelling): (per family (n, p), (r,))."""
+    ns = spec.n_scans
+    bs = jnp.zeros((ns, 6))
+    ba = jnp.zeros((spec.n_aps,))
+    bp = []
+    for fam, grid, r, P in zip(problem.families, _grids(problem), rows, params.prims):
+        gp, gs, ga = _gradient_sums(grid, fam, ns, r)
+        bp.append(gp - matvec_t(fam.prior_jacobian(P), fam.prior_residuals(P)))
+        bs, ba = bs + gs, ba + ga
+    bs = bs - matvec_t(
+        levelling_jacobian(problem, params.eops), levelling_residual(problem, params.eops)
+    )
+    return tuple(bp), jnp.concatenate([bs.reshape(-1), ba])
+
+
+def assemble(spec: Spec, problem: Problem, params: Params, rows: tuple) -> Blocks:
+    """The normal-equation :class:`Blocks` from the rows at ``params``: on each family's grid
+    when it has one (:class:`._families.Layout`), by segment sums otherwise."""
+    ns, na = spec.n_scans, spec.n_aps
+    Nss = jnp.zeros((ns, 6, 6))
+    Nsa = jnp.zeros((ns, 6, na))
+    Naa = jnp.zeros((na, na))
+    Npp, Npz, Dp = [], [], []
+    for fam, grid, r, P in zip(problem.families, _grids(problem), rows, params.prims):
+        J = (r.Jp, r.Js, r.Ja)
+        sums = _sums_on_grid(grid, *J) if grid else _sums_by_segment(fam, ns, *J)
+        npp, nps, npa, nss, nsa, naa = sums
+        # Priors on primitives (control points, scale-bar lengths, unit normals).
+        Jpr = fam.prior_jacobian(P)
+        Dp.append(jnp.diagonal(npp, axis1=-2, axis2=-1))
+        Npp.append(npp + outer(Jpr, Jpr))
+        nps = jnp.transpose(nps, (0, 2, 1, 3)).reshape(fam.n, fam.p, 6 * ns)
+        Npz.append(jnp.concatenate([nps, npa], axis=-1))
+        Nss, Nsa, Naa = Nss + nss, Nsa + nsa, Naa + naa
+    # Levelling pseudo-observations (compensator readings) act on the scan's rotation.
+    Jl = levelling_jacobian(problem, params.eops)
+    Nss = Nss + outer(Jl, Jl)
+    diag = np.eye(ns, dtype=bool)[:, None, :, None]
+    Nss_full = jnp.where(diag, Nss[:, :, None, :], 0.0).reshape(6 * ns, 6 * ns)
+    Nsa_full = Nsa.reshape(6 * ns, na)
+    Nzz = jnp.block([[Nss_full, Nsa_full], [Nsa_full.T, Naa]])
+    bp, bz = gradient(spec, problem, params, rows)
+    return Blocks(tuple(Npp), tuple(Npz), bp, Nzz, bz, tuple(Dp))
 
 
 def linearise(spec: Spec, problem: Problem, params: Params, ap_jac: tuple | None = None) -> Blocks:
@@ -130,45 +202,10 @@ def linearise(spec: Spec, problem: Problem, params: Params, ap_jac: tuple | None
 
 def linearise_rows(spec: Spec, problem: Problem, params: Params, ap_jac: tuple | None = None):
     """The one linearisation of the engine: per family the residual rows and Jacobian blocks
-    (:class:`Rows`, from ``vmap(jacfwd)``) and the normal-equation :class:`Blocks` summed from
-    them, on the family's grid when it has one (:class:`._families.Layout`), by segment sums
-    otherwise. The solver and the quality pass share it. Returns (blocks, rows per family)."""
-    ns, na = spec.n_scans, spec.n_aps
-    Nss = jnp.zeros((ns, 6, 6))
-    Nsa = jnp.zeros((ns, 6, na))
-    Naa = jnp.zeros((na, na))
-    bs = jnp.zeros((ns, 6))
-    ba = jnp.zeros((na,))
-    Npp, Npz, bp, Dp, rows = [], [], [], [], []
-    grids = problem.grids or (None,) * len(problem.families)
-    for fi, (fam, grid) in enumerate(zip(problem.families, grids)):
-        P = params.prims[fi]
-        r = Rows(
-            *fam.linear_rows(spec, problem, params, fi, None if ap_jac is None else ap_jac[fi])
-        )
-        rows.append(r)
-        J = (r.e, r.Jp, r.Js, r.Ja)
-        sums = _sums_on_grid(grid, *J) if grid else _sums_by_segment(fam, ns, *J)
-        npp, bpp, nps, npa, nss, nsa, naa, bss, baa = sums
-        # Priors on primitives (control points, scale-bar lengths, unit normals).
-        pr, Jpr = fam.prior_residuals(P), fam.prior_jacobian(P)
-        Dp.append(jnp.diagonal(npp, axis1=-2, axis2=-1))
-        Npp.append(npp + outer(Jpr, Jpr))
-        bp.append(bpp - matvec_t(Jpr, pr))
-        nps = jnp.transpose(nps, (0, 2, 1, 3)).reshape(fam.n, fam.p, 6 * ns)
-        Npz.append(jnp.concatenate([nps, npa], axis=-1))
-        Nss, Nsa, Naa, bs, ba = Nss + nss, Nsa + nsa, Naa + naa, bs + bss, ba + baa
-    # Levelling pseudo-observations (compensator readings) act on the scan's rotation.
-    Jl = levelling_jacobian(problem, params.eops)
-    lr = levelling_residual(problem, params.eops)
-    Nss = Nss + outer(Jl, Jl)
-    bs = bs - matvec_t(Jl, lr)
-    diag = np.eye(ns, dtype=bool)[:, None, :, None]
-    Nss_full = jnp.where(diag, Nss[:, :, None, :], 0.0).reshape(6 * ns, 6 * ns)
-    Nsa_full = Nsa.reshape(6 * ns, na)
-    Nzz = jnp.block([[Nss_full, Nsa_full], [Nsa_full.T, Naa]])
-    bz = jnp.concatenate([bs.reshape(-1), ba])
-    return Blocks(tuple(Npp), tuple(Npz), tuple(bp), Nzz, bz, tuple(Dp)), tuple(rows)
+    (:func:`rows_at`) and the normal-equation :class:`Blocks` summed from them
+    (:func:`assemble`). The solver and the quality pass share it. Returns (blocks, rows)."""
+    rows = rows_at(spec, problem, params, ap_jac)
+    return assemble(spec, problem, params, rows), rows
 
 
 def linearised_cost(problem: Problem, params: Params, rows) -> Array:
@@ -244,31 +281,50 @@ def reduce(spec, problem, blocks: Blocks, Hz, damping, rank_tolerance, dependent
     return Reduced(tuple(inv_list), tuple(Y_list), scale, L, dep, piv, Ks, K)
 
 
-def reduced_rhs(blocks: Blocks, red: Reduced):
-    c = blocks.bz
-    for Y, bp in zip(red.Y, blocks.bp):
-        c = c - jnp.einsum("npr,np->r", Y, bp)
+def reduced_rhs(bp: tuple, bz, red: Reduced):
+    c = bz
+    for Y, b in zip(red.Y, bp):
+        c = c - jnp.einsum("npr,np->r", Y, b)
     return c
+
+
+def solve(spec, red: Reduced, bp: tuple, bz, Hp, Hz):
+    """``N^- b`` from the factorisation: the reduced solve, the back substitution of the
+    primitives and the S-transformation onto the inner constraints. Returns (dps, dz)."""
+    c = reduced_rhs(bp, bz, red) * red.scale
+    c = jnp.where(red.dependent, 0.0, c)
+    dz = cholesky_solve(red.L, c) * red.scale
+    dz = jnp.where(red.dependent, 0.0, dz)
+    dps = tuple(
+        jnp.einsum("npq,nq->np", Ninv, b) - jnp.einsum("npr,r->np", Y, dz)
+        for Ninv, Y, b in zip(red.Npp_inv, red.Y, bp)
+    )
+    if spec.inner and Hz.shape[1]:
+        dps, dz = s_transform_vector(Hp, Hz, dps, dz)
+    return dps, dz
+
+
+def norm_squared(dps: tuple, dz, bp: tuple, bz):
+    """``dx^T b``: for ``dx = N^- b`` the squared length of the update in the metric of the
+    normal matrix, ``dx^T N dx``, in a priori sigmas. It bounds every component, ``|dx_i| <=
+    sqrt(Q_ii) sqrt(dx^T N dx)`` (Cauchy-Schwarz), with no inverse formed."""
+    return jnp.dot(dz, bz) + sum(jnp.sum(d * b) for d, b in zip(dps, bp))
+
+
+def apply_update(spec, problem, params: Params, dps: tuple, dz) -> Params:
+    """The parameters after an update, the primitives retracted onto their constraints."""
+    ns = spec.n_scans
+    prims = tuple(fam.retract(P + dp) for fam, P, dp in zip(problem.families, params.prims, dps))
+    return Params(prims, params.eops + dz[: 6 * ns].reshape(ns, 6), params.aps + dz[6 * ns :])
 
 
 def solve_step(spec, problem, params, blocks, red: Reduced, Hp, Hz):
     """Solve for the update, back-substitute the primitives, apply the datum and retract the
     primitives onto their constraints. Returns (new parameters, applied primitive updates, dz)."""
-    c = reduced_rhs(blocks, red) * red.scale
-    c = jnp.where(red.dependent, 0.0, c)
-    dz = cholesky_solve(red.L, c) * red.scale
-    dz = jnp.where(red.dependent, 0.0, dz)
-    dps = tuple(
-        jnp.einsum("npq,nq->np", Ninv, bp) - jnp.einsum("npr,r->np", Y, dz)
-        for Ninv, Y, bp in zip(red.Npp_inv, red.Y, blocks.bp)
-    )
-    if spec.inner and Hz.shape[1]:
-        dps, dz = s_transform_vector(Hp, Hz, dps, dz)
-    ns = spec.n_scans
-    prims = tuple(fam.retract(P + dp) for fam, P, dp in zip(problem.families, params.prims, dps))
-    # The update as applied (after the retraction onto the constraints): it measures convergence.
-    dps = tuple(new - P for new, P in zip(prims, params.prims))
-    new = Params(prims, params.eops + dz[: 6 * ns].reshape(ns, 6), params.aps + dz[6 * ns :])
+    dps, dz = solve(spec, red, blocks.bp, blocks.bz, Hp, Hz)
+    new = apply_update(spec, problem, params, dps, dz)
+    # The update as applied (after the retraction onto the constraints).
+    dps = tuple(n - P for n, P in zip(new.prims, params.prims))
     return new, dps, dz
 
 

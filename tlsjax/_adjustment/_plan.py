@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 
-import jax.numpy as jnp
 import numpy as np
 
 from .._model._aps import get_ap
@@ -108,13 +107,14 @@ def _datum(net: Network, model: CalibrationModel, labels, fixed_aps):
 
 
 def _index_pairs(prim, scan):
-    pairs, pair = np.unique(np.stack([prim, scan], axis=1), axis=0, return_inverse=True)
+    n_s = int(scan.max()) + 1 if len(scan) else 1
+    keys, pair = np.unique(prim.astype(np.int64) * n_s + scan, return_inverse=True)
     return dict(
-        prim=jnp.asarray(prim),
-        scan=jnp.asarray(scan),
-        pair=jnp.asarray(pair.reshape(-1).astype(np.int32)),
-        pair_prim=jnp.asarray(pairs[:, 0]),
-        pair_scan=jnp.asarray(pairs[:, 1]),
+        prim=np.asarray(prim),
+        scan=np.asarray(scan),
+        pair=pair.reshape(-1).astype(np.int32),
+        pair_prim=keys // n_s,
+        pair_scan=keys % n_s,
     )
 
 
@@ -148,14 +148,14 @@ def _point_families(net: Network, datum: str):
         bar = k == 2
         families.append(
             PointFamily(
-                obs=jnp.asarray(net.observations[m]),
-                weight=jnp.asarray(1.0 / net.sigmas[m]),
-                point=jnp.asarray(point_of[net.target_index[m]]),
+                obs=np.asarray(net.observations[m]),
+                weight=np.asarray(1.0 / net.sigmas[m]),
+                point=np.asarray(point_of[net.target_index[m]]),
                 **_index_pairs(prim_of[net.target_index[m]], net.scan_index[m]),
-                ctrl_xyz=jnp.asarray(ctrl_x[tg]),
-                ctrl_weight=jnp.asarray(ctrl_w[tg]),
-                bar_length=jnp.asarray(net.scale_bar_length if bar else np.zeros(len(tg))),
-                bar_weight=jnp.asarray(1.0 / net.scale_bar_sigma if bar else np.zeros(len(tg))),
+                ctrl_xyz=np.asarray(ctrl_x[tg]),
+                ctrl_weight=np.asarray(ctrl_w[tg]),
+                bar_length=np.asarray(net.scale_bar_length if bar else np.zeros(len(tg))),
+                bar_weight=np.asarray(1.0 / net.scale_bar_sigma if bar else np.zeros(len(tg))),
                 k=k,
             )
         )
@@ -166,11 +166,11 @@ def _point_families(net: Network, datum: str):
 def _plane_family(net: Network):
     """Planes: one Gauss-Helmert condition per point (SPEC section 4), p = 4 per plane."""
     return PlaneFamily(
-        obs=jnp.asarray(net.plane_observations),
-        weight=jnp.asarray(1.0 / net.plane_sigmas),
-        point=jnp.zeros(len(net.plane_index), dtype=jnp.int32),
+        obs=np.asarray(net.plane_observations),
+        weight=np.asarray(1.0 / net.plane_sigmas),
+        point=np.zeros(len(net.plane_index), dtype=np.int32),
         **_index_pairs(net.plane_index, net.plane_scan_index),
-        unit_weight=jnp.asarray(_unit_normal_weight(net)),
+        unit_weight=np.asarray(_unit_normal_weight(net)),
     )
 
 
@@ -208,10 +208,10 @@ def build_plan(net: Network, model: CalibrationModel, fixed_aps=None) -> Plan:
     lw = np.where(np.isfinite(net.levelling_sigma), 1.0 / net.levelling_sigma, 0.0)
     problem = Problem(
         tuple(families),
-        jnp.asarray(net.instrument_of_scan),
-        jnp.asarray(net.levelling),
-        jnp.asarray(lw),
-        jnp.asarray(fixed),
+        np.asarray(net.instrument_of_scan),
+        np.asarray(net.levelling),
+        np.asarray(lw),
+        np.asarray(fixed),
     )
     names = _parameter_names(net, fam_targets, labels)
     return Plan(
@@ -237,11 +237,9 @@ def initial_params(net: Network, plan: Plan, targets=None, eops=None, planes=Non
         targets = t0 if targets is None else np.asarray(targets, dtype=np.float64)
         eops = e0 if eops is None else np.asarray(eops, dtype=np.float64)
         planes = p0 if planes is None else planes
-    prims = [
-        jnp.asarray(np.asarray(targets)[tg].reshape(len(tg), -1)) for tg in plan.family_targets
-    ]
+    prims = [np.asarray(np.asarray(targets)[tg].reshape(len(tg), -1)) for tg in plan.family_targets]
     if net.has_planes:
         P = np.array(planes, dtype=np.float64).reshape(len(net.planes), 4)
         P /= np.linalg.norm(P[:, :3], axis=1, keepdims=True)[:, [0, 0, 0, 0]]
-        prims.append(jnp.asarray(P))
-    return Params(tuple(prims), jnp.asarray(eops), jnp.zeros(plan.spec.n_aps))
+        prims.append(np.asarray(P))
+    return Params(tuple(prims), np.asarray(eops), np.zeros(plan.spec.n_aps))

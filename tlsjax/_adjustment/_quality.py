@@ -170,7 +170,7 @@ def linearisation_at(spec: Spec, problem: Problem, params: Params, rank_toleranc
     blocks, rows = linearise_rows(spec, problem, params)
     Hp, Hz = null_space(spec, problem.families, params)
     red = reduce(spec, problem, blocks, Hz, jnp.asarray(0.0), rank_tolerance)
-    return Linearisation(blocks, rows, Hp, Hz, red)
+    return Linearisation(rows, Hp, Hz, red)
 
 
 def quality(

@@ -1,21 +1,35 @@
 """Gauss-Newton with Levenberg-Marquardt damping on the block normal equations (SPEC section 7).
 
-Iterations run in one ``lax.while_loop``; each step assembles and reduces the normal equations
-(:mod:`._normal`), solves, and accepts the step when it does not increase ``v^T P v``. After
-the last step one more pass linearises and reduces (undamped) at the final estimate and stops:
-the quality pass takes that linearisation from the loop, so the linearisation is traced and
-compiled once for both (and a batch of Monte Carlo realisations runs the same code). A
-rejected step raises the damping (``damping_increase``), an accepted one lowers it
-(``damping_decrease``) down to pure Gauss-Newton below ``damping_min``: a descent method on
-``v^T P v`` from any start, Gauss-Newton near the solution.
+Iterations run in one ``lax.while_loop``. A pass holds the residual rows and Jacobian blocks at
+the current estimate x (:class:`._normal.Rows`); it assembles and reduces the normal equations
+from them (:mod:`._normal`), solves for the step, and evaluates the rows at the candidate
+``x + dx``: they give the candidate's cost (accept the step when it does not increase ``v^T P
+v``), its gradient, and, when accepted, the next pass's linearisation. A rejected step raises
+the damping (``damping_increase``), an accepted one lowers it (``damping_decrease``) down to
+pure Gauss-Newton below ``damping_min``: a descent method on ``v^T P v`` from any start,
+Gauss-Newton near the solution.
 
-Convergence is tested on the undamped (Gauss-Newton) update, in units of each parameter's a
-posteriori standard deviation: ``max_i |dx_i| / (s0 sqrt(Q_ii)) < tolerance`` with ``s0^2 = v^T P
-v / r`` at the current estimate. The ratio does not change when all sigmas are scaled by a
-common factor (dx does not, ``sqrt(Q_ii)`` and ``1/s0`` scale alike). On noise-free data s0 is
-itself rounding noise, so the test is floored at the rounding level of the whitened residuals
-(``ROUNDING_FACTOR`` times their RMS rounding error): an update that small cannot be resolved
-in float64, and a step there is accepted or rejected by rounding alone.
+**Convergence is decided in the pass that reaches it**, with nothing left to confirm. After an
+accepted undamped step the gradient ``b`` at the candidate and the factorisation at hand give
+the chord step ``c = N^- b`` (one back-substitution): the next Gauss-Newton step up to the
+relative change of the normal matrix over one step (about 1e-4 here). Its length in the metric
+of the normal matrix, ``sqrt(c^T N c) = sqrt(c^T b)``, bounds every component in units of the
+parameter's standard deviation, ``|c_i| <= sqrt(Q_ii) sqrt(c^T N c)`` (Cauchy-Schwarz), so no
+cofactor diagonal is needed. When that bound is below ``tolerance`` a posteriori sigmas (``s0^2 =
+v^T P v / r`` at the candidate), the adjustment has converged: ``x + dx + c`` is returned, which
+is the next Gauss-Newton iterate to within ``1e-4 |c|``, i.e. the estimate of a loop that took
+one more full pass. The quality (cofactors, redundancy) comes from the last factorisation and
+the rows at the candidate: they differ from a linearisation at the final estimate by the change
+over a step smaller than ``tolerance`` sigmas (relative 1e-12 on the test networks), and ``v^T P
+v`` from the candidate's residuals (the chord step lowers it by ``c^T b``, of order
+``tolerance^2``). The number of factorisations then equals the number of Gauss-Newton steps a
+trust-region solver such as Ceres takes on the same problem.
+
+The tolerance is in a posteriori sigmas; the ratio does not change when all sigmas are scaled
+by a common factor. On noise-free data s0 is itself rounding noise, so the test is floored at
+the rounding level of the whitened residuals (``ROUNDING_FACTOR`` times their RMS rounding
+error): an update that small cannot be resolved in float64, and a step there is accepted or
+rejected by rounding alone.
 """
 
 from __future__ import annotations
@@ -26,17 +40,27 @@ import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
-from ._families import Options, Params, Problem, Spec, cost, count_observations, on_grid
+from ._families import (
+    Options,
+    Params,
+    Problem,
+    Spec,
+    count_observations,
+    levelling_residual,
+    on_grid,
+)
 from ._normal import (
-    Blocks,
     Reduced,
     ap_jacobians,
-    linearise_rows,
+    apply_update,
+    assemble,
+    gradient,
     linearised_cost,
+    norm_squared,
     null_space,
     reduce,
-    solve_step,
-    update_size,
+    rows_at,
+    solve,
 )
 
 #: An update below this many RMS rounding errors of the whitened residuals cannot be resolved.
@@ -52,7 +76,7 @@ class SolveState(eqx.Module):
     iteration: Int[Array, ""]
     converged: Bool[Array, ""]
     finite: Bool[Array, ""]
-    size: Float[Array, ""]  # last Gauss-Newton update over the convergence threshold
+    size: Float[Array, ""]  # last convergence measure over its threshold (below 1: converged)
     # Columns of the reduced system found dependent at the last undamped linearisation: a
     # damped step holds them too (damping the primitives' blocks would hide the dependency of
     # an AP whose effect they absorb, and the step would wander along it).
@@ -60,11 +84,9 @@ class SolveState(eqx.Module):
 
 
 class Linearisation(eqx.Module):
-    """The linearisation at the final estimate that the loop hands to the quality pass:
-    normal-equation blocks, per-family rows (:class:`._normal.Rows`), the datum's null-space
-    columns and the undamped reduced system."""
+    """What the loop hands to the quality pass: per-family rows (:class:`._normal.Rows`) at
+    the final estimate, the datum's null-space columns and the undamped reduced system."""
 
-    blocks: Blocks
     rows: tuple
     Hp: tuple
     Hz: Array
@@ -89,33 +111,41 @@ def adjust(spec: Spec, problem: Problem, params0: Params, options: Options) -> S
     """Gauss-Newton with Levenberg-Marquardt damping as a safeguard, one ``lax.while_loop``.
 
     Returns the final state (pure, jittable, vmappable). ``state.size`` is the last
-    Gauss-Newton update over its convergence threshold (below 1 when converged).
+    convergence measure over its threshold (below 1 when converged).
     """
     return adjust_linearised(spec, on_grid(problem), params0, options)[0]
 
 
 class _Loop(eqx.Module):
-    state: SolveState
-    lin: Linearisation
+    state: SolveState  # at the current estimate x
+    rows: tuple  # at x
+    lin: Linearisation  # the factorisation at x that made the candidate
+    candidate: Params  # the point the next pass evaluates (the start, then x + dx)
+    step: Float[Array, ""]  # length of the step to the candidate, sqrt(dx^T b)
+    first: Bool[Array, ""]  # the candidate is the start
     done: Bool[Array, ""]
 
 
-def adjust_linearised(
-    spec: Spec, problem: Problem, params0: Params, options: Options, final_pass: bool = True
-):
-    """:func:`adjust` on a problem already on its grid (:func:`._families.on_grid`); also
-    returns the :class:`Linearisation` at the final estimate. One trace of the linearisation:
-    the loop's last pass (after convergence, the iteration limit or too much damping) only
-    linearises and reduces, undamped, at the final estimate.
+def _frozen_cost(problem: Problem, params: Params, rows, frozen):
+    """``v^T P v`` at ``params`` from its rows, families with ``frozen_cost`` whitened with the
+    weights of the linearisation point (``frozen``: its rows): a step's acceptance test."""
+    total = jnp.sum(levelling_residual(problem, params.eops) ** 2)
+    for fam, P, r, f in zip(problem.families, params.prims, rows, frozen):
+        e = fam.frozen_rows(r, f) if fam.frozen_cost else r.e
+        total = total + jnp.sum(e**2) + jnp.sum(fam.prior_residuals(P) ** 2)
+    return total
 
-    ``final_pass=False`` (Monte Carlo, which needs only the estimable summary) skips that pass
-    and returns the linearisation of the last step instead: converged means that step was an
-    undamped Gauss-Newton step shorter than ``tolerance`` a posteriori sigmas, so its reduced
-    system differs from the one at the final estimate at second order (the AP cofactors by
-    about 1e-10 relatively, tested against calibrate), and ``state.cost`` is the cost of the
-    accepted step (at the final estimate)."""
+
+def adjust_linearised(spec: Spec, problem: Problem, params0: Params, options: Options):
+    """:func:`adjust` on a problem already on its grid (:func:`._families.on_grid`); also
+    returns the :class:`Linearisation` the quality pass needs (see the module docstring).
+
+    One pass evaluates the rows at the candidate (the start, then the last step's end point),
+    accepts or rejects it, tests convergence with the chord step of the factorisation at hand,
+    and, unless converged, factorises at the accepted estimate and steps. A loop that ends
+    without convergence (iteration limit, too much damping) factorises its final estimate
+    undamped, for the quality. Every piece of the pass is traced and compiled once."""
     ap_jac = ap_jacobians(spec, problem, params0)
-    frozen_cost = any(fam.frozen_cost for fam in problem.families)
     dof = jnp.maximum(
         count_observations(problem, params0)
         - _unknowns(spec, problem, params0)
@@ -125,79 +155,84 @@ def adjust_linearised(
     rho = rounding_sigma(problem)
     floor = ROUNDING_FACTOR * rho
 
-    # A nested jit: the loop's carry needs the linearisation's shapes before the loop body is
-    # traced, and jit's trace cache lets the body reuse that one trace (eval_shape of a plain
-    # function would trace it a second time, a third of the lowering time).
-    @jax.jit
-    def linearisation(params, damping, dependent):
-        blocks, rows = linearise_rows(spec, problem, params, ap_jac)
+    @jax.jit  # a nested jit, so that eval_shape below reuses the loop body's trace
+    def factorise(params, rows, damping, dependent):
+        blocks = assemble(spec, problem, params, rows)
         Hp, Hz = null_space(spec, problem.families, params)
         red = reduce(spec, problem, blocks, Hz, damping, options.rank_tolerance, dependent)
-        return Linearisation(blocks, rows, Hp, Hz, red)
+        return Linearisation(rows, Hp, Hz, red), blocks.bp, blocks.bz
 
     def body(loop: _Loop):
-        state = loop.state
-        last = (
-            state.converged
-            | (state.iteration >= options.max_iterations)
-            | (state.damping > options.damping_max)
-        )
-        if not final_pass:
-            lin = linearisation(state.params, state.damping, state.dependent)
-            ref_cost = linearised_cost(problem, state.params, lin.rows)
-            new_state = _step(state, lin, ref_cost, state.damping)
-            return _Loop(new_state, lin, _stop(new_state))
-        damping = jnp.where(last, 0.0, state.damping)
-        lin = linearisation(state.params, damping, state.dependent)
-        ref_cost = linearised_cost(problem, state.params, lin.rows)
-        new_state = lax.cond(last, lambda: state, lambda: _step(state, lin, ref_cost, damping))
-        return _Loop(new_state, lin, last)
-
-    def _stop(state):
-        return (
-            state.converged
-            | (state.iteration >= options.max_iterations)
-            | (state.damping > options.damping_max)
-        )
-
-    def _step(state, lin, ref_cost, damping):
-        red = lin.reduced
-        new, dps, dz = solve_step(spec, problem, state.params, lin.blocks, red, lin.Hp, lin.Hz)
-        new_cost = cost(spec, problem, new, frozen=lin.rows if frozen_cost else None, ap_jac=ap_jac)
-        finite = jnp.isfinite(new_cost)
-        accept = finite & (new_cost <= ref_cost * (1.0 + 1e-12))
-        s0 = jnp.sqrt(jnp.maximum(ref_cost, 0.0) / dof)
-        threshold = jnp.maximum(options.tolerance * s0, floor)
-        update = update_size(lin.blocks, red, dz, dps)
-        size = update / threshold
+        state, y, first = loop.state, loop.candidate, loop.first
+        rows_y = rows_at(spec, problem, y, ap_jac)
+        own_cost = linearised_cost(problem, y, rows_y)
+        new_cost = _frozen_cost(problem, y, rows_y, loop.rows)
+        accept = first | (jnp.isfinite(new_cost) & (new_cost <= state.cost * (1.0 + 1e-12)))
         # A step is accepted by comparing costs, and the cost carries rounding noise of about
-        # 2 rho sqrt(cost) (rho: rounding of one whitened residual). A step of size u (in a
+        # 2 rho sqrt(cost) (rho: rounding of one whitened residual). A step of length u (in a
         # priori sigmas) lowers the cost by about u^2; below COST_RESOLUTION times that noise
-        # its rejection says nothing (warm starts at small noise otherwise alternate rejected
-        # and damped steps at the solution). Accepted steps keep the plain threshold, so the
-        # estimate does not depend on the path (Monte Carlo equals calibrate to 1e-9 sigma).
-        resolvable = jnp.sqrt(COST_RESOLUTION * 2.0 * rho * jnp.sqrt(jnp.maximum(ref_cost, 0.0)))
-        unresolved = ~accept & (update < resolvable)
-        # Only an undamped step measures the distance to the solution: a damped one is short
-        # by construction. At the solution an undamped step is rounding noise and may be
-        # rejected by rounding alone; it is converged either way.
-        converged = (damping == 0) & jnp.isfinite(size) & ((size < 1.0) | unresolved)
-        params = _where(accept, new, state.params)
-        damping_next = jnp.where(
-            accept,
-            jnp.where(damping < options.damping_min, 0.0, damping * options.damping_decrease),
-            jnp.maximum(damping * options.damping_increase, options.damping_initial),
+        # its rejection says nothing: at the solution an undamped step is rounding noise and
+        # may be rejected by rounding alone; it is converged either way.
+        resolvable = jnp.sqrt(COST_RESOLUTION * 2.0 * rho * jnp.sqrt(jnp.maximum(state.cost, 0)))
+        undamped = ~first & (state.damping == 0)
+        unresolved = undamped & ~accept & (loop.step < resolvable)
+        # The chord step at the candidate with the factorisation at hand (module docstring).
+        bp, bz = gradient(spec, problem, y, rows_y)
+        bp = tuple(f.tangent_gradient(P, b) for f, P, b in zip(problem.families, y.prims, bp))
+        cps, cz = solve(spec, loop.lin.reduced, bp, bz, loop.lin.Hp, loop.lin.Hz)
+        s0 = jnp.sqrt(jnp.maximum(own_cost, 0.0) / dof)
+        chord = jnp.sqrt(jnp.maximum(norm_squared(cps, cz, bp, bz), 0.0))
+        chord = chord / jnp.maximum(options.tolerance * s0, floor)
+        done_here = undamped & accept & jnp.isfinite(chord) & (chord < 1.0)
+        converged = done_here | unresolved
+
+        params = _where(accept, y, state.params)
+        rows = _where(accept, rows_y, loop.rows)
+        cost_x = jnp.where(accept, own_cost, state.cost)
+        damping = jnp.where(
+            first,
+            state.damping,
+            jnp.where(
+                accept,
+                jnp.where(
+                    state.damping < options.damping_min,
+                    0.0,
+                    state.damping * options.damping_decrease,
+                ),
+                jnp.maximum(state.damping * options.damping_increase, options.damping_initial),
+            ),
         )
-        return SolveState(
-            params,
-            jnp.where(accept, new_cost, ref_cost),
-            damping_next,
-            state.iteration + 1,
+        iteration = state.iteration + jnp.where(first, 0, 1)
+        finite = jnp.isfinite(cost_x) & (first | jnp.isfinite(new_cost) | accept)
+        stop = (
+            converged
+            | (iteration >= options.max_iterations)
+            | (damping > options.damping_max)
+            | ~jnp.isfinite(cost_x)
+        )
+        # Unless converged, factorise at the estimate: for the next step, or, at a stop
+        # without convergence, undamped for the quality.
+        used = jnp.where(stop, 0.0, damping)
+        lin, b_p, b_z = lax.cond(
             converged,
-            finite | accept,
-            jnp.where(damping == 0, size, state.size),
-            jnp.where(damping == 0, red.dependent, state.dependent),
+            lambda: (Linearisation(rows, loop.lin.Hp, loop.lin.Hz, loop.lin.reduced), bp, bz),
+            lambda: factorise(params, rows, used, state.dependent),
         )
+        dps, dz = solve(spec, lin.reduced, b_p, b_z, lin.Hp, lin.Hz)
+        step = jnp.sqrt(jnp.maximum(norm_squared(dps, dz, b_p, b_z), 0.0))
+        final = _where(done_here, apply_update(spec, problem, y, cps, cz), params)
+        new_state = SolveState(
+            final,
+            cost_x,
+            damping,
+            iteration,
+            converged,
+            finite,
+            jnp.where(undamped, jnp.where(unresolved, 0.0, chord), state.size),
+            jnp.where(~converged & (used == 0), lin.reduced.dependent, state.dependent),
+        )
+        candidate = apply_update(spec, problem, params, dps, dz)
+        return _Loop(new_state, rows, lin, candidate, step, jnp.asarray(False), stop)
 
     init = SolveState(
         params0,
@@ -209,18 +244,20 @@ def adjust_linearised(
         jnp.asarray(jnp.inf),
         jnp.zeros(spec.r, dtype=bool),
     )
-    # The loop carries the last linearisation; its first pass fills it.
-    lin0 = jax.eval_shape(linearisation, params0, jnp.asarray(0.0), init.dependent)
-    zeros = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), lin0)
-    out = lax.while_loop(lambda loop: ~loop.done, body, _Loop(init, zeros, jnp.asarray(False)))
-    state = out.state
-    if not final_pass:
-        return state, out.lin
-    # v^T P v at the final estimate (with its own weights), from the last linearisation.
-    final_cost = linearised_cost(problem, state.params, out.lin.rows)
-    finite = state.finite & jnp.isfinite(final_cost)
-    state = eqx.tree_at(lambda s: (s.cost, s.finite), state, (final_cost, finite))
-    return state, out.lin
+    rows0 = jax.eval_shape(lambda p: rows_at(spec, problem, p, ap_jac), params0)
+    shapes = jax.eval_shape(factorise, params0, rows0, jnp.asarray(0.0), init.dependent)[0]
+    zeros = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
+    start = _Loop(
+        init,
+        zeros.rows,
+        zeros,
+        params0,
+        jnp.asarray(jnp.inf),
+        jnp.asarray(True),
+        jnp.asarray(False),
+    )
+    out = lax.while_loop(lambda loop: ~loop.done, body, start)
+    return out.state, out.lin
 
 
 def _where(flag, a, b):

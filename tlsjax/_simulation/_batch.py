@@ -1,15 +1,26 @@
 """The one batch runner of tlsjax: many realisations of one computation as a compiled ``vmap``,
-in chunks of a fixed size, sharded over every JAX device along the batch axis.
+in chunks of a fixed size, sharded over the process's JAX devices along the batch axis, and
+over the processes of a multi-process run (``jax.distributed``).
 
 Monte Carlo self-calibration and the AP-set compatibility test both run through it. A chunk of
 indices ``k`` is mapped by ``one(k, *constants)``; the constants (seed key, tolerances, AP sets)
 are replicated arguments of the compiled function, so changing them never recompiles. Chunk
-sizes are rounded up to a multiple of the device count, so every device gets the same share.
+sizes are rounded up to a multiple of the local device count, so every device gets the same
+share.
+
+**Past one machine.** The realisations are cut into *slices* of the per-device batch (the
+chunk over the local device count). With ``jax.distributed.initialize(...)`` called first,
+process p of P computes the slices ``s = p, p + P, p + 2P, ...`` on its own devices (no
+communication while it runs), and the results are gathered to every process at the end
+(``multihost_utils.process_allgather``). A slice's results depend only on its indices and the
+per-device batch, so a run over several processes equals, bit for bit, one process with the
+same per-device batch and seed (tested with two processes on one machine).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import time
 
@@ -22,13 +33,13 @@ from .._jit import jit
 
 
 def device_mesh() -> Mesh:
-    """One mesh axis, "batch", over every device (a no-op on one CPU device)."""
-    return Mesh(np.array(jax.devices()), ("batch",))
+    """One mesh axis, "batch", over the process's devices (a no-op on one CPU device)."""
+    return Mesh(np.array(jax.local_devices()), ("batch",))
 
 
 def device_key() -> tuple:
     """What a compiled batch function depends on besides its arguments: the devices."""
-    return tuple(str(d) for d in jax.devices())
+    return tuple(str(d) for d in jax.local_devices())
 
 
 #: Working set of one device's share of a compiled call [bytes] when the user gives no chunk
@@ -42,14 +53,14 @@ DEVICE_WORKING_SET = 4e6
 
 def round_chunk(chunk_size: int) -> int:
     """``chunk_size`` rounded up to a multiple of the device count."""
-    n_dev = len(jax.devices())
+    n_dev = jax.local_device_count()
     return int(math.ceil(int(chunk_size) / n_dev) * n_dev)
 
 
 def auto_chunk(bytes_per_item: float, runs: int) -> int:
     """Items per compiled call: as many per device as fit :data:`DEVICE_WORKING_SET` (1 to
     64), but no more than ``runs`` need; a multiple of the device count."""
-    n_dev = len(jax.devices())
+    n_dev = jax.local_device_count()
     per_device = int(min(max(DEVICE_WORKING_SET // max(bytes_per_item, 1.0), 1), 64))
     return round_chunk(min(per_device * n_dev, int(runs)))
 
@@ -91,18 +102,76 @@ def compile_batched(one, constants, chunk: int) -> Batched:
     return Batched(compiled, chunk, batched, replicated, time.perf_counter() - t0)
 
 
-def run_batched(b: Batched, n: int, constants, *, desc: str, progress: bool):
-    """Run realisations ``0 .. n-1`` in chunks; returns (pytree of (n, ...) numpy arrays, seconds)."""
+def run_batched(b: Batched, n: int, constants, *, desc: str, progress: bool, indices=None):
+    """Run realisations ``0 .. n-1`` (or ``indices``) in chunks, this process's share of the
+    slices when there are several processes (module docstring); returns (pytree of (n, ...)
+    numpy arrays in that order, on every process, and seconds)."""
     from tqdm.auto import tqdm
 
+    idx = np.arange(n, dtype=np.int64) if indices is None else np.asarray(indices, np.int64)
+    n = len(idx)
+    size = b.chunk // jax.local_device_count()  # one slice: a device's share of a chunk
+    n_slices = -(-n // size)
+    procs, me = jax.process_count(), jax.process_index()
+    mine = np.arange(me, n_slices, procs)
+    # The slices padded with the last index (their results are dropped); a process without a
+    # slice computes one padding chunk, so that every process has results of the same shape.
+    slices = np.concatenate([idx, np.full(n_slices * size - n, idx[-1])]).reshape(-1, size)
+    slots = slices[mine].reshape(-1)
+    fill = (-len(slots)) % b.chunk if len(slots) else b.chunk
+    slots = np.concatenate([slots, np.full(fill, idx[-1])])
     consts = jax.device_put(tuple(constants), b.replicated)
     parts = []
     t0 = time.perf_counter()
-    for c in tqdm(
-        range(int(math.ceil(n / b.chunk))), desc=desc, unit="chunk", disable=not progress
-    ):
-        idx = np.arange(c * b.chunk, (c + 1) * b.chunk, dtype=np.int64)
-        parts.append(jax.tree.map(np.asarray, b.compiled(jax.device_put(idx, b.batched), *consts)))
+    for c in tqdm(range(len(slots) // b.chunk), desc=desc, unit="chunk", disable=not progress):
+        chunk = slots[c * b.chunk : (c + 1) * b.chunk]
+        parts.append(
+            jax.tree.map(np.asarray, b.compiled(jax.device_put(chunk, b.batched), *consts))
+        )
+    out = jax.tree.map(lambda *a: np.concatenate(a), *parts)
+    if procs > 1:
+        out = _gather(out, n_slices, size, procs)
     run_s = time.perf_counter() - t0
-    out = jax.tree.map(lambda *a: np.concatenate(a)[:n], *parts)
-    return out, run_s
+    return jax.tree.map(lambda a: a[:n], out), run_s
+
+
+def _gather(local, n_slices, size, procs):
+    """Every process's slices (``p, p + P, ...``), gathered to every process in slice order."""
+    from jax.experimental import multihost_utils
+
+    rows = -(-n_slices // procs) * size  # the most any process holds
+
+    def fixed(a):  # every process sends the same shape
+        extra = np.zeros((max(rows - len(a), 0),) + a.shape[1:], a.dtype)
+        return np.concatenate([a[:rows], extra])
+
+    _wait_for_all()
+    every = multihost_utils.process_allgather(jax.tree.map(fixed, local))
+
+    def order(a):  # a: (P, rows, ...)
+        out = np.empty((n_slices, size) + a.shape[2:], a.dtype)
+        for p in range(procs):
+            theirs = np.arange(p, n_slices, procs)
+            out[theirs] = a[p, : len(theirs) * size].reshape((len(theirs), size) + a.shape[2:])
+        return out.reshape((n_slices * size,) + a.shape[2:])
+
+    return jax.tree.map(order, every)
+
+
+#: How long a process waits at the gather for the others to finish their share [ms]. The
+#: processes of one run differ by their compile and run times (seconds to minutes on a loaded
+#: machine), and the CPU collective's own connect timeout (gloo, 30 s) is shorter than that.
+GATHER_WAIT_MS = 3_600_000
+_BARRIERS = itertools.count()
+
+
+def _wait_for_all():
+    """A barrier of every process, with :data:`GATHER_WAIT_MS` (each call a new barrier id,
+    the same sequence on every process)."""
+    # JAX has no public barrier with a timeout: multihost_utils.sync_global_devices is itself a
+    # collective under gloo's 30 s connect timeout; the coordination client's barrier waits.
+    from jax._src import distributed
+
+    client = distributed.global_state.client
+    if client is not None:
+        client.wait_at_barrier(f"tlsjax_gather_{next(_BARRIERS)}", GATHER_WAIT_MS)

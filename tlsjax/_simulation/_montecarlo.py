@@ -33,6 +33,7 @@ realisations with ``|t| > t_crit``).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import weakref
 from collections.abc import Mapping
 
@@ -41,10 +42,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._adjustment._calibrate import Adjustment, estimate
+from .._adjustment._calibrate import Adjustment, estimate, result_code
+from .._adjustment._chord import DesignFactorisation, chord_adjust, design_factorisation
 from .._adjustment._config import CalibrationModel, SolverOptions
-from .._adjustment._families import Params
-from .._adjustment._result import NOT_ESTIMABLE, RESULT_MESSAGES, SUCCESS
+from .._adjustment._families import Params, on_grid
+from .._adjustment._quality import Summary
+from .._adjustment._result import MAX_ITERATIONS, NOT_ESTIMABLE, RESULT_MESSAGES, SUCCESS
 from .._jit import jit
 from .._model._aps import ap_corrections, on_reregistration
 from .._model._levelling import compensator_reading
@@ -154,7 +157,17 @@ class _Simulator(eqx.Module):
         bar = self.bar_true + noise(k_b, self.bar_sigma)
         return l_t, l_p, lev, ctrl, bar, true_aps
 
+    def expected(self):
+        """The noise-free realisation at the true APs: observations with the AP corrections
+        applied, levelling readings, control coordinates and bar lengths of the truth (the
+        point the design's shared factorisation is linearised at)."""
+        l_t = self._observe(self.F_t, self.sig_t, self.inst_t, self.true_aps, None)
+        l_p = self._observe(self.F_p, self.sig_p, self.inst_p, self.true_aps, None)
+        lev = jnp.where(self.lev_sigma > 0, self.lev_true, self.lev_given)
+        return l_t, l_p, lev, self.ctrl_true, self.bar_true, self.true_aps
+
     def _observe(self, F, sigma, inst, true_aps, key):
+        """``l = F + e + Delta(l)``; without a key, e = 0."""
         if F.shape[0] == 0:
             return F
 
@@ -165,7 +178,7 @@ class _Simulator(eqx.Module):
                 out = jnp.where((inst == i)[:, None], d, out)
             return out
 
-        base = F + jax.random.normal(key, F.shape) * sigma
+        base = F if key is None else F + jax.random.normal(key, F.shape) * sigma
         return distorted_observations(base, correction, self.iterations)
 
 
@@ -289,30 +302,72 @@ def _design(simulation, model: CalibrationModel | None, ap_sigma) -> _Design:
     return _Design(truth, sim, adj, start, np.asarray(tmap, dtype=np.int64))
 
 
-def _realisation(design: _Design, index, seed_key, options):
-    """Draw realisation ``index`` and adjust it from the truth with the engine."""
-    l_t, l_p, lev, ctrl, bar, true_aps = design.simulator.draw(jax.random.fold_in(seed_key, index))
-    adj = design.adjustment
-    problem = adj.with_data(
+def _estimated_truth(design: _Design, true_aps):
+    """The true value of each estimated AP (0 where the data have no such term)."""
+    tmap = design.truth_map
+    return jnp.where(tmap >= 0, true_aps[np.maximum(tmap, 0)], 0.0) if len(tmap) else true_aps[:0]
+
+
+def _problem_and_start(design: _Design, drawn):
+    """The engine's problem of one drawn (or expected) realisation and its start, the truth."""
+    l_t, l_p, lev, ctrl, bar, true_aps = drawn
+    problem = design.adjustment.with_data(
         observations=l_t, plane_observations=l_p, levelling=lev, control_xyz=ctrl, bar_length=bar
     )
-    tmap = design.truth_map
-    truth = jnp.where(tmap >= 0, true_aps[np.maximum(tmap, 0)], 0.0) if len(tmap) else true_aps[:0]
-    params0 = Params(design.start.prims, design.start.eops, truth)
-    state, s, code = estimate(adj.plan.spec, problem, params0, options)
+    truth = _estimated_truth(design, true_aps)
+    return problem, Params(design.start.prims, design.start.eops, truth), truth
+
+
+@functools.partial(jit, static_argnums=0)
+def _factorise(spec, problem, params, rank_tolerance):
+    return design_factorisation(spec, on_grid(problem), params, rank_tolerance)
+
+
+def _design_factorisation(design: _Design) -> DesignFactorisation:
+    """The design's shared factorisation (:mod:`tlsjax._adjustment._chord`): its normal
+    matrix at the truth, linearised at the noise-free observations with the true APs applied."""
+    problem, params, _ = _problem_and_start(design, design.simulator.expected())
+    spec = design.adjustment.plan.spec
+    return _factorise(spec, problem, params, SolverOptions().arrays().rank_tolerance)
+
+
+def _outputs(spec, problem, truth, aps, s, code, iterations):
+    """What a realisation returns: estimable and small (module docstring)."""
     s0sq = s.vtpv / s.dof
     good = (code == SUCCESS) | (code == NOT_ESTIMABLE)
-    ap_dep = s.dependent[6 * adj.plan.spec.n_scans :] & ~problem.fixed[6 * adj.plan.spec.n_scans :]
-    keep = good & ~ap_dep
+    n6 = 6 * spec.n_scans
+    keep = good & ~(s.dependent[n6:] & ~problem.fixed[n6:])
     return {
         "true_aps": truth,
-        "ap_values": jnp.where(keep, state.params.aps, jnp.nan),
+        "ap_values": jnp.where(keep, aps, jnp.nan),
         "ap_covariance": jnp.where(keep[:, None] & keep[None, :], s.Qaa * s0sq, jnp.nan),
         "sigma0_sq": jnp.where(good, s0sq, jnp.nan),
         "dof": s.dof,
-        "iterations": state.iteration,
+        "iterations": iterations,
         "result": code,
     }
+
+
+def _realisation(design: _Design, index, seed_key, options, fact: DesignFactorisation):
+    """Draw realisation ``index`` and adjust it from the truth by the chord method on the
+    design's factorisation (:mod:`tlsjax._adjustment._chord`)."""
+    drawn = design.simulator.draw(jax.random.fold_in(seed_key, index))
+    problem, params0, truth = _problem_and_start(design, drawn)
+    spec = design.adjustment.plan.spec
+    state = chord_adjust(spec, on_grid(problem), params0, fact, options)
+    s = Summary(state.cost, fact.dof, fact.Qaa, fact.dependent)
+    code = result_code(spec, problem, state, s)
+    return _outputs(spec, problem, truth, state.params.aps, s, code, state.iteration)
+
+
+def _full_realisation(design: _Design, index, seed_key, options):
+    """Realisation ``index`` adjusted by the full Gauss-Newton loop of calibrate (for those the
+    chord method does not converge on)."""
+    drawn = design.simulator.draw(jax.random.fold_in(seed_key, index))
+    problem, params0, truth = _problem_and_start(design, drawn)
+    spec = design.adjustment.plan.spec
+    state, s, code = estimate(spec, problem, params0, options)
+    return _outputs(spec, problem, truth, state.params.aps, s, code, state.iteration)
 
 
 # Compiled chunk functions per (simulation, model, AP draw sigmas, chunk, devices): the seed and
@@ -322,24 +377,36 @@ _COMPILED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 on_reregistration(_COMPILED.clear)
 
 
-def _compiled_chunk(simulation, model, ap_sigma, chunk_size: int | None, runs: int):
+def _cached_design(simulation, model, ap_sigma):
     # repr: a model with several instruments holds a dict of scanners (unhashable).
     dkey = (repr(model), tuple(sorted(dict(ap_sigma or {}).items())))
     cache = _COMPILED.setdefault(simulation, {})
     if dkey not in cache:
-        cache[dkey] = _design(simulation, model, ap_sigma)
-    design = cache[dkey]
+        design = _design(simulation, model, ap_sigma)
+        cache[dkey] = (design, _design_factorisation(design))
+    return cache, dkey
+
+
+def _compiled_chunk(simulation, model, ap_sigma, chunk_size: int | None, runs: int, full=False):
+    """(design, its factorisation, the compiled chunk function): the chord method, or with
+    ``full`` the full Gauss-Newton loop."""
+    cache, dkey = _cached_design(simulation, model, ap_sigma)
+    design, fact = cache[dkey]
     if chunk_size is None:
         chunk = auto_chunk(_row_bytes(design.adjustment.plan), runs)
     else:
         chunk = round_chunk(chunk_size)
-    key = dkey + (chunk, device_key())
+    key = dkey + (chunk, device_key(), full)
     if key in cache:
-        return design, dataclasses.replace(cache[key], compile_s=0.0)
+        return design, fact, dataclasses.replace(cache[key], compile_s=0.0)
     constants = (jax.random.PRNGKey(0), SolverOptions().arrays())
-    b = compile_batched(lambda i, k, o: _realisation(design, i, k, o), constants, chunk)
+    if full:
+        b = compile_batched(lambda i, k, o: _full_realisation(design, i, k, o), constants, chunk)
+    else:
+        one = lambda i, k, o, f: _realisation(design, i, k, o, f)
+        b = compile_batched(one, constants + (fact,), chunk)
     cache[key] = b
-    return design, b
+    return design, fact, b
 
 
 def _row_bytes(plan) -> float:
@@ -462,14 +529,29 @@ def monte_carlo(
     Lichti (2008) for the empirical-precision analysis.
     """
     options = options or MonteCarloOptions()
-    design, b = _compiled_chunk(
+    design, fact, b = _compiled_chunk(
         simulation, model, options.ap_sigma, options.chunk_size, int(options.runs)
     )
     chunk = b.chunk
     constants = (jax.random.PRNGKey(int(options.seed)), options.solver().arrays())
     res, run_s = run_batched(
-        b, int(options.runs), constants, desc="Monte Carlo chunks", progress=options.progress
+        b,
+        int(options.runs),
+        constants + (fact,),
+        desc="Monte Carlo chunks",
+        progress=options.progress,
     )
+    compile_s = b.compile_s
+    # The realisations the chord method does not converge on: the full loop of calibrate.
+    redo = np.flatnonzero(res["result"] == MAX_ITERATIONS)
+    if len(redo):
+        _, _, bf = _compiled_chunk(simulation, model, options.ap_sigma, chunk, len(redo), full=True)
+        more, more_s = run_batched(
+            bf, len(redo), constants, desc="full adjustments", progress=False, indices=redo
+        )
+        for k in res:
+            res[k][redo] = more[k]
+        run_s, compile_s = run_s + more_s, compile_s + bf.compile_s
     cov = res["ap_covariance"]
     sig = np.sqrt(np.clip(np.diagonal(cov, axis1=1, axis2=2), 0, None))
     plan = design.adjustment.plan
@@ -489,8 +571,8 @@ def monte_carlo(
         alpha=float(options.alpha),
         seed=int(options.seed),
         chunk_size=chunk,
-        n_devices=len(jax.devices()),
-        compile_s=b.compile_s,
+        n_devices=jax.device_count(),
+        compile_s=compile_s,
         run_s=run_s,
     )
 

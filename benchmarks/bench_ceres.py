@@ -1,0 +1,343 @@
+"""tlsjax against its peers, a C++ program on Ceres Solver and scipy ``least_squares``, side by
+side in one run, in alternating rounds.
+
+Usage::
+
+    benchmarks/setup_ceres                     # once: installs libceres-dev, builds the peer
+    python benchmarks/bench_ceres.py           # writes benchmarks/results/ceres.json
+    python benchmarks/bench_ceres.py --rounds 7 --repeats 30 --runs 1000 --cases physical
+
+The peer (``benchmarks/ceres/peer.cc``, built by ``setup_ceres`` or here on first use; skipped
+with a message where it cannot be built) is what a bundle-adjustment engineer would write:
+one AutoDiffCostFunction per observation, DENSE_SCHUR with the targets eliminated first,
+Levenberg-Marquardt from a huge trust radius, tolerances 1e-10, the problem built once and
+re-solved, the AP covariance from the Schur complement. It reads the data this script writes
+(``benchmarks/_ceres.py``), so both solve the same observations from the same start.
+
+Cases (the simulated Chow et al. 2013 room: 120 targets, 6 scans, 4 levelled and 2 rolled by
++-45 deg, hybrid scanner, 2,168 observations; ``tj.simulate(seed=0)``), per AP set:
+
+* **one adjustment with the AP covariance**: the peer on 1 thread from tlsjax's approximate
+  values (each solve timed with its covariance; the problem built once) against
+  ``adj.solve()`` (the compiled adjustment with its quality and the result's assembly), the
+  compiled call alone (``adj.run()``), and the public ``tj.calibrate`` (plan, approximate
+  values, compiled call, result);
+* **Monte Carlo**: ``--runs`` realisations of tlsjax's simulator (the same noisy observations
+  and levelling readings for both), each started at the truth: the peer looped over them on 2
+  threads (one Problem per thread), against ``tj.monte_carlo`` on the JAX devices (one per
+  core on the CPU; the compile reported apart).
+
+The scipy peer (``bench_point.ScipyPeer``: trf with the exact sparse Jacobian pattern,
+tolerances 1e-10, S1's Xs, Ys, Zs, kappa held; the APs do not depend on the datum) solves the
+single adjustment from the same start in the same rounds; for the Monte Carlo only its time per
+adjustment times the runs is given (an estimate, marked as such).
+
+tlsjax's time is reported by phase: compile (trace and lower apart from XLA's compile, and the
+first ``adj.solve()``, which compiles the call ``calibrate`` uses), the public ``calibrate``
+split into its plan, approximate values and compiled solve with the result's assembly, and one
+pass of the compiled adjustment split into its kernels (``_phases.phase_times``).
+
+Where the peer cannot be built (no Ceres, no compiler), the JSON says why under ``ceres`` and
+every case runs without it (``"ceres": {"skipped": ...}``), scipy and tlsjax still measured.
+
+Rounds alternate the sides (Ceres, scipy, tlsjax, ...), so all see the same load of this
+shared machine; medians over all rounds. The JSON records the machine, the JAX device, the
+load average of every round, the ratios (peer time / tlsjax time) and the checks that both
+reached the same estimates (APs in tlsjax's sigmas, sigmas, s0^2, iterations).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def _host_devices():
+    """One JAX CPU device per core unless ``--devices`` says otherwise (read at backend start)."""
+    from tlsjax._cli._common import available_cpus, use_host_devices
+
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("--devices", type=int, default=available_cpus())
+    use_host_devices(p.parse_known_args()[0].devices)
+
+
+_host_devices()
+
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _ceres  # noqa: E402
+from _common import loadavg, stats, write_results  # noqa: E402
+from _phases import phase_times  # noqa: E402
+from bench_point import ScipyPeer, machine_info  # noqa: E402
+
+import tlsjax as tj  # noqa: E402
+from tlsjax._adjustment._calibrate import _run  # noqa: E402
+from tlsjax._simulation._montecarlo import (  # noqa: E402
+    MonteCarloOptions,
+    _draw_many,
+    _simulator,
+    monte_carlo,
+)
+
+CASES = {"physical": "A0 B6 B7 C0", "chow2013-noscale": "chow2013-noscale"}
+
+
+def _uptime():
+    import subprocess
+
+    try:
+        return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+    except OSError:
+        return None
+
+
+def _median(xs):
+    return float(np.median(xs)) if len(xs) else float("nan")
+
+
+def _compile_phases(adj, opts) -> dict:
+    """Trace and lower, and XLA's compile, of the compiled adjustment (ahead of time)."""
+    plan = adj.plan
+    t0 = time.perf_counter()
+    lowered = _run.lower(plan.spec, plan.problem, adj.initial, opts.arrays(), opts.full_covariance)
+    t1 = time.perf_counter()
+    lowered.compile()
+    return {"trace_and_lower_s": t1 - t0, "xla_compile_s": time.perf_counter() - t1}
+
+
+def _calibrate_phases(net, model, opts) -> dict:
+    """The public calibrate's phases: plan, approximate values, compiled solve and result."""
+    t0 = time.perf_counter()
+    adj = tj.analyze(net, model, opts)
+    t1 = time.perf_counter()
+    jax.block_until_ready(adj.initial)
+    t2 = time.perf_counter()
+    adj.solve()
+    t3 = time.perf_counter()
+    return {"plan": t1 - t0, "approximate_values": t2 - t1, "solve_and_result": t3 - t2}
+
+
+def _scipy(net, scanner, start, repeats) -> tuple[list, object, object]:
+    """The scipy peer from the same start: wall times, solution, peer."""
+    peer = ScipyPeer(net, scanner, fixed_scan=0)
+    peer.prepare()
+    kw = dict(ftol=1e-10, xtol=1e-10, gtol=1e-10, tr_options=dict(atol=1e-12, btol=1e-12))
+    times, sol = [], None
+    for _ in range(repeats):
+        t = time.perf_counter()
+        sol = peer.solve(start[0], start[1], max_nfev=1000, **kw)
+        times.append(time.perf_counter() - t)
+    return times, sol, peer
+
+
+def single(binary, net, model, args, tmp) -> dict:
+    """One adjustment with the AP covariance: the peers (Ceres on 1 thread, scipy) and tlsjax,
+    alternately; without ``binary`` scipy and tlsjax only."""
+    scanner = model.scanner
+    opts = tj.SolverOptions(full_covariance=False)
+    adj = tj.analyze(net, model, opts)
+    p0 = adj.initial
+    targets = np.zeros((len(net.targets), 3))
+    targets[adj.plan.family_targets[0][:, 0]] = np.asarray(p0.prims[0])
+    problem = os.path.join(tmp, "single.bin")
+    start = (targets, np.asarray(p0.eops), np.zeros(len(scanner.aps)))
+    obs, lev = net.observations[None], net.levelling[None]
+    if binary is not None:
+        _ceres.write_problem(problem, net, scanner, start, obs, lev)
+    t0 = time.perf_counter()
+    res = adj.solve()  # the first call compiles
+    compile_s = time.perf_counter() - t0
+    compile_phases = _compile_phases(adj, opts)
+    times = {"ceres": [], "scipy": [], "solve": [], "run": [], "calibrate": []}
+    phases = {"plan": [], "approximate_values": [], "solve_and_result": []}
+    loads, peer, sol = [], None, None
+    for _ in range(args.rounds):
+        loads.append(loadavg())
+        if binary is not None:
+            peer = _ceres.run(binary, "single", problem, repeats=args.repeats, threads=1)
+            times["ceres"] += peer["wall_s"]
+        t_sc, sol, sc_peer = _scipy(net, scanner, start, args.scipy_repeats)
+        times["scipy"] += t_sc
+        for k, v in _calibrate_phases(net, model, opts).items():
+            phases[k].append(v)
+        for _ in range(args.repeats):
+            t = time.perf_counter()
+            res = adj.solve()
+            times["solve"].append(time.perf_counter() - t)
+            t = time.perf_counter()
+            jax.block_until_ready(adj.run())
+            times["run"].append(time.perf_counter() - t)
+        for _ in range(max(args.repeats // 4, 1)):
+            t = time.perf_counter()
+            tj.calibrate(net, model, opts)
+            times["calibrate"].append(time.perf_counter() - t)
+    med = {k: _median(v) for k, v in times.items()}
+    _, _, ap_sc = sc_peer.unpack(sol.x, start[1])
+    costs = {}
+    out = {
+        "times_s": {k: stats(v) for k, v in times.items() if v},
+        "tlsjax_compile_s": compile_s,
+        "tlsjax_compile_phases_s": compile_phases,
+        "calibrate_phases_s": {k: stats(v) for k, v in phases.items()},
+        "pass_phases_ms": phase_times(
+            adj.plan.spec, adj.plan.problem, p0, opts.arrays(), 20, costs
+        ),
+        "ratio_scipy_over_solve": med["scipy"] / med["solve"],
+        "ratio_calibrate_over_solve": med["calibrate"] / med["solve"],
+        "iterations": {"tlsjax": int(res.iterations), "scipy_nfev": int(sol.nfev)},
+        "checks": {
+            "max_ap_diff_sigma_scipy": float(np.max(np.abs(ap_sc - res.ap_values) / res.ap_sigmas)),
+            "scipy_status": int(sol.status),
+            "s0sq_tlsjax": float(res.sigma0**2),
+        },
+        "loadavg": loads,
+    }
+    if peer is None:
+        out["ceres"] = {"skipped": "the peer was not built (see the top-level ceres entry)"}
+        return out
+    last = peer["results"][-1]
+    cov = np.asarray(last["ap_covariance"]).reshape(len(scanner.aps), -1)
+    sig_c = np.sqrt(np.diag(cov))
+    out["ratio_ceres_over_solve"] = med["ceres"] / med["solve"]
+    out["ratio_ceres_over_run"] = med["ceres"] / med["run"]
+    out["iterations"].update(
+        ceres_iterations=last["iterations"], ceres_linear_solves=last["linear_solves"]
+    )
+    out["checks"].update(
+        max_ap_diff_sigma=float(np.max(np.abs(last["aps"] - res.ap_values) / res.ap_sigmas)),
+        max_ap_sigma_ratio_minus_1=float(np.max(np.abs(sig_c / res.ap_sigmas - 1))),
+        s0sq_ceres=last["s0sq"],
+        ceres_converged=bool(last["converged"]),
+    )
+    return out
+
+
+def montecarlo(binary, sim, model, args, tmp, scipy_single_s: float) -> dict:
+    """Monte Carlo: the peer on 2 threads and ``tj.monte_carlo``, alternately, same draws;
+    scipy as an estimate from its single adjustment (``scipy_single_s``)."""
+    scanner = model.scanner
+    truth = sim.truth()
+    net = truth.network
+    draws = _draw_many(
+        _simulator(truth, None), jax.random.PRNGKey(args.seed), jax.numpy.arange(args.runs)
+    )
+    l_t, _, lev, _, _, true_aps = (np.asarray(a) for a in draws)
+    true = dict(zip(sim.scanner.aps, np.asarray(true_aps[0])))
+    start = (truth.targets, truth.eops, np.array([true.get(a, 0.0) for a in scanner.aps]))
+    problem = os.path.join(tmp, "mc.bin")
+    if binary is not None:
+        _ceres.write_problem(problem, net, scanner, start, l_t, lev)
+    options = MonteCarloOptions(runs=args.runs, seed=args.seed, progress=False)
+    t0 = time.perf_counter()
+    mc = monte_carlo(sim, model, options)
+    compile_s = time.perf_counter() - t0 - mc.run_s
+    times = {"ceres": [], "tlsjax": []}
+    loads = []
+    for _ in range(args.rounds):
+        loads.append(loadavg())
+        if binary is not None:
+            peer = _ceres.run(binary, "mc", problem, threads=args.peer_threads)
+            times["ceres"] += peer["wall_s"]
+        t = time.perf_counter()
+        mc = monte_carlo(sim, model, options)
+        times["tlsjax"].append(time.perf_counter() - t)
+    base = {
+        "runs": args.runs,
+        "tlsjax_s": stats(times["tlsjax"]),
+        "tlsjax_compile_s": compile_s,
+        "tlsjax_run_s_last": mc.run_s,
+        "tlsjax_chunk_size": mc.chunk_size,
+        "tlsjax_devices": mc.n_devices,
+        "tlsjax_successful": int(np.sum(mc.ok)),
+        "tlsjax_chord_iterations_mean": float(np.mean(mc.iterations)),
+        "scipy_estimate_s": {
+            "value": args.runs * scipy_single_s,
+            "how": "runs x the median scipy single adjustment of this case (not run 1,000 times)",
+        },
+        "loadavg": loads,
+    }
+    if binary is None:
+        return {**base, "ceres": {"skipped": "the peer was not built"}}
+    aps = np.array([r["aps"] for r in peer["results"]])
+    s0sq = np.array([r["s0sq"] for r in peer["results"]])
+    dev = np.abs(aps - mc.ap_values) / mc.ap_sigmas
+    med = {k: _median(v) for k, v in times.items()}
+    return {
+        **base,
+        "times_s": {k: stats(v) for k, v in times.items()},
+        "ceres_threads": args.peer_threads,
+        "ratio_ceres_over_tlsjax": med["ceres"] / med["tlsjax"],
+        "iterations": {
+            "tlsjax_chord_mean": float(np.mean(mc.iterations)),
+            "ceres_iterations_mean": float(np.mean([r["iterations"] for r in peer["results"]])),
+            "ceres_linear_solves_mean": float(
+                np.mean([r["linear_solves"] for r in peer["results"]])
+            ),
+        },
+        "checks": {
+            "tlsjax_successful": int(np.sum(mc.ok)),
+            "ceres_converged": int(sum(r["converged"] for r in peer["results"])),
+            "max_ap_diff_sigma": float(np.nanmax(dev)),
+            "median_ap_diff_sigma": float(np.nanmedian(dev)),
+            "max_s0sq_rel_diff": float(np.nanmax(np.abs(s0sq / mc.sigma0_sq - 1))),
+        },
+        "loadavg": loads,
+    }
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", default=str(Path(__file__).parent / "results" / "ceres.json"))
+    p.add_argument("--cases", default=",".join(CASES))
+    p.add_argument("--rounds", type=int, default=5, help="alternating rounds per case")
+    p.add_argument("--repeats", type=int, default=20, help="adjustments per side and round")
+    p.add_argument("--runs", type=int, default=1000, help="Monte Carlo realisations")
+    p.add_argument("--scipy-repeats", type=int, default=2, help="scipy solves per round")
+    p.add_argument("--peer-threads", type=int, default=2)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--devices", type=int, help="JAX CPU devices (default: one per core)")
+    p.add_argument("--no-montecarlo", action="store_true")
+    args = p.parse_args(argv)
+    out = {
+        "machine": machine_info(),
+        "device": str(jax.devices()[0].device_kind),
+        "devices": [str(d) for d in jax.devices()],
+        "loadavg_start": loadavg(),
+        "shared_machine": "other processes may run beside this benchmark: see loadavg",
+        "uptime": _uptime(),
+        "args": vars(args),
+    }
+    binary, why = _ceres.build()
+    out["ceres"] = {"binary": str(binary)} if binary is not None else {"skipped": why}
+    if binary is None:
+        print(f"# Ceres peer skipped: {why}")
+    sim = tj.simulate(seed=0, architecture="hybrid", tilted=True)
+    out["cases"] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in args.cases.split(","):
+            model = tj.CalibrationModel(tj.Scanner(architecture="hybrid", aps=CASES[name]))
+            why = _ceres.supported(model.scanner) if binary is not None else ""
+            if why:
+                print(f"# {name}: Ceres peer skipped: {why}")
+            peer = None if why else binary
+            case = {"single": single(peer, sim.network, model, args, tmp)}
+            print(f"# {name} single: {case['single']['times_s']}")
+            if not args.no_montecarlo:
+                sc = case["single"]["times_s"]["scipy"]["median"]
+                case["montecarlo"] = montecarlo(peer, sim, model, args, tmp, sc)
+                print(f"# {name} Monte Carlo: {case['montecarlo']['times_s']}")
+            out["cases"][name] = case
+    out["loadavg_end"] = loadavg()
+    out["uptime_end"] = _uptime()
+    write_results(out, args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,174 @@
+"""Many adjustments of one design on one shared factorisation: the chord method.
+
+Monte Carlo realisations, compatibility simulations and design studies adjust the same design
+with different noise. Its normal matrix ``N0`` at the truth, with the AP corrections applied to
+the observations it is linearised at (each realisation's normal matrix differs from it by about
+the noise-to-signal ratio, 1e-4), is factorised once; each realisation then iterates
+
+    x <- x + N0^- b(x),     b(x) = -J(x)^T P e(x)
+
+with its own gradient only: a simplified Gauss-Newton (chord) method (Ortega & Rheinboldt 1970,
+section 7.1; Kelley 1995, section 5.4). Its fixed point is the realisation's least-squares
+estimate ``b(x) = 0``, the same as the full Gauss-Newton loop of :mod:`._solver`; it converges
+linearly with the rate ``|N0^-1 (N(x) - N0)|`` (measured: about 2e-3 per iteration on the Chow
+room), so from the truth three to four gradients reach 1e-10 sigma. Each iteration is one
+evaluation of the residuals and their vector-Jacobian product; the solve is a product with the
+explicit inverse of the reduced matrix, which a batch of realisations shares as one matrix
+product (a batched triangular solve with a shared factor is slow on the CPU, see
+:func:`._linalg.forward_substitution`).
+
+The covariance reported for each realisation is the design's ``s0^2 Q0`` (``Q0 = N0^-``, scaled
+by the realisation's own ``s0^2``): what the scatter of the estimates is compared against. It
+differs from the realisation's own by the same 1e-4.
+
+Convergence: the step ``c = N0^- b`` is measured in the metric of ``N0``, ``sqrt(c^T b)`` a
+priori sigmas (a bound on every component in units of its standard deviation, as in
+:mod:`._solver`). The loop stops when the error it predicts after the step, the step times the
+contraction measured from the last two steps, is below ``CHORD_ACCURACY`` times the tolerance
+(``tolerance`` a posteriori sigmas): the accuracy a full Gauss-Newton loop stops at, whose own
+contraction is of that size. A realisation whose contraction does not fall below
+``CHORD_MAX_RATE`` has left the neighbourhood where the chord converges; it ends with the result
+code of a failed convergence, which the caller answers with the full loop.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+from jax import lax
+from jaxtyping import Array, Bool, Float, Int
+
+from .._model._datum import s_transform_vector
+from ._families import Params, Problem, Spec, count_observations
+from ._linalg import cholesky_inverse
+from ._normal import (
+    ap_jacobians,
+    apply_update,
+    gradient,
+    linearise,
+    linearised_cost,
+    null_space,
+    reduce,
+    rows_at,
+)
+from ._solver import ROUNDING_FACTOR, rounding_sigma
+
+#: The chord loop stops when its predicted remaining error is below this share of the
+#: tolerance (module docstring).
+CHORD_ACCURACY = 1e-3
+#: A contraction above this rate means the chord does not converge for this realisation.
+CHORD_MAX_RATE = 0.5
+
+
+class DesignFactorisation(eqx.Module):
+    """The factorisation of one design's normal matrix, shared by its realisations: the Schur
+    blocks of the primitives (``Npp^-1``, ``Y = Npp^-1 Npz``), the explicit inverse of the
+    scaled reduced matrix, the datum's null space, the AP cofactor block and the dependent
+    (non-estimable) columns of the rank test, and the degrees of freedom."""
+
+    Npp_inv: tuple
+    Y: tuple
+    scale: Float[Array, " r"]
+    Kinv: Float[Array, "r r"]
+    dependent: Bool[Array, " r"]
+    Hp: tuple
+    Hz: Array
+    Qaa: Float[Array, "a a"]
+    dof: Float[Array, ""]
+
+
+def design_factorisation(spec: Spec, problem: Problem, params: Params, rank_tolerance):
+    """:class:`DesignFactorisation` of ``problem`` (on its grid) at ``params``: one undamped
+    linearisation, reduction and rank-revealing factorisation."""
+    blocks = linearise(spec, problem, params, ap_jacobians(spec, problem, params))
+    Hp, Hz = null_space(spec, problem.families, params)
+    red = reduce(spec, problem, blocks, Hz, jnp.asarray(0.0), rank_tolerance)
+    dep = red.dependent
+    Kinv = jnp.where(dep[:, None] | dep[None, :], 0.0, cholesky_inverse(red.L))
+    a0 = 6 * spec.n_scans
+    s = red.scale[a0:]
+    Qaa = Kinv[a0:, a0:] * s[:, None] * s[None, :]
+    n_unknowns = jnp.sum(~dep) + sum(P.size for P in params.prims)
+    dof = count_observations(problem, params) - n_unknowns + Hz.shape[1]
+    return DesignFactorisation(
+        red.Npp_inv, red.Y, red.scale, Kinv, dep, Hp, Hz, Qaa, jnp.asarray(dof, jnp.float64)
+    )
+
+
+def shared_solve(spec: Spec, fact: DesignFactorisation, bp: tuple, bz):
+    """``N0^- b`` (primitives per family, reduced unknowns) with the shared factorisation."""
+    c = bz
+    for Y, b in zip(fact.Y, bp):
+        c = c - jnp.einsum("npr,np->r", Y, b)
+    dz = fact.scale * (fact.Kinv @ (c * fact.scale))
+    dps = tuple(
+        jnp.einsum("npq,nq->np", Ni, b) - jnp.einsum("npr,r->np", Y, dz)
+        for Ni, Y, b in zip(fact.Npp_inv, fact.Y, bp)
+    )
+    if spec.inner and fact.Hz.shape[1]:
+        dps, dz = s_transform_vector(fact.Hp, fact.Hz, dps, dz)
+    return dps, dz
+
+
+class ChordState(eqx.Module):
+    params: Params
+    cost: Float[Array, ""]  # v^T P v at params (the quadratic model after the last step)
+    iteration: Int[Array, ""]
+    converged: Bool[Array, ""]
+    failed: Bool[Array, ""]
+    size: Float[Array, ""]  # last step in units of the tolerance
+
+    @property
+    def finite(self):
+        return jnp.isfinite(self.cost)
+
+
+def _gradient(spec, problem, params, ap_jac):
+    """(v^T P v, b = -J^T P e) at params as (cost, per-family b_p, b_z), from the engine's rows
+    (:func:`._normal.rows_at`, :func:`._normal.gradient`), the primitives' part tangent to
+    their constraints."""
+    rows = rows_at(spec, problem, params, ap_jac)
+    bp, bz = gradient(spec, problem, params, rows)
+    bp = tuple(f.tangent_gradient(P, b) for f, P, b in zip(problem.families, params.prims, bp))
+    return linearised_cost(problem, params, rows), bp, bz
+
+
+def chord_adjust(
+    spec: Spec, problem: Problem, params0: Params, fact: DesignFactorisation, options
+) -> ChordState:
+    """The chord iteration of one realisation (``problem`` on its grid) from ``params0`` with
+    the design's factorisation (module docstring). Pure; vmapped over realisations."""
+    ap_jac = ap_jacobians(spec, problem, params0)
+    floor = ROUNDING_FACTOR * rounding_sigma(problem)
+
+    def body(state: ChordState):
+        value, bp, bz = _gradient(spec, problem, state.params, ap_jac)
+        dps, dz = shared_solve(spec, fact, bp, bz)
+        norm2 = jnp.dot(dz, bz) + sum(jnp.sum(d * b) for d, b in zip(dps, bp))
+        s0 = jnp.sqrt(jnp.maximum(value, 0.0) / fact.dof)
+        size = jnp.sqrt(jnp.maximum(norm2, 0.0)) / jnp.maximum(options.tolerance * s0, floor)
+        rate = jnp.where(state.iteration > 0, size / state.size, 1.0)
+        ok = jnp.isfinite(size)
+        converged = ok & (size < 1.0) & (rate * size < CHORD_ACCURACY)
+        failed = ~ok | ((state.iteration > 0) & (rate > CHORD_MAX_RATE) & ~converged)
+        return ChordState(
+            apply_update(spec, problem, state.params, dps, dz),
+            value - norm2,
+            state.iteration + 1,
+            converged,
+            failed,
+            size,
+        )
+
+    def more(state: ChordState):
+        return ~state.converged & ~state.failed & (state.iteration < options.max_iterations)
+
+    init = ChordState(
+        params0,
+        jnp.asarray(jnp.inf),
+        jnp.asarray(0),
+        jnp.asarray(False),
+        jnp.asarray(False),
+        jnp.asarray(jnp.inf),
+    )
+    return lax.while_loop(more, body, init)
