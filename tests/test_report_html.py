@@ -6,6 +6,7 @@ Private import: ``tlsjax._cli.main`` is the ``tlsjax`` console script's entry po
 """
 
 import hashlib
+import html
 import html.parser
 import json
 import os
@@ -39,19 +40,23 @@ def test_report_holds_every_section(calibrated):
     assert page.count("data:image/png;base64,") == 2  # residuals and AP correlations
     for heading in (
         "Design and adjustment",
-        "Global test",
+        "Tests",
         "Additional parameters",
         "Variance components",
         "Redundancy numbers",
         "Reliability",
-        "Outliers",
+        "Removals",
         "Plots",
         "Scan poses",
         "Produced by",
     ):
         assert f">{heading}" in page, heading
     # A1 has no independent scale: named as not estimable, never given a number.
-    assert "not estimable" in page and "A1</b>: scale is undefined" in page
+    assert "not estimable" in page and "<li>A1 is not estimable: scale is undefined" in page
+    # Every confounding in the HTML with the JSON's own sentence (the text summary prints it too).
+    assert doc["confoundings"] and all(
+        f"<li>{html.escape(c['text'], quote=True)}</li>" in page for c in doc["confoundings"]
+    )
     # The AP table, parsed: one row per AP of the JSON, value and sigma in report units (mm
     # and arc seconds, converted here), |t| and the correlation partner; A1 without numbers.
     table = _tables(page)["aps"]
@@ -59,7 +64,7 @@ def test_report_holds_every_section(calibrated):
     for row in table[1:]:
         a = doc["aps"][row[0]]
         if a["value"] is None:
-            assert row[2] == row[3] == "\u2013" and row[8] == "not estimable", row
+            assert row[2] == row[3] == "\u2013" and row[8].startswith("not estimable"), row
             continue
         f = 1e3 if a["unit"] == "m" else 180 * 3600 / np.pi
         assert float(row[2]) == pytest.approx(a["value"] * f, abs=1e-3), row
@@ -68,13 +73,13 @@ def test_report_holds_every_section(calibrated):
         assert float(row[5]) == pytest.approx(abs(a["t"]), abs=0.05)
         assert row[7] == a["max_corr_with"]
     assert NOT_COMPUTED_OUTLIERS not in page
-    assert "not computed" not in page.split("Outliers")[1].split("Plots")[0]
+    assert "not computed" not in page.split(">Removals")[1].split("Plots")[0]
     # Provenance: the SHA-256 of the observation file, computed here independently.
     digest = hashlib.sha256((calibrated / "obs.csv").read_bytes()).hexdigest()
     assert digest in page and doc["provenance"]["inputs"][0]["sha256"] == digest
 
 
-NOT_COMPUTED_OUTLIERS = "data snooping: not computed"
+NOT_COMPUTED_OUTLIERS = "screening and data snooping: not computed"
 
 
 class _TableParser(html.parser.HTMLParser):
@@ -153,7 +158,7 @@ def test_report_renders_in_headless_chromium(calibrated, tmp_path):
         "--disable-component-update",
         "--disable-sync",
         f"--user-data-dir={tmp_path / 'profile'}",
-        "--window-size=1200,3000",
+        "--window-size=1200,5000",
         f"--screenshot={shot}",
         (calibrated / "report.html").as_uri(),
     ]
@@ -164,7 +169,7 @@ def test_report_renders_in_headless_chromium(calibrated, tmp_path):
     from PIL import Image
 
     rgb = np.asarray(Image.open(shot).convert("RGB"), dtype=float)
-    assert rgb.shape == (3000, 1200, 3)
+    assert rgb.shape == (5000, 1200, 3)
     gray = rgb.mean(axis=2)
     # Not a blank or an error page: text lines down the whole page (rows with dark ink,
     # separated by white ones: many separate runs of ink) ...

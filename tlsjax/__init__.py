@@ -124,6 +124,9 @@ from ._report._plots import plot_ap_correlations as plot_ap_correlations
 from ._report._plots import plot_monte_carlo as plot_monte_carlo
 from ._report._plots import plot_residuals as plot_residuals
 from ._report._plots import plot_sensitivity as plot_sensitivity
+from ._report._tables import group_records as group_records
+from ._report._tables import observation_records as observation_records
+from ._report._tables import write_tables as write_tables
 from ._report._target_plots import plot_targets as plot_targets
 from ._report._text import ap_table as ap_table
 from ._simulation._design import DesignPlane as DesignPlane

@@ -96,6 +96,11 @@ class Network:
     plane_scan_index: np.ndarray = dataclasses.field(
         default_factory=lambda: np.zeros(0, dtype=np.int32)
     )
+    # The input line (1-based, header and comment lines counted) of each target observation and
+    # plane point, for the per-observation tables; None where the rows came from arrays.
+    lines: np.ndarray | None = None
+    plane_lines: np.ndarray | None = None
+    plane_source: str = ""
 
     @property
     def n_observations(self) -> int:
@@ -359,6 +364,7 @@ class _Rows:
     sig: np.ndarray
     where: object
     source: str
+    lines: np.ndarray  # the file line (1-based) of each row, or its index for arrays
 
     def keep(self, mask) -> _Rows:
         pick = lambda seq: [x for x, k in zip(seq, mask) if k]
@@ -369,6 +375,7 @@ class _Rows:
             instruments=pick(self.instruments),
             obs=self.obs[mask],
             sig=self.sig[mask],
+            lines=self.lines[mask],
         )
 
 
@@ -391,7 +398,8 @@ def _checked_rows(table: ObservationTable, defaults, architecture) -> _Rows:
     else:
         _check_plane_duplicates(scans, names, obs, where)
     inst = ["default"] * len(scans) if table.instruments is None else list(table.instruments)
-    return _Rows(table.kind, scans, names, inst, obs, sig, where, src)
+    lines = np.asarray(table.rows, dtype=np.int64).reshape(-1)
+    return _Rows(table.kind, scans, names, inst, obs, sig, where, src, lines)
 
 
 def _second_face(obs) -> np.ndarray:
@@ -641,6 +649,7 @@ def make_network(
     targets = tuple(_names(targets, "targets", "target", n, source))
     if n == 0 and planes is None:
         raise ValueError(f"{source}: no observations")
+    from_file = rows is not None
     rows = np.arange(n) if rows is None else np.asarray(rows)
     table = ObservationTable("target", source, scans, targets, obs, sigmas, incidence, None, rows)
     tg = _checked_rows(table, defaults, architecture)
@@ -675,7 +684,13 @@ def make_network(
     prim_index = np.concatenate([ip.target_index, ip.plane_index + len(ip.targets)])
     _check_connected(ip.scans, ip.scans, prim_scan, prim_index, source)
 
-    return _network(tg, pl, ip, scan_instrument, (lev_entries, control, bars), dropped, source)
+    net = _network(tg, pl, ip, scan_instrument, (lev_entries, control, bars), dropped, source)
+    return dataclasses.replace(
+        net,
+        lines=tg.lines if from_file else None,
+        plane_lines=pl.lines if pl is not None else None,
+        plane_source=p_source,
+    )
 
 
 def _network(tg: _Rows, pl, ip: _IndexPlan, scan_instrument, entries, dropped, source) -> Network:

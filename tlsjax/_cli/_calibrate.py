@@ -173,6 +173,14 @@ def add_calibrate_parser(sub):
         help="write the adjusted target coordinates with sigmas and ellipsoid axes here (in "
         "the datum of the adjustment; the JSON has them too)",
     )
+    c.add_argument(
+        "--tables",
+        metavar="DIR",
+        help="write the result tables as CSV into this folder: observations.csv (per "
+        "observation: residual, normalised residual, redundancy number, MDB, external "
+        "reliability, test decision; line = the input file's line), plane_points.csv, "
+        "groups.csv (variance factors with their redundancy), targets.csv, planes.csv",
+    )
     scanner_args(
         c, default=None, default_help="the one recorded in the observation file, else hybrid"
     )
@@ -194,6 +202,8 @@ _DEFAULTS = {
 }
 #: The files --plots writes.
 PLOT_FILES = ("residuals.png", "ap_correlations.png")
+#: The files --tables may write.
+TABLE_FILES = ("observations.csv", "plane_points.csv", "groups.csv", "targets.csv", "planes.csv")
 
 
 def _check_options(args) -> None:
@@ -314,7 +324,7 @@ def _calibrate(args) -> int:
             ("--planes", args.planes),
             ("--scans", args.scans),
         ),
-        more=[("--targets-out", args.targets_out)],
+        more=[("--targets-out", args.targets_out), ("--tables", args.tables, TABLE_FILES)],
     )
     args.architecture = file_architecture(args.architecture, args.observations, args.planes)
     scanner = Scanner(architecture=args.architecture, aps=args.aps, unit_length=args.unit_length)
@@ -348,16 +358,19 @@ def _calibrate(args) -> int:
         )
     report(res, after_vce=tested is not None and tested.weights_fitted, withheld=withheld)
     extra.update(_report_fields(res, scanner, args, mask, mdb))
+    failed = not res.ok or withheld is not None or impossible(res)
+    extra.update(_table_fields(res, tested, failed))
     write_outputs(
         res, args.json, args.plots, extra=extra, scanner=scanner, mask=mask, withheld=withheld
     )
-    failed = not res.ok or withheld is not None or impossible(res)
     if (
         args.targets_out and failed and res.ok
     ):  # no target estimates of a run that is no calibration
         print(f"--targets-out {args.targets_out}: not written (the run is no calibration)")
     elif args.targets_out:
         write_targets(res, args.targets_out)
+    if args.tables:
+        _write_tables(res, args.tables, tested, failed)
     if args.report:
         _write_report(res, args.report, extra, scanner, mask, withheld)
     return EXIT_FAILED if failed else EXIT_OK
@@ -453,8 +466,7 @@ def file_architecture(given, *paths) -> str:
 
 def write_targets(res, path):
     """The adjusted targets as CSV (``--targets-out``); none for a failed adjustment."""
-    from .._io._target_lists import write_target_csv
-    from .._report._json import datum_text, target_ellipsoids, target_scan_counts
+    from .._report._tables import targets_csv
 
     if not res.ok:
         print(f"--targets-out {path}: not written (the adjustment failed: no estimates)")
@@ -462,16 +474,7 @@ def write_targets(res, path):
     if not len(res.targets):
         print(f"--targets-out {path}: not written (no targets in this network)")
         return
-    axes, _ = target_ellipsoids(res.target_covariance)
-    write_target_csv(
-        path,
-        res.targets,
-        res.target_xyz,
-        res.target_sigmas,
-        axes,
-        target_scan_counts(res),
-        datum_text(res),
-    )
+    targets_csv(res, path)
     print(f"wrote {path}")
 
 
@@ -586,6 +589,27 @@ def _report_fields(res, scanner, args, mask, mdb) -> dict:
     if res.network is not None and res.network.has_targets:
         fields["reliability"] = reliability_summary(res, mdb=mdb, mask=mask)
     return fields
+
+
+def _table_fields(res, tested, failed: bool) -> dict:
+    """The per-observation and per-group tables in the JSON (none for a run that is no
+    calibration), and the input file's line beside each removal's row."""
+    from .._report._tables import table_json, with_lines
+
+    out = {} if failed else table_json(res, tested)
+    if tested is not None and tested.outliers:
+        out["outliers"] = with_lines(tested.outliers_json(), res)
+    return out
+
+
+def _write_tables(res, folder, tested, failed: bool):
+    from .._report._tables import write_tables
+
+    paths = [] if failed else write_tables(res, folder, tested)
+    if paths:
+        print(f"wrote {len(paths)} tables into {folder}: {', '.join(map(os.path.basename, paths))}")
+    else:
+        print(f"--tables {folder}: not written (the run is no calibration: no estimates)")
 
 
 def _write_report(res, path, extra, scanner, mask, withheld=None):
