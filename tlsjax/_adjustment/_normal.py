@@ -119,7 +119,8 @@ def _gradient_sums(grid, fam, ns, r: Rows):
     """``-J^T e`` of a family's rows: per primitive (n, p), per scan (s, 6) and APs (a,)."""
     if grid:
         n, ns_, c = grid
-        g = lambda J: J.reshape(n, ns_, -1, J.shape[-1])
+        # The slot axis's length explicit: -1 cannot be inferred without APs (see _sums_on_grid).
+        g = lambda J: J.reshape(n, ns_, J.shape[0] * J.shape[1] // (n * ns_), J.shape[-1])
         e = r.e.reshape(n, ns_, -1)
         es = jnp.einsum
         return (

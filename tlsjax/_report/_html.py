@@ -413,12 +413,15 @@ def _section_reliability(doc) -> str:
 
 
 def _removal_stages(outliers) -> dict:
-    """step -> the stage that made its removals: screening before VCE or data snooping (a
-    consequential removal, e.g. the other two observations of a rejected target, shares its
-    step)."""
+    """step -> the stage that made its removals: the robust start, screening before VCE or data
+    snooping (a consequential removal, e.g. the other two observations of a rejected target,
+    shares its step)."""
     stages = {}
     for o in outliers:
-        if str(o.get("reason", "")).startswith("screening"):
+        reason = str(o.get("reason", ""))
+        if reason.startswith("robust start"):
+            stages[o.get("step")] = "robust start"
+        elif reason.startswith("screening"):
             stages[o.get("step")] = "screening (before VCE)"
     return {o.get("step"): stages.get(o.get("step"), "data snooping") for o in outliers}
 
