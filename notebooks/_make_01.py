@@ -230,18 +230,18 @@ together).
 
 **Recovery.** In all four configurations every AP lies within 1.8 sigma of its true value
 (largest |z| 1.78, B9 in panoramic/levelled), and the joint statistic d'C^-1 d of the 23
-differences is 24.9, 22.1, 18.6 and 11.9 (hybrid levelled, hybrid tilted, panoramic levelled,
+differences is 25.8, 22.1, 18.6 and 11.9 (hybrid levelled, hybrid tilted, panoramic levelled,
 panoramic tilted), all below the 95% quantile 35.2 of chi-square(23). sigma0 is 0.99-1.00.
 The near-singular hybrid/levelled problem takes a few more Gauss-Newton iterations than the
 other three (see the first table); the convergence test measures each update against the
 parameter's own sigma, so it does not chase rounding noise along nearly singular directions.
 
 **Hybrid scanners: tilting.** As in the paper, B6 and B10 gain the most precision from the two
-rolled scans: sigma(B6) drops from 138" to 11.7" (-92%; paper: -86%) and sigma(B10) from 251"
+rolled scans: sigma(B6) drops from 137" to 11.7" (-91%; paper: -86%) and sigma(B10) from 249"
 to 26.1" (-90%; paper: -80%). Their largest correlations fall less: B6 0.907 -> 0.854 (with
 B10), and B10 stays high, 1.000 -> 0.988 (with a kappa), which matches the paper's remark
 that the maximum correlation of B10 remained high. In this run tilting also cuts the sigmas of
-A2 (8.2 mm -> 0.45 mm), B7, B9, C6 and all vertical terms C0-C5 by 88-97%, and the
+A2 (8.1 mm -> 0.45 mm), B7, B9, C6 and all vertical terms C0-C5 by 88-97%, and the
 correlations of A2 (1.000 -> 0.974, with station coordinates), C6 (0.999 -> 0.961) and
 B7/B9 (0.981 -> 0.932, with each other) fall below 0.99. The horizontal-circle terms B1-B5,
 the range terms A3/A4 and the wobble terms C7/C8 barely change (within +/-15%).
@@ -273,7 +273,7 @@ C1 and C3-C6 fall to 0.52-0.85 (C2 stays low, 0.23 -> 0.26). B6~B10 remains high
 **Reduced collimation model (B6, hybrid).** With the reduced basis sec(alpha) - 1, B6 is *not*
 flagged in levelled hybrid scans: its largest correlation is 0.907 (with B10) in the 23-term set
 and 0.941 (with a target coordinate) in the small set A0 B6 B7 C0, where it is recovered at
--2.0 sigma with sigma 42.9". Its weakness shows in the precision (138" with the full set,
+-2.0 sigma with sigma 42.9". Its weakness shows in the precision (137" with the full set,
 11.7" after tilting). The un-reduced basis sec(alpha), registered as `B6sec`, *is* flagged:
 max |correlation| 0.999 with kappa of one scan, yet its estimate, sigma (42.9") and recovery
 (-2.0 sigma) are identical to those of the reduced term. In this room the constant part of

@@ -53,6 +53,7 @@ Units: mm and arc seconds (").
 
 code(r"""
 import dataclasses
+import os
 import time
 
 import matplotlib.pyplot as plt
@@ -61,9 +62,10 @@ import numpy as np
 import tlsjax as tj
 
 T_START = time.perf_counter()
+FAST = os.environ.get("TLSJAX_NOTEBOOK_FAST") == "1"  # the test suite's short run
 SEED = 0                          # one explicit seed for every simulation and subsampling
-STEP = np.deg2rad(1.5)            # angular grid of the simulated point clouds
-MAX_POINTS = 200                  # points kept per plane and scan
+STEP = np.deg2rad(2.5 if FAST else 1.5)  # angular grid of the simulated point clouds
+MAX_POINTS = 60 if FAST else 200  # points kept per plane and scan
 APS = ("A0", "B6", "B7", "C0")    # the physical set, in the data and in the model
 ARCSEC = np.pi / 648000
 DISPLAY = {"m": (1e3, "mm"), "rad": (1 / ARCSEC, '"')}

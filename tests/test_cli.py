@@ -286,7 +286,9 @@ def test_default_calibrate_finds_gross_errors(simulated, tmp_path, capsys):
         for i, g in ((10, "range"), (50, "hz"), (90, "el"))
     }
     assert {(o["scan"], o["target"], o["group"]) for o in js["outliers"]} == expected
-    assert js["a_priori_tests"][0]["global"]["accepted"] is False
+    assert js["a_priori_tests"][0]["stage"] == "after the robust start (3 removed)"
+    assert js["screening"]["n_removed_robust_start"] == 3
+    assert "score_tests" in js and js["score_tests"]["significant"] == []
     assert (
         js["global_test"]["stage"] == "a priori"
         and "not a test" in js["global_test_after_vce"]["note"]
@@ -295,7 +297,7 @@ def test_default_calibrate_finds_gross_errors(simulated, tmp_path, capsys):
     true = load_strict(truth)["aps"]
     for name, v in true.items():
         assert abs(js["aps"][name]["value"] - v) < 5 * js["aps"][name]["sigma"]
-    assert "REJECTED" in printed and "screening before VCE" in printed
+    assert "robust start" in printed
     assert ": accepted" not in printed.split("variance components:")[1].split("AP ")[0]
 
 
@@ -376,3 +378,39 @@ def test_montecarlo_json_is_strict_and_failures_explained(tmp_path, capsys):
     assert js["successful"] == 0 and js["aps"]["A1"]["mean"] is None
     assert "A1 is not estimable" in js["diagnosis"] and "scale" in js["diagnosis"]
     assert "A1 is not estimable" in printed
+
+
+def test_screening_without_vce_and_score_tests_on_every_path(simulated, tmp_path, capsys):
+    """Screening does not depend on VCE (issue 27): --no-vce still finds the blunder; only
+    --no-screen turns it off; the score tests of the missing terms are in the JSON either way."""
+    d, obs, scans, _ = simulated
+    bad = _edit(obs, tmp_path / "bad.csv", {(20, 2): lambda v: repr(float(v) + 2.0)})
+    row = obs.read_text().splitlines()[20].split(",")
+    on, off = tmp_path / "on.json", tmp_path / "off.json"
+    assert main(["calibrate", str(bad), "--scans", str(scans), "--no-vce", "--json", str(on)]) == 0
+    js = load_strict(on)
+    assert [(o["scan"], o["target"], o["group"]) for o in js["outliers"]] == [
+        (row[0], row[1], "range")
+    ]
+    assert js["screening"]["enabled"] and "score_tests" in js
+    args = ["calibrate", str(bad), "--scans", str(scans), "--no-vce", "--no-screen"]
+    main([*args, "--json", str(off)])
+    printed = capsys.readouterr().out
+    js = load_strict(off)
+    assert js["outliers"] == [] and "score_tests" in js
+    assert "missing terms (score tests" in printed
+
+
+def test_select_with_a_gross_error_ends_as_on_the_clean_file(simulated, tmp_path, capsys):
+    d, obs, scans, _ = simulated
+    bad = _edit(obs, tmp_path / "bad.csv", {(30, 2): lambda v: repr(float(v) + 2.0)})
+    chosen = []
+    for name, path in (("clean", obs), ("bad", bad)):
+        out = tmp_path / f"{name}.json"
+        args = ["calibrate", str(path), "--scans", str(scans), "--aps", "A0 B6 C0", "--select"]
+        assert main([*args, "--select-candidates", "A3 B7 C2", "--json", str(out)]) == 0
+        js = load_strict(out)
+        chosen.append(set(js["selection"]["aps"]))
+        assert js["selection"]["n_screened"] == (name == "bad")
+    assert chosen[0] == chosen[1] == {"A0", "B6", "B7", "C0"}
+    assert "largest score statistic" in capsys.readouterr().out

@@ -283,7 +283,8 @@ def test_cli_extract_planes(tmp_path, room):
     # The matched planes go straight into a calibration (the poses in the file are not needed:
     # tlsjax registers the scans plane to plane for its approximate values).
     out = tmp_path / "r.json"
-    assert main(["calibrate", "--planes", str(tmp_path / "p.npz"), "--json", str(out)]) == 0
+    args = ["--planes", str(tmp_path / "p.npz"), "--json", str(out), "--plane-spacing", "0"]
+    assert main(["calibrate", *args]) == 0  # all points (no thinning), as extracted
     js = json.loads(out.read_text())
     assert js["n_plane_points"] == len(planes.observations) and len(js["planes"]) == 9
     assert js["converged"] and set(js["aps"]) == {"A0", "B6", "B7", "C0"}
@@ -317,7 +318,11 @@ def test_cli_with_poses_file(tmp_path, room, capsys):
         ]
     )
     assert args.func(args) == 0
-    assert "9 planes" in capsys.readouterr().out
+    printed = capsys.readouterr()
+    assert "9 planes" in printed.out
+    # Progress on stderr (no terminal here: one line per phase and per scan, with times).
+    for line in ("extracting planes", f"scan {room.scans[4]}: ", "matched 9 planes"):
+        assert line in printed.err, printed.err
     planes = load_planes(tmp_path / "p.npz")
     np.testing.assert_allclose(planes.poses, room.eops[[1, 4]], rtol=0, atol=1e-15)
     # Without poses two scans cannot be matched; asking for the CSV then is an error.

@@ -144,7 +144,9 @@ def run(argv, capsys):
 
 
 def _one_error_line(err, command):
-    lines = [x for x in err.splitlines() if x.strip()]
+    # Progress lines ("[   0.0 s] reading ...") say what ran before the refusal; the refusal
+    # itself is one line.
+    lines = [x for x in err.splitlines() if x.strip() and not re.match(r"\[\s*[\d.]+ s\]", x)]
     assert len(lines) == 1, lines
     assert lines[0].startswith(f"tlsjax {command}: error:"), lines
     return lines[0]

@@ -82,7 +82,9 @@ def test_cli_screens_plane_points_by_default(clouds, tmp_path, capsys):
     )
     path, out = tmp_path / "planes.csv", tmp_path / "r.json"
     write_observations(path, table)
-    assert main(["calibrate", "--planes", str(path), "--json", str(out)]) == 0
+    assert (
+        main(["calibrate", "--planes", str(path), "--plane-spacing", "0", "--json", str(out)]) == 0
+    )
     printed = capsys.readouterr().out
     assert "plane outlier screening" in printed
     js = json.loads(out.read_text())

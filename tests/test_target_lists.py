@@ -275,6 +275,7 @@ def test_import_targets_then_calibrate_equals_the_polar_file(tmp_path, capsys):
                 "--aps",
                 "A0 B6 B7 C0",
                 "--no-vce",
+                "--no-screen",
                 "--json",
                 str(cal),
             ]

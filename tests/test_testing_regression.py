@@ -2,7 +2,11 @@
 ``tests/data/testing_regression.json`` (issue 34: the testing pipeline was split into the
 statistics and a pipeline of named steps; behaviour and results had to stay identical).
 
-The reference was written by the code before the split (``python tests/test_testing_regression.py
+Issue 27 changed the behaviour on purpose (a robust start before the first adjustment,
+screening for any weighting, score tests of the missing terms, no unit hint where one
+observation dominates) and the reference was written again then, with a case without the
+robust start that keeps screening's own path. The first reference was written by the code
+before the split (``python tests/test_testing_regression.py
 --write``), on seeded networks that take every path: blunders screened before VCE, sigmas
 that are off by a factor (VCE), snooping with per-test and family-wise levels, removal of a
 whole target, no VCE, no screening. Discrete outputs (removals, masks, result codes, the
@@ -31,6 +35,7 @@ CASES = {
     "target_removal_bonferroni": dict(removal="target", bonferroni=True, alpha=0.05),
     "no_vce": dict(vce=False),
     "no_screening": dict(screening=False),
+    "no_robust_start": dict(robust_start=False),
     "vce_only": dict(snooping=False, vce_tolerance=1e-4),
     "critical_value": dict(critical_value=2.5, max_removals=4),
 }
@@ -148,6 +153,7 @@ def test_the_reference_takes_every_path(reference):
     a removed whole target, a run without VCE."""
     reasons = {o[-1].split(":")[0] for c in reference.values() for o in c["outliers"]}
     assert any(r.startswith("screening") for r in reasons)
+    assert any(r.startswith("robust start") for r in reasons)
     assert "largest |w| above critical value" in reasons
     assert any(
         o[-1].startswith("same target") for o in reference["target_removal_bonferroni"]["outliers"]

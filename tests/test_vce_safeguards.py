@@ -53,7 +53,9 @@ def test_blunders_are_screened_out_before_vce(sim):
     bad = {(10, 0): 1.0, (50, 1): np.radians(10.0), (90, 2): np.radians(10.0)}
     for (i, g), e in bad.items():
         obs[i, g] += e
-    r = calibrate_and_test(net.with_observations(obs), MODEL, testing=NO_SNOOP)
+    # Screening itself, without the robust start before it (tests/test_robust_start.py).
+    testing = dataclasses.replace(NO_SNOOP, robust_start=False)
+    r = calibrate_and_test(net.with_observations(obs), MODEL, testing=testing)
     assert {(o.row, ("range", "hz", "el").index(o.group)) for o in r.outliers} == set(bad)
     assert all(o.reason.startswith("screening before VCE") for o in r.outliers)
     first, after = r.a_priori_tests
@@ -82,7 +84,10 @@ def test_without_screening_the_inflated_factors_are_named(sim):
     assert r.outliers == () and r.a_priori_tests[0]["groups"]["range"]["accepted"] is False
     f = {vc.group: vc.factor for vc in r.variance_components}
     assert f["range"] > 25  # VCE absorbed the blunder ...
-    assert any(w.startswith("range: variance factor") and "too small" in w for w in r.warnings)
+    # ... and the warning names the observation that holds the misfit, not the sigmas or units
+    target = net.targets[net.target_index[10]]
+    assert any(w.startswith("one observation holds") and target in w for w in r.warnings)
+    assert not any(w.startswith("range: variance factor") for w in r.warnings)
     assert "global_test" in r.json_fields() and not r.json_fields()["global_test"]["accepted"]
 
 

@@ -52,6 +52,8 @@ from ._clouds._targets import ExtractedTargets as ExtractedTargets
 from ._clouds._targets import TargetExtractionOptions as TargetExtractionOptions
 from ._clouds._targets import extract_targets as extract_targets
 from ._clouds._targets import extract_targets_from_files as extract_targets_from_files
+from ._clouds._thin import DEFAULT_PLANE_SPACING as DEFAULT_PLANE_SPACING
+from ._clouds._thin import thin_planes as thin_planes
 from ._design._criteria import DesignCriterion as DesignCriterion
 from ._design._criteria import design_criterion as design_criterion
 from ._design._criteria import predicted_cofactor as predicted_cofactor
@@ -74,6 +76,9 @@ from ._inference._compat import compatibility_test as compatibility_test
 from ._inference._robust import PlaneScreening as PlaneScreening
 from ._inference._robust import PlaneScreeningOptions as PlaneScreeningOptions
 from ._inference._robust import screen_planes as screen_planes
+from ._inference._score import ScoreTest as ScoreTest
+from ._inference._score import ScoreTests as ScoreTests
+from ._inference._score import score_tests as score_tests
 from ._inference._selection import SelectionOptions as SelectionOptions
 from ._inference._selection import SelectionResult as SelectionResult
 from ._inference._selection import select_aps as select_aps
@@ -119,6 +124,9 @@ from ._report._plots import plot_ap_correlations as plot_ap_correlations
 from ._report._plots import plot_monte_carlo as plot_monte_carlo
 from ._report._plots import plot_residuals as plot_residuals
 from ._report._plots import plot_sensitivity as plot_sensitivity
+from ._report._tables import group_records as group_records
+from ._report._tables import observation_records as observation_records
+from ._report._tables import write_tables as write_tables
 from ._report._target_plots import plot_targets as plot_targets
 from ._report._text import ap_table as ap_table
 from ._simulation._design import DesignPlane as DesignPlane

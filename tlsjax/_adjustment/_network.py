@@ -114,6 +114,12 @@ class Network:
             return np.full(len(self.scans), np.inf)
         return self.heading_sigma
 
+    # The input line (1-based, header and comment lines counted) of each target observation and
+    # plane point, for the per-observation tables; None where the rows came from arrays.
+    lines: np.ndarray | None = None
+    plane_lines: np.ndarray | None = None
+    plane_source: str = ""
+
     @property
     def n_observations(self) -> int:
         """Number of scalar observations (three per target observation and per plane point)."""
@@ -376,6 +382,7 @@ class _Rows:
     sig: np.ndarray
     where: object
     source: str
+    lines: np.ndarray  # the file line (1-based) of each row, or its index for arrays
 
     def keep(self, mask) -> _Rows:
         pick = lambda seq: [x for x, k in zip(seq, mask) if k]
@@ -386,6 +393,7 @@ class _Rows:
             instruments=pick(self.instruments),
             obs=self.obs[mask],
             sig=self.sig[mask],
+            lines=self.lines[mask],
         )
 
 
@@ -408,7 +416,8 @@ def _checked_rows(table: ObservationTable, defaults, architecture) -> _Rows:
     else:
         _check_plane_duplicates(scans, names, obs, where)
     inst = ["default"] * len(scans) if table.instruments is None else list(table.instruments)
-    return _Rows(table.kind, scans, names, inst, obs, sig, where, src)
+    lines = np.asarray(table.rows, dtype=np.int64).reshape(-1)
+    return _Rows(table.kind, scans, names, inst, obs, sig, where, src, lines)
 
 
 def _second_face(obs) -> np.ndarray:
@@ -681,6 +690,7 @@ def make_network(
     targets = tuple(_names(targets, "targets", "target", n, source))
     if n == 0 and planes is None:
         raise ValueError(f"{source}: no observations")
+    from_file = rows is not None
     rows = np.arange(n) if rows is None else np.asarray(rows)
     table = ObservationTable("target", source, scans, targets, obs, sigmas, incidence, None, rows)
     tg = _checked_rows(table, defaults, architecture)
@@ -722,7 +732,13 @@ def make_network(
     _check_connected(ip.scans, ip.scans, prim_scan, prim_index, source)
 
     entries = (lev_entries, heading_entries, control, bars)
-    return _network(tg, pl, ip, scan_instrument, entries, dropped, source)
+    net = _network(tg, pl, ip, scan_instrument, entries, dropped, source)
+    return dataclasses.replace(
+        net,
+        lines=tg.lines if from_file else None,
+        plane_lines=pl.lines if pl is not None else None,
+        plane_source=p_source,
+    )
 
 
 def _network(tg: _Rows, pl, ip: _IndexPlan, scan_instrument, entries, dropped, source) -> Network:

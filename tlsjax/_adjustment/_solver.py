@@ -110,8 +110,9 @@ class SolveState(eqx.Module):
 
 
 class Linearisation(eqx.Module):
-    """What the loop hands to the quality pass: per-family rows (:class:`._normal.Rows`) at
-    the final estimate, the datum's null-space columns and the undamped reduced system."""
+    """What the loop hands to the quality pass: per-family rows (:class:`._normal.Rows`) with
+    the residuals at the final estimate and the Jacobians of the last factorisation, the datum's
+    null-space columns and that undamped reduced system."""
 
     rows: tuple
     Hp: tuple
@@ -261,7 +262,16 @@ def adjust_linearised(spec: Spec, problem: Problem, params0: Params, options: Op
             )
         lin, b_p, b_z = lax.cond(
             keep,
-            lambda: (Linearisation(rows_out, loop.lin.Hp, loop.lin.Hz, loop.lin.reduced), bp, bz),
+            lambda: (
+                Linearisation(
+                    _residuals_into(rows_out, loop.lin.rows),
+                    loop.lin.Hp,
+                    loop.lin.Hz,
+                    loop.lin.reduced,
+                ),
+                bp,
+                bz,
+            ),
             lambda: factorise(params, rows_out, used, state.dependent),
         )
         dps, dz = solve(spec, lin.reduced, b_p, b_z, lin.Hp, lin.Hz)
@@ -315,6 +325,16 @@ def adjust_linearised(spec: Spec, problem: Problem, params0: Params, options: Op
     )
     out = lax.while_loop(lambda loop: ~loop.done, body, start)
     return out.state, out.lin
+
+
+def _residuals_into(at, factorised):
+    """The factorised rows' Jacobians with the residuals of the rows ``at`` the estimate: the
+    quality's cofactors, redundancy numbers and reliability then come from one linearisation
+    (so that their identities, e.g. sum r_i = dof, hold to rounding), its residuals from the
+    estimate."""
+    return tuple(
+        eqx.tree_at(lambda r: (r.e, r.raw), f, (a.e, a.raw)) for a, f in zip(at, factorised)
+    )
 
 
 def _where(flag, a, b):

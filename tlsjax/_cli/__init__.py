@@ -17,6 +17,7 @@ import os
 import sys
 import warnings
 
+from .._version import __version__
 from ._calibrate import add_calibrate_parser
 from ._checks import reset_warnings, warn
 from ._common import EXIT_BAD_INPUT, EXIT_INTERNAL, use_host_devices
@@ -62,6 +63,7 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     ap = _Parser(prog="tlsjax", description="Terrestrial laser scanner self-calibration in JAX.")
+    ap.add_argument("--version", action="version", version=f"tlsjax {__version__}")
     sub = ap.add_subparsers(dest="command", required=True, parser_class=_Parser)
     for add in (
         add_demo_parser,

@@ -10,6 +10,7 @@ import warnings
 
 import numpy as np
 
+from .._clouds._thin import DEFAULT_PLANE_SPACING
 from .._model._plausibility import PlausibilityWarning
 from .._units import ARCSEC
 from ._checks import correlation, positive_float, positive_int, probability, refuse_unless, warn
@@ -29,6 +30,18 @@ def add_calibrate_parser(sub):
         "--planes",
         help="plane observations: a plane CSV or the .npz of `tlsjax extract-planes`; "
         "alone (plane-based) or with a target CSV (combined network)",
+    )
+    c.add_argument(
+        "--plane-spacing",
+        type=float,
+        default=DEFAULT_PLANE_SPACING,
+        metavar="M",
+        help="thin the plane points to one per voxel of this side [m] per scan and plane "
+        f"(default {DEFAULT_PLANE_SPACING:g}: noise of points closer than about a third of it is "
+        "correlated, and the sigmas of all points would be too small; 0 keeps all points)",
+    )
+    c.add_argument(
+        "--quiet", action="store_true", help="no progress lines (phases and times) on stderr"
     )
     c.add_argument(
         "--scans",
@@ -112,11 +125,14 @@ def add_calibrate_parser(sub):
         "--screen",
         action=argparse.BooleanOptionalAction,
         default=True,
-        help="with VCE, remove gross errors before it (robust group scales, family-wise level "
-        "--screen-alpha); default on: VCE on data with blunders inflates the factors until the "
-        "blunders look normal. With planes: screen the plane points (IGG-III reweighting, "
-        "family-wise removal, then the a priori weights); with planes and --snoop: the robust "
-        "screening of calibrate_and_test, then snooping, plane points and targets alike",
+        help="remove gross errors before the least-squares tests, for any weighting (with or "
+        "without --vce): a robust start (IGG-III reweighting from the misclosures at the "
+        "approximate values) and screening (robust group scales, family-wise level "
+        "--screen-alpha), both attributed to the observation holding the error; with --select "
+        "the selection runs on the screened observations. Default on; --no-screen turns it off. "
+        "With planes: screen the plane points (IGG-III reweighting, family-wise removal, then "
+        "the a priori weights); with planes and --snoop: the robust screening of "
+        "calibrate_and_test, then snooping, plane points and targets alike",
     )
     c.add_argument(
         "--screen-alpha",
@@ -150,7 +166,8 @@ def add_calibrate_parser(sub):
     c.add_argument(
         "--select",
         action="store_true",
-        help="stepwise AP selection starting from --aps, adding from --select-candidates",
+        help="stepwise AP selection starting from --aps, adding from --select-candidates by "
+        "their score tests, on the observations the robust start and screening keep",
     )
     c.add_argument(
         "--select-candidates",
@@ -167,13 +184,22 @@ def add_calibrate_parser(sub):
         "--max-correlation",
         type=correlation,
         default=None,
-        help="a candidate more correlated than this with the model is not added (default 0.9)",
+        help="a term entered with a larger correlation with another unknown is reported as "
+        "such in its selection step (default 0.9)",
     )
     c.add_argument(
         "--targets-out",
         metavar="CSV",
         help="write the adjusted target coordinates with sigmas and ellipsoid axes here (in "
         "the datum of the adjustment; the JSON has them too)",
+    )
+    c.add_argument(
+        "--tables",
+        metavar="DIR",
+        help="write the result tables as CSV into this folder: observations.csv (per "
+        "observation: residual, normalised residual, redundancy number, MDB, external "
+        "reliability, test decision; line = the input file's line), plane_points.csv, "
+        "groups.csv (variance factors with their redundancy), targets.csv, planes.csv",
     )
     scanner_args(
         c, default=None, default_help="the one recorded in the observation file, else hybrid"
@@ -209,6 +235,8 @@ _DEFAULTS = {
 }
 #: The files --plots writes.
 PLOT_FILES = ("residuals.png", "ap_correlations.png")
+#: The files --tables may write.
+TABLE_FILES = ("observations.csv", "plane_points.csv", "groups.csv", "targets.csv", "planes.csv")
 
 
 def _check_options(args) -> None:
@@ -270,10 +298,13 @@ def _warn_ignored_sigmas(args, net) -> None:
 def _read(args):
     from .._io._tables import read_network
 
+    observations, planes = read_tables(
+        args.observations, args.planes, args.plane_spacing, args.phases
+    )
     net = read_network(
-        args.observations,
+        observations,
         args.scans,
-        planes=args.planes,
+        planes=planes,
         drop_single_targets=args.drop_single_targets,
         sigma_range=args.sigma_range_mm * 1e-3,
         sigma_hz=args.sigma_hz_arcsec * ARCSEC,
@@ -309,6 +340,7 @@ def _calibrate(args) -> int:
     from .._adjustment._config import CalibrationModel
     from .._adjustment._network import network_design_warnings
     from .._model._scanner import Scanner
+    from ._progress import Phases
 
     _check_options(args)
     check_outputs(  # before any work: fails in a second
@@ -320,11 +352,14 @@ def _calibrate(args) -> int:
             ("--planes", args.planes),
             ("--scans", args.scans),
         ),
-        more=[("--targets-out", args.targets_out)],
+        more=[("--targets-out", args.targets_out), ("--tables", args.tables, TABLE_FILES)],
     )
     args.architecture = file_architecture(args.architecture, args.observations, args.planes)
     scanner = Scanner(architecture=args.architecture, aps=args.aps, unit_length=args.unit_length)
+    args.phases = Phases(enabled=not args.quiet)
+    args.phases.hold()  # shown once the input is accepted
     net = _read(args)
+    args.phases.release()
     model = CalibrationModel(
         scanner,
         datum=args.datum,
@@ -339,7 +374,9 @@ def _calibrate(args) -> int:
             f"--fixed-scan {args.fixed_scan}: no such scan (scans: {', '.join(net.scans)})"
         )
     t0 = time.perf_counter()
+    args.phases.start(_adjusting(net, args))
     extra, res, tested, mask, mdb = _run(args, net, model, scanner)
+    args.phases.done(f"adjusted: {res.iterations} iterations in the last adjustment, {res.message}")
     print(f"({time.perf_counter() - t0:.2f} s)")
     withheld = None
     if tested is not None and res.ok and not tested.ok:
@@ -350,16 +387,19 @@ def _calibrate(args) -> int:
         )
     report(res, after_vce=tested is not None and tested.weights_fitted, withheld=withheld)
     extra.update(_report_fields(res, scanner, args, mask, mdb))
+    failed = not res.ok or withheld is not None or impossible(res)
+    extra.update(_table_fields(res, tested, failed))
     write_outputs(
         res, args.json, args.plots, extra=extra, scanner=scanner, mask=mask, withheld=withheld
     )
-    failed = not res.ok or withheld is not None or impossible(res)
     if (
         args.targets_out and failed and res.ok
     ):  # no target estimates of a run that is no calibration
         print(f"--targets-out {args.targets_out}: not written (the run is no calibration)")
     elif args.targets_out:
         write_targets(res, args.targets_out)
+    if args.tables:
+        _write_tables(res, args.tables, tested, failed)
     if args.report:
         _write_report(res, args.report, extra, scanner, mask, withheld)
     return EXIT_FAILED if failed else EXIT_OK
@@ -382,7 +422,7 @@ def _run(args, net, model, scanner):
         model, scanner = _select(args, net, model, scanner, extra)
     if net.has_planes and args.screen and not args.snoop:
         res = _screen(net, model, solver, extra)
-    elif args.vce or args.snoop:
+    elif args.vce or args.snoop or args.screen:
         tested = _test(args, net, model, solver)
         res, mask, mdb = tested.calibration, tested.mask, tested.mdb
         extra.update(tested.json_fields())
@@ -390,7 +430,51 @@ def _run(args, net, model, scanner):
         with warnings.catch_warnings():  # the summary names implausible estimates itself
             warnings.simplefilter("ignore", PlausibilityWarning)
             res = calibrate(net, model, solver)
+    if tested is None:
+        _missing_terms(net, model, solver, res, extra)
     return extra, res, tested, mask, mdb
+
+
+def _adjusting(net, args) -> str:
+    """The progress line of the adjustment phase: what runs, on how many observations."""
+    what = "adjusting"
+    if net.has_planes and (args.screen or args.snoop):
+        what = "screening the plane points (IGG-III reweighting, one adjustment per round)"
+    elif args.vce or args.snoop:
+        what = "adjusting and testing (screening, VCE, snooping: one adjustment per step)"
+    counts = []
+    if net.has_targets:
+        counts.append(f"{net.observations.shape[0]} target observations")
+    if net.has_planes:
+        counts.append(f"{net.plane_observations.shape[0]} plane points")
+    return f"{what}: {', '.join(counts)} (compiling on the first run of this shape)"
+
+
+def read_tables(observations, planes, spacing, phases):
+    """The observation and plane tables of ``calibrate``, the plane points thinned to
+    ``spacing`` (:func:`tlsjax.thin_planes`; a plane CSV given as the observation file counts
+    as the planes), with progress lines; target files are read as they are."""
+    from .._clouds._thin import thin_planes
+    from .._io._tables import read_observations, read_planes
+
+    if observations is not None:
+        phases.start(f"reading {observations}")
+        observations = read_observations(observations)
+        phases.done(f"read {len(observations)} {observations.kind} observation rows")
+        if observations.kind == "plane" and planes is None:
+            observations, planes = None, observations
+    if planes is not None and not hasattr(planes, "kind"):
+        phases.start(f"reading {planes}")
+        planes = read_planes(planes)
+        phases.done(f"read {len(planes)} plane points")
+    if planes is not None and spacing != 0:
+        phases.start(f"thinning {len(planes)} plane points to one per {spacing:g} m voxel")
+        n = len(planes)
+        planes = thin_planes(planes, spacing)
+        phases.done(f"kept {len(planes)} of {n} plane points")
+        if len(planes) < n:
+            print(planes.notes[-1])
+    return observations, planes
 
 
 def file_architecture(given, *paths) -> str:
@@ -411,8 +495,7 @@ def file_architecture(given, *paths) -> str:
 
 def write_targets(res, path):
     """The adjusted targets as CSV (``--targets-out``); none for a failed adjustment."""
-    from .._io._target_lists import write_target_csv
-    from .._report._json import datum_text, target_ellipsoids, target_scan_counts
+    from .._report._tables import targets_csv
 
     if not res.ok:
         print(f"--targets-out {path}: not written (the adjustment failed: no estimates)")
@@ -420,22 +503,13 @@ def write_targets(res, path):
     if not len(res.targets):
         print(f"--targets-out {path}: not written (no targets in this network)")
         return
-    axes, _ = target_ellipsoids(res.target_covariance)
-    write_target_csv(
-        path,
-        res.targets,
-        res.target_xyz,
-        res.target_sigmas,
-        axes,
-        target_scan_counts(res),
-        datum_text(res),
-    )
+    targets_csv(res, path)
     print(f"wrote {path}")
 
 
 def _select(args, net, model, scanner, extra):
-    """Stepwise AP selection on the a priori weights; the chosen set is then weighted and
-    tested."""
+    """Stepwise AP selection on the observations the robust start and screening keep (with
+    --screen); the chosen set is then weighted and tested."""
     from .._inference._selection import SelectionOptions, select_aps
 
     sel = select_aps(
@@ -443,13 +517,38 @@ def _select(args, net, model, scanner, extra):
         model,
         start=args.aps,
         candidates=args.select_candidates,
-        options=SelectionOptions(alpha=args.select_alpha, max_correlation=args.max_correlation),
+        options=SelectionOptions(
+            alpha=args.select_alpha, max_correlation=args.max_correlation, screening=args.screen
+        ),
     )
     print(sel.report())
     print()
     scanner = dataclasses.replace(scanner, aps=tuple(sel.aps))
-    extra["selection"] = {"aps": list(sel.aps), "n_fits": sel.n_fits}
+    finite = lambda x: float(x) if x == x and abs(x) != float("inf") else None
+    extra["selection"] = {
+        "aps": list(sel.aps),
+        "n_fits": sel.n_fits,
+        "steps": [
+            {"action": st.action, "term": st.term, "score": finite(st.score), "reason": st.reason}
+            for st in sel.steps
+            if st.action != "try"
+        ],
+        "n_screened": 0 if sel.screened is None else len(sel.screened.outliers),
+    }
     return dataclasses.replace(model, scanner=scanner), scanner
+
+
+def _missing_terms(net, model, solver, res, extra):
+    """Score tests of the terms missing from the model (tj.score_tests), printed and in the
+    JSON's ``score_tests``; none for a failed adjustment, several instruments or planes."""
+    from .._inference._score import score_tests
+    from .._model._scanner import Scanner
+
+    if not (res.ok and isinstance(model.scanner, Scanner)) or net.has_planes:
+        return
+    tests = score_tests(net, model, res, solver=solver)
+    print(tests.summary())
+    extra["score_tests"] = tests.as_json()
 
 
 def _screen(net, model, solver, extra):
@@ -519,6 +618,27 @@ def _report_fields(res, scanner, args, mask, mdb) -> dict:
     if res.network is not None and res.network.has_targets:
         fields["reliability"] = reliability_summary(res, mdb=mdb, mask=mask)
     return fields
+
+
+def _table_fields(res, tested, failed: bool) -> dict:
+    """The per-observation and per-group tables in the JSON (none for a run that is no
+    calibration), and the input file's line beside each removal's row."""
+    from .._report._tables import table_json, with_lines
+
+    out = {} if failed else table_json(res, tested)
+    if tested is not None and tested.outliers:
+        out["outliers"] = with_lines(tested.outliers_json(), res)
+    return out
+
+
+def _write_tables(res, folder, tested, failed: bool):
+    from .._report._tables import write_tables
+
+    paths = [] if failed else write_tables(res, folder, tested)
+    if paths:
+        print(f"wrote {len(paths)} tables into {folder}: {', '.join(map(os.path.basename, paths))}")
+    else:
+        print(f"--tables {folder}: not written (the run is no calibration: no estimates)")
 
 
 def _write_report(res, path, extra, scanner, mask, withheld=None):

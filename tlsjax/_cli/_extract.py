@@ -10,6 +10,7 @@ import numpy as np
 from .._clouds._extract import ExtractionOptions
 from ._checks import non_negative_int, positive_float, positive_int
 from ._common import EXIT_FAILED
+from ._progress import Phases
 
 
 def add_extract_parser(subparsers) -> argparse.ArgumentParser:
@@ -43,7 +44,11 @@ def add_extract_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--min-points", type=positive_int, default=ExtractionOptions.min_points)
     p.add_argument("--csv", help="also write the plane observations CSV (SPEC section 11)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--no-progress",
+        action="store_true",
+        help="no progress bar or phase lines on stderr",
+    )
     p.set_defaults(func=cli_extract)
     return p
 
@@ -75,6 +80,15 @@ def read_scan_files(paths, architecture, poses_path=None, *, out=None):
     return clouds, poses
 
 
+def _scan_line(phases):
+    """A progress line per extracted scan (where no progress bar is drawn)."""
+
+    def line(name, n_patches, n_on, n):
+        phases.note(f"scan {name}: {n_patches} patches, {n_on} of {n} points on them")
+
+    return line
+
+
 def cli_extract(args) -> int:
     """Run ``tlsjax extract-planes``; returns the exit code.
 
@@ -92,7 +106,11 @@ def cli_extract(args) -> int:
         [("--out", args.out), ("--csv", args.csv)],
         [("scan", p) for p in args.scans] + [("--poses", args.poses)],
     )
+    phases = Phases(enabled=not args.no_progress)
+    phases.hold()  # shown once the input is accepted (a refusal is one line on stderr)
+    phases.start(f"reading {len(args.scans)} file(s)")
     clouds, table = read_scan_files(args.scans, args.architecture, args.poses)
+    phases.done(f"read {len(clouds)} scan(s), {sum(len(c.points) for c in clouds)} points")
     names = [c.name for c in clouds]
     if len(set(names)) != len(names):
         raise ValueError(f"scan names are not unique: {names}")
@@ -112,13 +130,18 @@ def cli_extract(args) -> int:
     config = ExtractionOptions(
         distance_threshold=args.distance_threshold, min_points=args.min_points, budget=args.budget
     )
+    phases.release()
+    bar = not args.no_progress and sys.stderr.isatty()
+    phases.start("extracting planes (RANSAC, DBSCAN, least-squares refit per scan)")
     planes = extract_planes(
         [c.observations for c in clouds],
         config,
         names=names,
         seed=args.seed,
-        progress=not args.no_progress and sys.stderr.isatty(),
+        progress=bar,
+        on_scan=None if bar else _scan_line(phases),
     )
+    phases.done(f"extracted {len(planes.patch_scan)} patches")
     if len(planes.patch_scan) == 0:  # a non-result: no file, exit 1, the likely causes
         print(
             f"tlsjax extract-planes: no plane found in {len(names)} scan(s) ("
@@ -130,7 +153,9 @@ def cli_extract(args) -> int:
         )
         return EXIT_FAILED
     if poses is not None:
+        phases.start("matching the patches across scans")
         planes = match_planes(planes, poses)
+        phases.done(f"matched {len(planes.planes)} planes")
     save_planes(args.out, planes)
     if args.csv:
         table = dataclasses.replace(planes.to_table(), architecture=args.architecture)

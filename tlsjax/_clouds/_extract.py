@@ -195,13 +195,15 @@ def extract_planes(
     names: Sequence[str] | None = None,
     seed: int = 0,
     progress: bool = False,
+    on_scan=None,
 ) -> ExtractedPlanes:
     """Extract plane patches from each scan's observations (see the module docstring).
 
     ``scans``: one (n_j, 3) array of (rho [m], theta [rad], alpha [rad]) per scan, hybrid or
     panoramic (both faces map to the same scanner-space point). ``names``: scan names (default
     S1, S2, ...). ``seed`` makes RANSAC and the budget sampling repeatable. ``progress``: a
-    progress bar over the points of all scans.
+    progress bar over the points of all scans. ``on_scan(name, n_patches, n_on_patches,
+    n_points)`` is called after each scan (the CLI's progress lines where stderr is no terminal).
 
     (Long because of its validation of the inputs and the progress bar; the work is
     :func:`_extract_scan`.)
@@ -238,7 +240,10 @@ def extract_planes(
         rng = np.random.default_rng(budget_seed)
         x = cartesian_from_spherical(obs, xp=np)
         bar.set_description(f"planes of scan {names[j]}")
-        for members, n, d, rms in _extract_scan(o3d, obs, config, ransac_seed, bar):
+        found = _extract_scan(o3d, obs, config, ransac_seed, bar)
+        if on_scan is not None:
+            on_scan(names[j], len(found), sum(len(f[0]) for f in found), len(obs))
+        for members, n, d, rms in found:
             sel = members
             if config.budget is not None and len(members) > config.budget:
                 sel = np.sort(rng.choice(members, size=int(config.budget), replace=False))

@@ -23,20 +23,24 @@ static).
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable, Mapping
 from typing import NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._adjustment._calibrate import analyze
+from .._adjustment._calibrate import _run, analyze
 from .._adjustment._config import CalibrationModel, SolverOptions
 from .._adjustment._network import Network
 from .._adjustment._result import CalibrationResult, assemble
 from .._model._levelling import compensator_reading
 from .._model._planes import observation_residuals
+from .._model._scanner import Scanner
 from .._units import display_group
+from ._score import ScoreTester
 from ._statistics import condition_w_tests, variance_factor
 from ._tested import GROUPS, Removal, TestingOptions, VCEResult
 
@@ -79,6 +83,7 @@ class Reweighter:
         params0=None,
         plane_weight=None,
         fixed_aps=None,
+        max_iterations=None,
     ) -> Adjusted:
         """``weight`` (n, 3) = 1/sigma or 0 (removed); ``pinned`` maps target -> xyz;
         ``plane_weight`` (m, 3) of the plane rows (None: the network's); ``fixed_aps``: AP
@@ -93,7 +98,14 @@ class Reweighter:
             plane_weights=plane_weight,
             fixed_aps=fixed_aps,
         )
-        state, q = adj.run(problem, params0)
+        if max_iterations is None:
+            state, q = adj.run(problem, params0)
+        else:  # e.g. 0: the misclosures and redundancy numbers at params0 (traced: no recompile)
+            opts = eqx.tree_at(
+                lambda o: o.max_iterations, adj.options.arrays(), jnp.asarray(max_iterations)
+            )
+            params0 = adj.initial if params0 is None else params0
+            state, q = _run(adj.plan.spec, problem, params0, opts, adj.options.full_covariance)
         plan = dataclasses.replace(self.plan, problem=problem)
         res = assemble(self.net, self.model, plan, state, q)
         infl = np.zeros((self.net.observations.shape[0], 3, plan.spec.n_aps))
@@ -140,6 +152,15 @@ class TestingContext:
             np.asarray(net.plane_sigmas, dtype=float).reshape(-1, 3),
         )
 
+    @functools.cached_property
+    def score_tester(self) -> ScoreTester | None:
+        """The model analysed with the candidate terms held at zero (:mod:`._score`), built at
+        first use; None for several instruments (the candidates would be per instrument)."""
+        model = self.reweighter.model
+        if not isinstance(model.scanner, Scanner):
+            return None
+        return ScoreTester(self.network, model, self.options.candidates, self.reweighter.options)
+
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class TestingState:
@@ -156,7 +177,9 @@ class TestingState:
     next adjustment (None: the approximate values). ``removal_step`` counts rejections,
     ``n_adjustments`` adjustments; ``critical_value`` and ``screening_critical_value`` are
     those of the latest snooping and screening tests; ``vce_result`` and ``vce_iterations``
-    say how VCE went.
+    say how VCE went. ``score_tests``: the score tests of the missing terms at the end
+    (:mod:`._score`). ``robust_factor`` (n, 3): weight factors of a robust reweighting (the
+    robust start; None: none); ``fixed_aps``: AP labels held at zero (None: the model's).
     """
 
     factor: np.ndarray
@@ -178,6 +201,9 @@ class TestingState:
     screening_critical_value: float | None = None
     vce_result: VCEResult = VCEResult.OFF
     vce_iterations: int = 0
+    score_tests: object = None
+    robust_factor: np.ndarray | None = None
+    fixed_aps: tuple | None = None
 
     @classmethod
     def initial(cls, ctx: TestingContext, critical_value: float) -> TestingState:
@@ -235,21 +261,80 @@ def levelling_sigmas(ctx: TestingContext, state: TestingState) -> np.ndarray:
     return ctx.levelling_sigma * np.sqrt(state.factor[3])
 
 
-def adjust(ctx: TestingContext, state: TestingState) -> TestingState:
+def adjust(ctx: TestingContext, state: TestingState, max_iterations=None) -> TestingState:
     """Re-adjust with the state's weights (factors, mask, pins), warm-started at its
     ``params``; a successful adjustment becomes ``last_ok`` and the next warm start (the datum,
     inner constraints, stays the same because the S-transformation is applied to every
     update)."""
-    w = np.where(state.mask, 1.0 / sigmas(ctx, state), 0.0)
-    lw = np.where(ctx.levelling_active, 1.0 / levelling_sigmas(ctx, state), 0.0)
+    w, lw, _ = weights(ctx, state)
     pw = None
     if ctx.network.has_planes:
         pw = np.where(state.plane_mask[:, None], 1.0 / ctx.plane_sigma, 0.0)
-    adjusted = ctx.reweighter.run(w, lw, state.pinned, state.params, plane_weight=pw)
+    adjusted = ctx.reweighter.run(
+        w,
+        lw,
+        state.pinned,
+        state.params,
+        plane_weight=pw,
+        fixed_aps=state.fixed_aps,
+        max_iterations=max_iterations,
+    )
     changes = dict(adjusted=adjusted, n_adjustments=state.n_adjustments + 1)
     if adjusted.result.ok:
         changes.update(params=adjusted.solution.params, last_ok=(adjusted, state.factor.copy()))
     return dataclasses.replace(state, **changes)
+
+
+def weights(ctx: TestingContext, state: TestingState):
+    """The weights of the state's next adjustment: (n, 3) target rows (0 where removed), (s, 2)
+    levelling readings, and the pinned targets as control."""
+    w = np.where(state.mask, 1.0 / sigmas(ctx, state), 0.0)
+    if state.robust_factor is not None:
+        w = w * np.sqrt(state.robust_factor)
+    lw = np.where(ctx.levelling_active, 1.0 / levelling_sigmas(ctx, state), 0.0)
+    return w, lw, {t: (xyz, PIN_SIGMA) for t, xyz in state.pinned.items()}
+
+
+def score_tests_at(ctx: TestingContext, state: TestingState):
+    """Score tests of the candidate terms (:mod:`._score`) at the latest adjustment with the
+    weights in use; None where there is no successful adjustment or no tester."""
+    tester = ctx.score_tester if state.ok and state.fixed_aps is None else None
+    if tester is None or not tester.candidates:
+        return None
+    w, lw, control = weights(ctx, state)
+    return tester(
+        state.adjusted.solution.params,
+        weights=w,
+        levelling_weights=lw,
+        control=control,
+        alpha=ctx.options.score_alpha,
+    )
+
+
+#: Share of ``v^T P v`` above which one observation is said to dominate the misfit.
+DOMINANT_SHARE = 0.5
+
+
+def dominant_misfit(ctx: TestingContext, state: TestingState) -> str | None:
+    """A sentence naming the observation that holds more than :data:`DOMINANT_SHARE` of its
+    group's misfit ``sum (v_i / sigma_i)^2`` at the latest adjustment (a gross error: then a
+    far-off variance factor says nothing about the units), or None."""
+    res = state.result
+    e2 = np.where(state.mask, (res.residuals / sigmas(ctx, state)) ** 2, 0.0)
+    e2 = np.where(np.isfinite(e2), e2, 0.0)
+    i, g = np.unravel_index(int(np.argmax(e2)), e2.shape)
+    total = float(e2[:, g].sum())
+    share = float(e2[i, g]) / total if total > 0 else 0.0
+    if share <= DOMINANT_SHARE:
+        return None
+    net = ctx.network
+    val, unit = display_group(int(g), res.residuals[i, g])
+    return (
+        f"one observation holds {100 * share:.0f}% of the {GROUPS[g]} misfit: {GROUPS[g]} of target "
+        f"{net.targets[net.target_index[i]]} in scan {net.scans[net.scan_index[i]]} (residual "
+        f"{val:.4g} {unit}, {np.sqrt(e2[i, g]):.3g} sigma): a gross error in that observation, "
+        "not wrong units or sigmas"
+    )
 
 
 def with_factors(state: TestingState, factor) -> TestingState:

@@ -1,20 +1,26 @@
-"""Stepwise selection of additional parameters (Chow et al. 2013, section on AP selection).
+"""Stepwise selection of additional parameters (Chow et al. 2013, section on AP selection),
+on observations freed of gross errors, entering terms by their score test (SPEC section 7).
 
-Starting from a chosen set, the procedure alternates
+First, with ``screening``, the start set is calibrated with the robust start and screening of
+:func:`tlsjax.calibrate_and_test` (no VCE, no snooping): the observations it removes stay out of
+every fit of the selection, so a blunder can neither pose as a term nor push one out. Then the
+procedure alternates
 
-* backward: refit; remove the least significant AP (``|t| <`` Student's critical value at
-  ``alpha``) or any AP the network cannot determine, one at a time;
-* forward: try every remaining candidate term on top of the current set; a candidate is
-  admissible when it is estimable, significant (``|t| >`` the critical value) and its largest
-  absolute correlation with any other unknown is below ``max_correlation``; the admissible
-  candidate with the largest ``|t|`` is added;
+* backward: remove a term the network cannot determine, else the least significant one
+  (``|t| <`` Student's critical value at ``alpha``), refit, one at a time;
+* forward: the score test of every remaining candidate at the current fit (:mod:`._score`: the
+  reduction of ``v^T P v`` each would bring, from the current residuals and normal matrix,
+  no refit per candidate); the one with the largest statistic enters when it is significant at
+  the family-wise level ``alpha`` (Bonferroni over the candidates) and estimable in the refit.
+  A large correlation with another unknown (a scan pose) does not keep it out: it is reported
+  with the step (the term explains the misfit; the design separates it poorly);
 
-until no candidate is admissible. A term removed by the backward step is not tried again, so
+until no candidate is significant. A term removed by the backward step is not tried again, so
 the procedure cannot cycle. Every fit is recorded (sigma0, RMS residual per group in mm and
 arc seconds, largest AP correlation) so a user can see why the final set was chosen.
 
-Each AP set is a new static shape of the compiled adjustment: one compile per distinct set.
-Trial sets are bounded by ``len(candidates)`` per forward step.
+Every set is the one wide adjustment (the union of all terms) with the terms outside the set
+held at zero: one compile serves every fit and every score test.
 """
 
 from __future__ import annotations
@@ -23,26 +29,30 @@ import dataclasses
 
 import numpy as np
 
-from .._adjustment._calibrate import calibrate
+from .._adjustment._calibrate import analyze
 from .._adjustment._config import CalibrationModel, SolverOptions
 from .._adjustment._network import Network
-from .._adjustment._result import CalibrationResult
+from .._adjustment._result import CalibrationResult, assemble
 from .._model._aps import resolve_aps
 from .._model._scanner import Scanner
 from .._stats import t_critical_value
 from .._units import ARCSEC
+from ._score import tests_in
 
 
 @dataclasses.dataclass(frozen=True)
 class SelectionOptions:
-    """``alpha``: two-sided level of the AP t-tests (1 %: each forward step tests several
-    candidates, so a 5 % level would add a spurious term in about one network in five); ``max_correlation``: a candidate whose
-    largest absolute correlation with another unknown exceeds it is not added (Chow et al.
-    2013 use the correlation table to reject terms); ``max_steps``: bound on add/remove steps."""
+    """``alpha``: two-sided level of the AP t-tests and family-wise level of the score tests of
+    the candidates (1 %: each forward step tests many candidates); ``max_correlation``: a term
+    entered with a larger absolute correlation with another unknown is reported as such
+    (Chow et al. 2013 read the correlation table; the term stays, since it explains the
+    misfit); ``max_steps``: bound on add/remove steps; ``screening``: select on the
+    observations that the robust start and screening keep (module docstring)."""
 
     alpha: float = 0.01
     max_correlation: float = 0.9
     max_steps: int = 30
+    screening: bool = True
 
     def __post_init__(self):
         if not 0 < self.alpha < 1:
@@ -56,6 +66,7 @@ class SelectionOptions:
 @dataclasses.dataclass(frozen=True)
 class SelectionStep:
     """One fit of the procedure. ``action``: "start", "remove", "try", "add" or "final";
+    ``score`` the score statistic by which an added term entered (NaN otherwise);
     ``term`` the AP concerned; ``aps`` the set fitted; ``t``/``max_abs_corr``/``corr_with``
     of that term; ``rms`` per group (mm, arcsec, arcsec); ``reason`` in words."""
 
@@ -69,20 +80,35 @@ class SelectionStep:
     corr_with: str
     max_ap_corr: float
     reason: str
+    score: float = float("nan")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class SelectionResult:
+    """``aps`` chosen, their ``calibration`` (on the screened observations), every step, the
+    number of distinct fits, the t critical value, ``removed``: the (row, group) observations
+    screening left out (their :class:`tlsjax.TestedCalibration` ``outliers`` in ``screened``),
+    and ``score_tests`` of the candidates left at the final set."""
+
     aps: tuple
     calibration: CalibrationResult
     steps: tuple
     n_fits: int
     critical: float
+    screened: object = None
+    score_tests: object = None
 
     def report(self) -> str:
         lines = [
             f"final APs: {' '.join(self.aps) or '(none)'} after {self.n_fits} fits (|t| > {self.critical:.2f})"
         ]
+        if self.screened is not None:
+            n = len(self.screened.outliers)
+            lines.append(f"  on the screened observations: {n} removed before selection")
+            lines += [
+                f"    scan {o.scan} target {o.target} {o.group}: v = {o.residual:.4g} {o.unit}"
+                for o in self.screened.outliers[:20]
+            ]
         for s in self.steps:
             if s.action == "try":
                 continue
@@ -94,12 +120,11 @@ class SelectionResult:
 
 
 def _rms(res: CalibrationResult) -> dict:
+    """RMS residual per group over the observations used (a screened-out blunder is not in it)."""
     v = res.residuals
-    return {
-        "range_mm": float(np.sqrt(np.mean(v[:, 0] ** 2)) * 1e3),
-        "hz_arcsec": float(np.sqrt(np.mean(v[:, 1] ** 2)) / ARCSEC),
-        "el_arcsec": float(np.sqrt(np.mean(v[:, 2] ** 2)) / ARCSEC),
-    }
+    used = np.ones(v.shape, dtype=bool) if res.used is None else res.used
+    rms = lambda g: float(np.sqrt(np.mean(v[used[:, g], g] ** 2))) if used[:, g].any() else np.nan
+    return {"range_mm": rms(0) * 1e3, "hz_arcsec": rms(1) / ARCSEC, "el_arcsec": rms(2) / ARCSEC}
 
 
 def _restrict(res: CalibrationResult, aps: tuple) -> CalibrationResult:
@@ -131,35 +156,56 @@ def _max_ap_corr(res: CalibrationResult) -> float:
 
 class _Fits:
     """The fits of stepwise selection. Every candidate set is the same parameter vector (the
-    union of all terms) with the terms outside the set held at zero, so one compiled adjustment
-    serves every fit; each set is fitted once."""
+    union of all terms) with the terms outside the set held at zero, so one analysed, compiled
+    adjustment serves every fit (with the screened weights ``data``); each set is fitted once."""
 
-    def __init__(self, network, model, universe, solver):
-        self.network, self.universe, self.solver = network, universe, solver
-        self.wide = dataclasses.replace(
-            model, scanner=dataclasses.replace(model.scanner, aps=universe)
-        )
+    def __init__(self, network, model, universe, solver, data):
+        self.network, self.universe = network, universe
+        wide = dataclasses.replace(model, scanner=dataclasses.replace(model.scanner, aps=universe))
+        self.adjustment = analyze(network, wide, solver)
+        self.data = data
         self.cache: dict = {}
+
+    def problem(self, aps):
+        fixed = tuple(a for a in self.universe if a not in aps)
+        return self.adjustment.problem(**self.data, fixed_aps=fixed)
 
     def __call__(self, aps) -> CalibrationResult:
         key = tuple(aps)
         if key not in self.cache:
-            fixed = tuple(a for a in self.universe if a not in key)
-            res = calibrate(
-                self.network, dataclasses.replace(self.wide, fixed_aps=fixed), self.solver
-            )
-            self.cache[key] = _restrict(res, key)
-        return self.cache[key]
+            adj = self.adjustment
+            problem = self.problem(key)
+            state, q = adj.run(problem)
+            plan = dataclasses.replace(adj.plan, problem=problem)
+            res = assemble(self.network, adj.model, plan, state, q)
+            self.cache[key] = (_restrict(res, key), state.params, problem)
+        return self.cache[key][0]
+
+    def score(self, aps, names, alpha):
+        """Score tests of ``names`` at the fit of ``aps`` (:func:`._score.tests_in`)."""
+        self(aps)
+        _, params, problem = self.cache[tuple(aps)]
+        return tests_in(self.adjustment, problem, params, names, alpha)
 
 
-def _record(action, term, aps, res, reason) -> SelectionStep:
+def _record(action, term, aps, res, reason, score=float("nan")) -> SelectionStep:
     if term and term in res.ap_names:
         i = res.ap_names.index(term)
         t, c, w = float(res.ap_t[i]), float(res.ap_max_abs_corr[i]), res.ap_max_corr_with[i]
     else:
         t, c, w = np.nan, np.nan, ""
     return SelectionStep(
-        action, term, tuple(aps), float(res.sigma0), _rms(res), t, c, w, _max_ap_corr(res), reason
+        action,
+        term,
+        tuple(aps),
+        float(res.sigma0),
+        _rms(res),
+        t,
+        c,
+        w,
+        _max_ap_corr(res),
+        reason,
+        float(score),
     )
 
 
@@ -187,39 +233,64 @@ def _backward(fit, current, res, removed, alpha, steps):
     return res
 
 
-def _admissible(r, c, options: SelectionOptions):
-    """Whether candidate ``c`` in the trial fit ``r`` may be added: estimable, significant and
-    not too correlated; (ok, |t|, reason)."""
-    i = r.ap_names.index(c)
-    t, corr = abs(float(r.ap_t[i])), float(r.ap_max_abs_corr[i])
-    k = t_critical_value(options.alpha, r.dof)
-    if not np.isfinite(t):
-        return False, t, "not estimable"
-    if t <= k:
-        return False, t, f"|t| = {t:.2f} <= {k:.2f}"
-    if corr > options.max_correlation:
-        return (
-            False,
-            t,
-            f"|corr| = {corr:.2f} with {r.ap_max_corr_with[i]} > {options.max_correlation}",
-        )
-    return True, t, f"|t| = {t:.2f}, max |corr| = {corr:.2f} with {r.ap_max_corr_with[i]}"
-
-
 def _forward(fit, current, removed, candidates, options, steps):
-    """Every remaining candidate tried on top of the current set; the admissible one with the
-    largest ``|t|`` as (term, |t|, fit, reason), or None."""
-    best = None
-    for c in candidates:
-        if c in current or c in removed:
-            continue
-        trial = current + [c]
+    """The score test of every remaining candidate at the current fit; the significant one with
+    the largest statistic, refitted, as (term, fit, reason, T), or None. A candidate that the
+    refit cannot estimate is recorded as tried and not offered again."""
+    left = [c for c in candidates if c not in current and c not in removed]
+    while left:
+        tests = fit.score(current, left, options.alpha)
+        best = tests.best()
+        if best is None or not best.significant:
+            return None
+        trial = current + [best.name]
         r = fit(trial)
-        ok, t, why = _admissible(r, c, options)
-        steps.append(_record("try", c, trial, r, why + ("" if ok else ": not admissible")))
-        if ok and (best is None or t > best[1]):
-            best = (c, t, r, why)
-    return best
+        i = r.ap_names.index(best.name)
+        entered = (
+            f"largest score statistic T = {best.statistic:.1f} > {tests.critical:.2f} (would "
+            f"absorb {100 * best.share:.1f}% of v^T P v)"
+        )
+        if not np.isfinite(r.ap_t[i]):
+            steps.append(_record("try", best.name, trial, r, entered + "; not estimable"))
+            removed.add(best.name)
+            left.remove(best.name)
+            continue
+        corr, partner = float(r.ap_max_abs_corr[i]), r.ap_max_corr_with[i]
+        why = f"{entered}; |t| = {abs(float(r.ap_t[i])):.2f}"
+        if corr > options.max_correlation:
+            why += (
+                f"; high correlation |r| = {corr:.2f} with {partner}: entered because it explains "
+                "the misfit, but the design separates the two poorly (more stations or tilted "
+                "scans would)"
+            )
+        else:
+            why += f", max |corr| = {corr:.2f} with {partner}"
+        return best.name, r, why, best.statistic
+    return None
+
+
+def _screened_data(network, model, start, solver, options):
+    """The robust start and screening of the start set (no VCE, no snooping): the weights
+    (a priori, 0 where removed) and pinned targets of every fit, and the tested calibration."""
+    from ._testing import TestingOptions, calibrate_and_test
+
+    if not (options.screening and network.has_targets and not network.has_planes):
+        return {}, None
+    m = dataclasses.replace(model, scanner=dataclasses.replace(model.scanner, aps=start))
+    tested = calibrate_and_test(
+        network,
+        m,
+        solver,
+        TestingOptions(vce=False, snooping=False, score_tests=True),
+    )
+    if not tested.calibration.ok:
+        return {}, tested
+    w = np.where(tested.mask, 1.0 / np.asarray(network.sigmas), 0.0)
+    pins = {
+        network.targets.index(t): (tested.calibration.target_xyz[network.targets.index(t)], 1.0)
+        for t in tested.pinned_targets
+    }
+    return {"weights": w, "control": pins or None}, tested
 
 
 def select_aps(
@@ -246,7 +317,8 @@ def select_aps(
         )
     start = resolve_aps(start)
     candidates = resolve_aps(candidates)
-    fit = _Fits(network, model, tuple(dict.fromkeys(start + candidates)), solver)
+    data, screened = _screened_data(network, model, start, solver, options)
+    fit = _Fits(network, model, tuple(dict.fromkeys(start + candidates)), solver, data)
     current = list(start)
     res = fit(current)
     steps = [_record("start", "", current, res, "initial set")]
@@ -257,15 +329,17 @@ def select_aps(
         if best is None:
             break
         current.append(best[0])
-        res = best[2]
-        why = "most significant admissible candidate: " + best[3]
-        steps.append(_record("add", best[0], current, res, why))
-    steps.append(_record("final", "", current, res, "no admissible candidate left"))
+        res = best[1]
+        steps.append(_record("add", best[0], current, res, best[2], best[3]))
+    left = [c for c in candidates if c not in current]
+    final_tests = fit.score(current, left, options.alpha) if left and res.ok else None
+    steps.append(_record("final", "", current, res, "no significant candidate left"))
     # The chosen set once more as a model of its own, so the result carries only its terms.
-    final = calibrate(
-        network,
-        dataclasses.replace(model, scanner=dataclasses.replace(model.scanner, aps=tuple(current))),
-        solver,
+    final_model = dataclasses.replace(
+        model, scanner=dataclasses.replace(model.scanner, aps=tuple(current))
     )
+    final = analyze(network, final_model, solver).solve(**data)
     crit = t_critical_value(options.alpha, res.dof)
-    return SelectionResult(tuple(current), final, tuple(steps), len(fit.cache), crit)
+    return SelectionResult(
+        tuple(current), final, tuple(steps), len(fit.cache), crit, screened, final_tests
+    )

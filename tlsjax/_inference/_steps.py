@@ -3,23 +3,31 @@
 Each step is ``step(ctx, state) -> state`` over the explicit :class:`._pipeline.TestingState`
 (see :mod:`._pipeline`); the statistics they call are pure functions in :mod:`._statistics`.
 
-1. **Robust start** (:func:`robust_start`): a slot, no-op today. Its place is before the first
-   least-squares adjustment: a high-breakdown registration of the scans and iteratively
-   reweighted first iterations would set ``state.params`` (the warm start) and remove gross
-   blunders (``remove``), so that the least-squares steps below start from a clean network.
+1. **Robust start** (:func:`robust_start`, with ``screening`` and ``robust_start``): gross
+   errors out before the first least-squares adjustment, which would spread a blunder of
+   metres over correct observations (or not converge). The misclosures at the approximate
+   values give the first IGG-III weights (Yang 1999); iteratively reweighted adjustments
+   follow, first with the APs held at zero (a wide band: only errors far beyond the systematic
+   misfit lose weight), then with the model's APs. The statistic is each observation's deleted
+   residual over its standard deviation, divided by the group's robust scale. Observations
+   beyond the family-wise critical value at the end are removed (attributed to the observation
+   holding the error), unless a missing term's score test explains more; the least-squares
+   steps start from its estimates.
 2. **A priori tests** (:func:`a_priori_tests`): the first adjustment, with the a priori
    sigmas; the global test ``v^T P v ~ chi^2(r)`` and one test per group ``Omega_g = v_g^T P_g
    v_g ~ chi^2(r_g)`` (the group variance-factor test JAG3D reports). A global test computed
    after the variance factors were fitted to the same residuals cannot fail (its sigma0 is 1
    by construction), so these are the tests of the stochastic model.
-3. **Screening** (:func:`screening`, with VCE): gross errors out before VCE (Koch 1999, sec.
-   3.8). VCE fitted to data with blunders inflates the factors until the blunders look normal
-   (a 1 m range error turns the range factor into ~5,000 and hides itself). Each group's scale
-   is estimated robustly, ``s_g = median |u_i| / 0.6745`` of ``u_i = v_i / (sigma_i sqrt(r_i))``
-   (a few blunders do not move a median), which first rebalances groups whose a priori sigmas
-   are far off; then the largest ``|u_i| / s_g`` above the family-wise critical value
-   ``N^-1(1 - alpha_s / (2 n))`` is removed and the network re-adjusted, until none is; the a
-   priori tests are repeated on the screened observations.
+3. **Screening** (:func:`screening`, for any weighting): gross errors out before VCE (Koch
+   1999, sec. 3.8). VCE fitted to data with blunders inflates the factors until the blunders
+   look normal (a 1 m range error turns the range factor into ~5,000 and hides itself). Each
+   group's scale is estimated robustly, ``s_g = median |u_i| / 0.6745`` of ``u_i = v_i /
+   (sigma_i sqrt(r_i))`` (a few blunders do not move a median), which first rebalances groups
+   whose a priori sigmas are far off (undone afterwards without VCE); then the largest
+   ``|u_i| / s_g`` above the family-wise critical value ``N^-1(1 - alpha_s / (2 n))`` is
+   removed and the network re-adjusted, until none is, or until a candidate term's score
+   statistic exceeds ``u_i^2`` (:func:`_systematic`: the misfit is systematic, and a warning
+   names the term); the a priori tests are repeated on the screened observations.
 4. **Variance components** (:func:`variance_components`): VCE per group, range, horizontal
    direction, elevation angle and levelling (Förstner 1979; Koch 1999, sec. 3.6), ``s_g^2 =
    v_g^T P_g v_g / r_g``; the group's sigmas are multiplied by ``s_g`` and the adjustment is
@@ -33,13 +41,16 @@ Each step is ``step(ctx, state) -> state`` over the explicit :class:`._pipeline.
    with the sigmas in use (after VCE: the re-estimated group sigmas); the largest ``|w_i|``
    above the critical value (3.29 for alpha = 0.1 %) is removed, the network re-adjusted and
    the variance components re-estimated, until no test rejects. Every removal is reported.
-6. **Selection** (:func:`selection`): a slot, no-op today, for a step that changes the model
-   (add or drop a term) on the tested network.
+6. **Selection** (:func:`selection`): a slot for a step that changes the model on the tested
+   network; stepwise selection (:func:`tlsjax.select_aps`) runs the robust start and screening
+   itself and enters terms by their score tests.
+7. **Missing terms** (:func:`missing_terms`): the score test of every candidate term not in
+   the model at the final adjustment (:mod:`._score`).
 
-Where a later step competes with a removal (Baarda's alternative hypotheses, SPEC section 7:
-the score test ``T_c`` of a term missing from the model against the largest ``w_i^2``), it
-belongs in :func:`_largest_w`'s callers: both screening and snooping act on the largest
-statistic of one decision.
+Both screening and the robust start weigh a removal against the candidate terms (Baarda's
+alternative hypotheses, SPEC section 7: the score test ``T_c`` of a term missing from the model
+against the largest ``w_i^2``), so a systematic misfit becomes a term and only an isolated one
+a removal.
 """
 
 from __future__ import annotations
@@ -49,18 +60,21 @@ import dataclasses
 import numpy as np
 
 from ._pipeline import (
+    ROUNDING_SIGMA,
     NamedStep,
     TestingContext,
     TestingState,
     add_history,
     add_warning,
     adjust,
+    dominant_misfit,
     group_statistics,
     plane_w,
     remove,
     remove_plane_point,
     restore_last_ok,
     rounding_groups,
+    score_tests_at,
     sigmas,
     with_factors,
 )
@@ -90,8 +104,140 @@ ROBUST_REWEIGHTING = 4
 
 
 def robust_start(ctx: TestingContext, state: TestingState) -> TestingState:
-    """Slot for a high-breakdown start (module docstring): nothing yet."""
-    return state
+    """Gross errors out before the first least-squares adjustment (module docstring, step 1):
+    iteratively reweighted adjustments with the IGG-III weight of the robustly normalised
+    residuals, first with the APs held at zero (the geometry alone: a blunder of metres stands
+    out of any systematic misfit), then with the model's APs; the observations beyond the
+    family-wise critical value at the last reweighting are removed and reported, and the
+    least-squares steps start from their estimates. On with ``screening`` and ``robust_start``."""
+    t = ctx.options
+    if not (t.screening and t.robust_start):
+        return state
+    start = state
+    labels = tuple(ctx.reweighter.plan.ap_labels)
+    # Before any step: the misclosures at the approximate values (APs at zero) set the first
+    # weights, so that the first adjustment already gives a blunder of metres no weight.
+    at_x0 = adjust(ctx, dataclasses.replace(state, fixed_aps=labels or None), max_iterations=0)
+    z, _ = _robust_normalised(ctx, at_x0)
+    factor = _igg3_factor(ctx, z, np.ones_like(ctx.base_sigma), gross=True)
+    state = dataclasses.replace(state, n_adjustments=at_x0.n_adjustments)
+    for fixed in (labels, None) if labels else (None,):
+        state = dataclasses.replace(state, fixed_aps=fixed)
+        state, factor = _reweight(ctx, state, factor, gross=fixed is not None)
+    if state.adjusted is None or not state.adjusted.result.ok:
+        # Nothing robust to go on: the least-squares steps start as before (and report).
+        return dataclasses.replace(start, n_adjustments=state.n_adjustments)
+    u, scale = _robust_normalised(ctx, state)
+    n = int(np.isfinite(u).sum())
+    k1 = critical_value(t.screening_alpha / max(n, 1))
+    # Baarda's alternatives compared (SPEC section 7): where a missing term explains more of
+    # the misfit than removing an observation would, that observation stays (the tails of a
+    # systematic misfit are not blunders); the term is named by the score tests at the end.
+    tests = score_tests_at(ctx, state) if t.score_tests else None
+    best = tests.best() if tests is not None else None
+    floor = best.statistic if best is not None and best.significant else 0.0
+    state = dataclasses.replace(state, robust_factor=None, fixed_aps=None)
+    why = f"robust start: |w| / robust scale above the family-wise critical value {k1:.2f}"
+    kept = 0
+    for i, g in _beyond(u, k1):
+        if u[i, g] ** 2 * scale[g] ** 2 <= floor:
+            kept += 1
+        elif state.mask[i, g]:
+            state = remove(ctx, state, i, g, u, why)
+    if kept:
+        state = add_warning(
+            state,
+            f"robust start: {kept} observation(s) beyond {k1:.2f} kept: the term {best.name} "
+            f"({best.group}) explains more of the misfit (T = {best.statistic:.1f}) than "
+            "removing any of them would",
+        )
+    return dataclasses.replace(state, last_ok=None, adjusted=None)
+
+
+#: Upper end of the IGG-III band of the stages without APs, in family-wise critical values.
+GROSS_BAND = 4.0
+#: Largest number of reweighted adjustments per stage of the robust start.
+ROBUST_ITERATIONS = 8
+#: Smallest weight factor of the robust start: small enough that a blunder of metres has no
+#: effect, large enough that its residual and redundancy number stay defined (weight 0 means
+#: removed, :mod:`tlsjax._adjustment._quality`).
+ROBUST_FLOOR = 1e-8
+
+
+def _robust_normalised(ctx: TestingContext, state: TestingState):
+    """``u_i / s_g``, NaN where removed or untestable, and the scales ``s_g`` (the robust scale
+    of each group's u's). ``u_i`` is the residual of observation i deleted from the reweighted
+    adjustment, ``d_i = v_i / r_i``, over its standard deviation ``sqrt(sigma_i^2 + q_i)``
+    (``q_i`` the variance of its prediction by the others): with weight factor ``f`` and
+    redundancy number ``r`` of the reweighted adjustment (Sherman-Morrison),
+
+        u_i = v_i sqrt(f) / (sigma_i sqrt(r) sqrt(f r + 1 - r)),
+
+    Baarda's w-test when f = 1, and for a down-weighted observation its misclosure against
+    the others in units of its full standard deviation: near the nadir, where the others fix
+    a target's horizontal direction poorly, a correct direction is not mistaken for a blunder."""
+    res = state.result
+    f = np.ones_like(ctx.base_sigma) if state.robust_factor is None else state.robust_factor
+    r = np.clip(res.redundancy, 0.0, 1.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r_full = r * (f * r + 1.0 - r) / f  # so that v / (sigma sqrt(r_full)) is u above
+    u = np.where(state.mask, w_tests(res.residuals, sigmas(ctx, state), r_full), np.nan)
+    scale = np.full(3, np.nan)
+    for g in range(3):
+        keep = np.isfinite(u[:, g]) & (res.redundancy[:, g] >= ctx.options.min_redundancy)
+        scale[g] = robust_scale(u[:, g], keep, MIN_SCREENED)
+    # Residuals at rounding level (noise-free data): nothing to judge (rounding is no blunder).
+    rounding = scale * np.median(ctx.base_sigma, axis=0) < np.asarray(ROUNDING_SIGMA[:3])
+    ok = np.isfinite(scale) & (scale > 0) & ~rounding
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return u / np.where(ok, scale, np.nan)[None, :], scale
+
+
+def _reweight(ctx: TestingContext, state: TestingState, factor, gross: bool):
+    """IGG-III reweighting (Yang 1999; :func:`._robust.igg3`) to a fixed point: k0 the per-test
+    critical value of the w-test, k1 the family-wise one. Returns the state (with the weight
+    factors in use) and the factors; an adjustment that fails ends it at the last good one."""
+    for _ in range(ROBUST_ITERATIONS):
+        trial = adjust(ctx, dataclasses.replace(state, robust_factor=factor))
+        if not trial.ok:
+            return (state if state.adjusted is not None else trial), factor
+        state = trial
+        z, _ = _robust_normalised(ctx, state)
+        if not np.isfinite(z).any():
+            return state, factor
+        new = _igg3_factor(ctx, z, factor, gross)
+        done = np.max(np.abs(new - factor)) < 1e-3
+        factor = new
+        if done:
+            break
+    return state, factor
+
+
+def _igg3_factor(ctx: TestingContext, z, factor, gross: bool = False):
+    """IGG-III weight factors of the robustly normalised residuals ``z`` (k0 the per-test
+    critical value, k1 the family-wise one), at least :data:`ROBUST_FLOOR`; ``factor`` where
+    ``z`` is not finite. ``gross``: the band of the stages with the APs held at zero, from the
+    family-wise value to :data:`GROSS_BAND` times it: there the systematic misfit of the
+    missing APs widens the tails (steep targets under collimation and trunnion errors), and
+    only errors far beyond it may lose their weight, or the APs lose the observations that
+    determine them."""
+    from ._robust import igg3
+
+    t = ctx.options
+    n = max(int(np.isfinite(z).sum()), 1)
+    k0 = critical_value(t.alpha)
+    k1 = max(critical_value(t.screening_alpha / n), k0 + 0.5)
+    if gross:
+        k0, k1 = k1, GROSS_BAND * k1
+    return np.where(np.isfinite(z), np.maximum(igg3(z, k0, k1), ROBUST_FLOOR), factor)
+
+
+def _beyond(z, k):
+    """(row, group) of every finite ``|z| > k``, largest first."""
+    az = np.where(np.isfinite(z), np.abs(z), -1.0)
+    idx = np.argwhere(az > k)
+    order = np.argsort(-az[idx[:, 0], idx[:, 1]]) if len(idx) else []
+    return [(int(idx[j, 0]), int(idx[j, 1])) for j in order]
 
 
 # --- 2. A priori tests ------------------------------------------------------------------------
@@ -102,7 +248,12 @@ def a_priori_tests(ctx: TestingContext, state: TestingState) -> TestingState:
     fails, a warning that names a far-off sigma0 (a unit mix-up of all groups)."""
     state = adjust(ctx, state)
     if state.ok:
-        return record_a_priori_tests(ctx, state, "all observations")
+        n = len(state.removals)
+        stage = f"after the robust start ({n} removed)" if n else "all observations"
+        return record_a_priori_tests(ctx, state, stage)
+    dominant = dominant_misfit(ctx, state)
+    if dominant:
+        return add_warning(state, f"at the failed first adjustment: {dominant}")
     if np.isfinite(state.result.sigma0):
         hint = implausible_factor("all groups", state.result.sigma0**2)
         if hint:
@@ -129,16 +280,19 @@ def record_a_priori_tests(ctx: TestingContext, state: TestingState, stage: str) 
 
 def screening(ctx: TestingContext, state: TestingState) -> TestingState:
     """Gross-error screening before VCE (module docstring), then the a priori tests again on
-    the screened observations. Only with ``screening``, ``vce`` or plane points (they have no
-    VCE, and the robust scale protects the snooping that follows) and a first adjustment that
+    the screened observations. With ``screening`` (any weighting: without ``vce`` the robust
+    group balancing is undone afterwards and the a priori sigmas kept; plane points have no VCE,
+    and the robust scale protects the snooping that follows) and a first adjustment that
     succeeded."""
     t = ctx.options
-    if not (state.ok and (t.vce or ctx.network.has_planes) and t.screening):
+    if not (state.ok and t.screening):
         return state
     n_before = len(state.removals)
     state = _screen(ctx, state)
     if len(state.removals) > n_before and state.ok:
         state = _a_priori_after_screening(ctx, state)
+    if not t.vce and np.any(state.factor != 1.0):
+        state = adjust(ctx, with_factors(state, np.ones(4)))
     return state
 
 
@@ -238,6 +392,12 @@ def _screen(ctx: TestingContext, state: TestingState) -> TestingState:
         i, g, top = _largest_w(w, wp)
         if top <= crit:
             return state
+        # A gross error (far beyond the band of a systematic misfit's tails, GROSS_BAND) is
+        # removed without asking: a first least-squares adjustment spreads it over the
+        # residuals, so a candidate term can look as if it explained it.
+        term = _systematic(ctx, state, u[i, g]) if top <= GROSS_BAND * crit else None
+        if term is not None:
+            return add_warning(state, term)
         if removed >= limit or len(state.removals) >= t.max_removals:
             return add_warning(
                 state,
@@ -254,6 +414,24 @@ def _screen(ctx: TestingContext, state: TestingState) -> TestingState:
         removed += 1
         if not state.ok:
             return state
+
+
+def _systematic(ctx: TestingContext, state: TestingState, u_top: float) -> str | None:
+    """Baarda's alternative hypotheses compared (SPEC section 7): the reduction of ``v^T P v``
+    by removing the observation with the largest w-test, ``w^2``, against the largest score
+    statistic ``T_c`` of a candidate term (:mod:`._score`), both with the weights in use. When a
+    significant term explains more, the misfit is systematic: screening stops (a warning
+    names the term) instead of removing correct observations."""
+    tests = score_tests_at(ctx, state) if ctx.options.score_tests else None
+    best = tests.best() if tests is not None else None
+    if best is None or not best.significant or not best.statistic > u_top**2:
+        return None
+    return (
+        f"screening stopped: the largest misfit is systematic, not a blunder: the term "
+        f"{best.name} ({best.group}) would reduce v^T P v by {best.statistic:.1f} "
+        f"({100 * best.share:.1f}%), more than removing the observation with the largest w-test "
+        f"(w^2 = {u_top**2:.1f}); add it to the model (or use stepwise selection)"
+    )
 
 
 def _a_priori_after_screening(ctx: TestingContext, state: TestingState) -> TestingState:
@@ -408,8 +586,20 @@ def _snoop_once(ctx: TestingContext, state: TestingState):
 
 
 def selection(ctx: TestingContext, state: TestingState) -> TestingState:
-    """Slot for a step that changes the model on the tested network (module docstring)."""
+    """Slot for a step that changes the model on the tested network (module docstring);
+    stepwise selection (:func:`tlsjax.select_aps`) runs outside, on the screened observations."""
     return state
+
+
+# --- 7. Score tests of the missing terms ------------------------------------------------------
+
+
+def missing_terms(ctx: TestingContext, state: TestingState) -> TestingState:
+    """The score test of every candidate term not in the model at the final adjustment
+    (:mod:`._score`), with ``score_tests``."""
+    if not ctx.options.score_tests:
+        return state
+    return dataclasses.replace(state, score_tests=score_tests_at(ctx, state))
 
 
 #: The steps of :func:`tlsjax.calibrate_and_test`, in order: the one place they are listed.
@@ -420,4 +610,5 @@ PIPELINE = (
     NamedStep("variance components", variance_components),
     NamedStep("data snooping", data_snooping),
     NamedStep("selection", selection),
+    NamedStep("missing terms", missing_terms),
 )

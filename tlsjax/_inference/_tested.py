@@ -30,7 +30,11 @@ class TestingOptions:
     ``vce``: estimate one variance factor per group (point-based networks). ``vce_tolerance``:
     stop when every ``|s_g^2 - 1|`` is below it; ``vce_min_redundancy``: a group with a smaller
     redundancy keeps its a priori sigma (its estimate would be mostly noise).
-    ``screening``: with ``vce``, remove gross errors before VCE (robust group scales,
+    ``robust_start``: before the least-squares steps, iteratively reweighted adjustments with a
+    redescending weight (:func:`tlsjax._inference._steps.robust_start`) find and remove gross
+    errors (metres, swapped names, a target in the wrong scan) that a first least-squares
+    adjustment would spread over correct observations; on whenever ``screening`` is.
+    ``screening``: remove gross errors before VCE and snooping, for any weighting (robust group scales,
     family-wise level ``screening_alpha``, Bonferroni over the tested observations: a clean
     network loses an observation with probability ``screening_alpha``); it stops when more than
     ``screening_max_share`` of the observations would go (then the model, not a few blunders,
@@ -46,7 +50,10 @@ class TestingOptions:
     the target in that scan). ``alpha0``, ``power``: reliability (delta0 = 4.13).
     ``min_redundancy``: observations with a smaller redundancy number are flagged uncontrolled.
     ``ap_alpha``: significance level of the AP t-tests; ``test_alpha``: level of the global and
-    group tests.
+    group tests. ``score_tests``: after the last adjustment, the score test of every candidate
+    term not in the model (``candidates``, default every registered term of the model's naming;
+    :mod:`._score`), family-wise level ``score_alpha``; screening compares them with the
+    largest w-test (SPEC section 7) so that a systematic misfit is named, not removed.
     """
 
     vce: bool = True
@@ -67,11 +74,15 @@ class TestingOptions:
     min_redundancy: float = 0.1
     ap_alpha: float = 0.05
     test_alpha: float = 0.05
+    robust_start: bool = True
+    score_tests: bool = True
+    score_alpha: float = 0.05
+    candidates: tuple | None = None
 
     def __post_init__(self):
         if self.removal not in REMOVAL_UNITS:
             raise ValueError(f"removal must be one of {REMOVAL_UNITS}, got {self.removal!r}")
-        for name in ("alpha", "screening_alpha", "test_alpha"):
+        for name in ("alpha", "screening_alpha", "test_alpha", "score_alpha"):
             if not 0 < getattr(self, name) < 1:
                 raise ValueError(f"{name} must be in (0, 1), got {getattr(self, name)}")
         if self.critical_value is not None and not self.critical_value > 0:
@@ -236,6 +247,7 @@ class TestedCalibration:
     plane_mdb: np.ndarray | None = None
     plane_external: np.ndarray | None = None
     plane_external_ap: np.ndarray | None = None
+    score_tests: object = None  # ._score.ScoreTests, or None (off, failed or several scanners)
 
     @property
     def ok(self) -> bool:
@@ -269,8 +281,10 @@ class TestedCalibration:
             },
             "a_priori_tests": list(self.a_priori_tests),
             "screening": {
-                "enabled": bool(
-                    self.options.screening and (self.options.vce or self.plane_mask is not None)
+                "enabled": bool(self.options.screening),
+                "robust_start": bool(self.options.screening and self.options.robust_start),
+                "n_removed_robust_start": sum(
+                    o.reason.startswith("robust start") for o in self.outliers
                 ),
                 "critical_value": self.screening_critical_value,
                 "family_alpha": self.options.screening_alpha,
@@ -291,6 +305,8 @@ class TestedCalibration:
             "warnings": list(self.warnings),
             "testing_message": self.message,
         }
+        if self.score_tests is not None:
+            out["score_tests"] = self.score_tests.as_json()
         if self.a_priori_tests and self.weights_fitted:
             out["global_test"] = {**self.a_priori_tests[-1]["global"], "stage": "a priori"}
             out["global_test_after_vce"] = {
@@ -336,6 +352,8 @@ class TestedCalibration:
             )
         for w in self.warnings:
             lines.append(f"warning: {w}")
+        if self.score_tests is not None:
+            lines.append(self.score_tests.summary())
         if not self.ok:  # no t-tests of estimates that are not a calibration
             lines.append("  no AP t-tests: the run failed, its estimates are not a calibration")
         for t in self.ap_tests if self.ok else ():

@@ -28,6 +28,7 @@ from .._stats import non_centrality
 from ._pipeline import (
     TestingContext,
     TestingState,
+    dominant_misfit,
     group_statistics,
     plane_w,
     removed_plane_residuals,
@@ -56,9 +57,12 @@ def calibrate_and_test(
     """Self-calibration with a priori tests, gross-error screening, variance component
     estimation, Baarda data snooping, reliability and AP t-tests (SPEC sections 5 and 7).
 
-    Order (:data:`tlsjax._inference._steps.PIPELINE`): adjust with the a priori sigmas and test
-    them (global test and one test per group); with ``testing.vce`` screen out gross errors
-    (robust group scales, family-wise level) and then re-estimate the group variance factors
+    Order (:data:`tlsjax._inference._steps.PIPELINE`): with ``testing.screening`` (any
+    weighting) a robust start removes gross errors before the first least-squares adjustment
+    (IGG-III reweighting from the misclosures at the approximate values); adjust with the a
+    priori sigmas and test them (global test and one test per group); screen out gross errors
+    (robust group scales, family-wise level; a removal is weighed against the score tests of the
+    missing terms); with ``testing.vce`` re-estimate the group variance factors
     ``s_g^2 = v_g^T P_g v_g / r_g`` (Förstner 1979) until all are 1 within ``vce_tolerance``,
     or until a safeguard stops it with a :class:`VCEResult` and its reason; with
     ``testing.snooping`` compute ``w_i = v_i / (sigma_i sqrt(r_i))`` (Baarda 1968), give the
@@ -77,6 +81,8 @@ def calibrate_and_test(
     rejected point removed as a whole (weight 0 for its three observations) and reported with
     its range residual; a plane keeps at least three points in every scan. Plane weights are
     held fixed (no variance component, SPEC section 5); a network of planes only has no VCE.
+    Last, with ``testing.score_tests``, the score test of every candidate term not in the
+    model (:func:`tlsjax.score_tests`).
     """
     check_calibration_arguments(network, model, options, "calibrate_and_test")
     if testing is not None and not isinstance(testing, TestingOptions):
@@ -115,7 +121,12 @@ def tested_calibration(ctx: TestingContext, state: TestingState) -> TestedCalibr
         (int(i), GROUPS[g]) for i, g in zip(*np.nonzero(mask & (res.redundancy < t.min_redundancy)))
     )
     vcs = _variance_components(ctx, state)
-    warnings = state.warnings + _factor_warnings(state, vcs, vce_result)
+    dominant = dominant_misfit(ctx, state) if state.adjusted is not None else None
+    warnings = state.warnings + (
+        () if dominant else _factor_warnings(state, vcs, vce_result)
+    )  # one observation holding the misfit says nothing about the units
+    if dominant and not any(dominant in w for w in warnings):
+        warnings += (dominant,)
     parts = [res.message]
     if ctx.vce:
         parts.append(vce_result.message)
@@ -142,7 +153,7 @@ def tested_calibration(ctx: TestingContext, state: TestingState) -> TestedCalibr
         external=ext,
         external_ap=ext_ap,
         uncontrolled=unc,
-        ap_tests=ap_t_tests(res, t.ap_alpha),
+        ap_tests=ap_t_tests(res, t.ap_alpha) if res.ok else (),
         pinned_targets=tuple(ctx.network.targets[i] for i in state.pinned),
         history=state.history,
         n_adjustments=state.n_adjustments,
@@ -152,6 +163,7 @@ def tested_calibration(ctx: TestingContext, state: TestingState) -> TestedCalibr
         vce_iterations=state.vce_iterations,
         screening_critical_value=state.screening_critical_value,
         warnings=warnings,
+        score_tests=state.score_tests,
         **planes,
     )
 

@@ -66,7 +66,9 @@ class ExtractedPlanes:
         plane = self.point_plane
         keep = plane >= 0
         scans = tuple(self.scans[s] for s in self.point_scan[keep])
-        prims = tuple(f"P{g + 1}" for g in plane[keep])
+        # One string object per plane, shared by its points (not one per point).
+        names = [f"P{g + 1}" for g in range(len(self.planes))]
+        prims = tuple(names[g] for g in plane[keep])
         return ObservationTable(
             kind="plane",
             source="<extracted planes>",

@@ -473,7 +473,8 @@ def read_network(
     ``observations_path``: a target or a plane observation CSV (told apart by its ``target`` or
     ``plane`` column), or a table already read (e.g. :func:`~tlsjax.read_target_list` of vendor
     target lists). ``planes``: a plane CSV or an extracted-planes ``.npz`` besides a target
-    file (a combined network), or instead of it. Missing sigma cells take the group defaults of
+    file (a combined network), or instead of it, or a plane table already read (e.g. thinned by
+    :func:`~tlsjax.thin_planes`). Missing sigma cells take the group defaults of
     :func:`~tlsjax.make_network` (or the ``sigma_range``/``sigma_hz``/``sigma_el`` given here);
     errors name the file and line. The architecture a file records is checked against
     ``architecture`` (and used for the angle checks when that is None).
@@ -488,7 +489,9 @@ def read_network(
     table = observations_path
     if table is not None and not isinstance(table, ObservationTable):
         table = read_observations(observations_path)
-    plane_table = read_planes(planes) if planes is not None else None
+    plane_table = planes
+    if planes is not None and not isinstance(planes, ObservationTable):
+        plane_table = read_planes(planes)
     if table is not None and table.kind == "plane":
         if plane_table is not None:
             raise ValueError(

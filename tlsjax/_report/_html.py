@@ -33,6 +33,7 @@ from .._stats import DELTA0
 from .._units import ARCSEC, DISPLAY_UNITS
 from .._version import __version__
 from ._json import scanner_settings as scanner_settings
+from ._text import confoundings
 
 _GROUPS = ("range", "hz", "el")
 _GROUP_UNIT = {
@@ -202,22 +203,63 @@ def _section_design(doc) -> str:
     return "<h2>Design and adjustment</h2>" + _table(("quantity", "value"), rows, "kv")
 
 
+def _verdict(accepted) -> str:
+    if accepted is None:
+        return f'<span class="na">{NOT_COMPUTED}</span>'
+    v = "accepted" if accepted else "rejected"
+    return f'<b class="{v}">{v}</b>'
+
+
+def _test_row(test, stage, g, factor=False) -> tuple:
+    """One row of the test sequence: a global test (T = s0^2 r) or a group test (its
+    variance factor Omega_g / r_g), with the two-sided bounds of T and the p-value."""
+    if not g or g.get("statistic") is None:
+        return (test, _e(stage), "&ndash;", _fmt((g or {}).get("dof"), 1), "&ndash;", "&ndash;")
+    value = _fmt(g.get("factor"), 4) if factor else _fmt(g["statistic"], 1)
+    return (
+        test,
+        _e(stage),
+        value,
+        _fmt(g.get("dof"), 1),
+        f"{_fmt(g['lower'], 1)} .. {_fmt(g['upper'], 1)}",
+        _fmt(g.get("p_value"), 4),
+        _verdict(g.get("accepted")),
+    )
+
+
 def _section_global(doc) -> str:
+    """The test sequence in the order it ran: the global and group tests with the a priori
+    sigmas (all observations, then after screening when it removed any), the removals (in
+    :func:`_section_outliers`), the test of the final adjustment, and sigma0 after VCE, which
+    is no test (the factors were fitted to its residuals)."""
+    rows = []
+    for st in doc.get("a_priori_tests") or []:
+        stage = f"a priori sigmas, {st.get('stage', '')}"
+        rows.append(_test_row("global (T = s0&sup2; r)", stage, st.get("global")))
+        for name, t in (st.get("groups") or {}).items():
+            rows.append(_test_row(f"group {_e(name)} (factor)", stage, t, factor=True))
     g = doc.get("global_test") or {}
-    if g.get("statistic") is None:
-        return "<h2>Global test</h2>" + _na("global test", "no degrees of freedom")
-    verdict = "accepted" if g.get("accepted") else "rejected"
-    rows = [
-        ("a posteriori sigma0 [-]", _fmt(doc.get("sigma0"), 4)),
-        ("T = s0&sup2; r [-]", _fmt(g["statistic"], 1)),
-        (
-            f"two-sided bounds at &alpha; = {g['alpha']}",
-            f"{_fmt(g['lower'], 1)} .. {_fmt(g['upper'], 1)}",
-        ),
-        ("p-value", _fmt(g.get("p_value"), 4)),
-        ("a priori stochastic model", f'<b class="{verdict}">{verdict}</b>'),
-    ]
-    return "<h2>Global test (&chi;&sup2;)</h2>" + _table(("quantity", "value"), rows, "kv")
+    after_vce = doc.get("global_test_after_vce")
+    if after_vce is None and g.get("stage") != "a priori":
+        stage = "final adjustment" + (" (after the removals)" if doc.get("outliers") else "")
+        rows.append(_test_row("global (T = s0&sup2; r)", stage, g))
+    head = ("test", "stage", "T or factor", "dof / r_g", "two-sided bounds", "p-value", "decision")
+    alpha = g.get("alpha", 0.05)
+    out = (
+        f"<h2>Tests (&chi;&sup2;, two-sided, &alpha; = {alpha})</h2>"
+        "<p>In the order they ran. A group's factor is &Omega;<sub>g</sub> / r<sub>g</sub>, its "
+        "statistic &Omega;<sub>g</sub> = v<sub>g</sub><sup>T</sup> P<sub>g</sub> v<sub>g</sub> "
+        "against &chi;&sup2;(r<sub>g</sub>).</p>" + _table(head, rows, "tests")
+    )
+    sigma0 = doc.get("sigma0")
+    if after_vce is not None:
+        out += (
+            f"<p>sigma0 after variance component estimation = {_fmt(after_vce.get('sigma0'), 4)}"
+            f": <b>not a test</b> ({_e(str(after_vce.get('note', '')).removesuffix(': not a test'))}).</p>"
+        )
+    else:
+        out += f"<p>a posteriori sigma0 of the final adjustment = {_fmt(sigma0, 4)}.</p>"
+    return out
 
 
 def _section_aps(doc) -> str:
@@ -248,30 +290,23 @@ def _section_aps(doc) -> str:
     if doc.get("estimates", "valid") != "valid":
         out += f'<p class="flag"><b>No calibration:</b> {_e(doc["estimates"])}</p>'
     out += _table(head, rows, "aps") if rows else _na("APs")
-    if bad:
-        items = "".join(
-            f"<li><b>{_e(n)}</b>: {_e(w.get('reason') or '')} (confounded with {_e(w.get('confounded_with'))})</li>"
-            for n, w in bad.items()
-        )
-        out += f"<h3>Not estimable</h3><ul>{items}</ul>"
-    else:
-        out += "<p>Not estimable: none.</p>"
-    if weak:
-        items = "".join(
-            f"<li><b>{_e(n)}</b>: |corr| {_fmt(w.get('max_abs_corr'), 3)} with {_e(w.get('correlated_with'))}</li>"
-            for n, w in weak.items()
-        )
-        out += f"<h3>Weakly determined (max |corr| above the threshold)</h3><ul>{items}</ul>"
-    else:
-        out += "<p>Weakly determined: none.</p>"
+    found = doc.get("confoundings")
+    if found is None:  # a JSON of an older tlsjax
+        found = confoundings(doc.get("not_estimable"), doc.get("weakly_determined"))
+    for kind in ("not estimable", "weakly determined"):
+        items = "".join(f"<li>{_e(c['text'])}</li>" for c in found if c["kind"] == kind)
+        title = kind[0].upper() + kind[1:]
+        out += f"<h3>{title}</h3><ul>{items}</ul>" if items else f"<p>{title}: none.</p>"
     return out
 
 
 def _section_variance(doc) -> str:
     vc = doc.get("variance_components") or {}
     if not vc:
-        return "<h2>Variance components</h2>" + _na(
-            "variance components", "run calibrate with --vce (target networks)"
+        return (
+            "<h2>Variance components</h2>"
+            + _na("variance components", "run calibrate with --vce (target networks)")
+            + _group_table(doc)
         )
     rows = []
     items = vc.items() if isinstance(vc, dict) else [(v.get("group"), v) for v in vc]
@@ -291,7 +326,28 @@ def _section_variance(doc) -> str:
             )
         )
     head = ("group", "factor [-]", "a priori sigma", "estimated sigma", "r_g", "n")
-    return "<h2>Variance components</h2>" + _table(head, rows)
+    return "<h2>Variance components</h2>" + _table(head, rows) + _group_table(doc)
+
+
+def _group_table(doc) -> str:
+    """Per observation group: n, r_g, the variance factor of the final adjustment with its
+    test, the factor as VCE estimated it and the a priori factor (the JSON's group_table)."""
+    rows = [
+        (
+            _e(g["group"]),
+            g["n"],
+            _fmt(g.get("redundancy"), 1),
+            _fmt(g.get("variance_factor"), 4),
+            _verdict(g.get("accepted")) if g.get("variance_factor") is not None else "&ndash;",
+            _fmt(g.get("vce_factor"), 4),
+            _fmt(g.get("a_priori_factor"), 4),
+        )
+        for g in doc.get("group_table") or []
+    ]
+    if not rows:
+        return ""
+    head = ("group", "n", "r_g", "factor, final", "test", "factor, VCE", "factor, a priori")
+    return "<h3>Observation groups</h3>" + _table(head, rows, "groups")
 
 
 def _section_redundancy(doc) -> str:
@@ -356,20 +412,62 @@ def _section_reliability(doc) -> str:
     return out
 
 
+def _removal_stages(outliers) -> dict:
+    """step -> the stage that made its removals: the robust start, screening before VCE or data
+    snooping (a consequential removal, e.g. the other two observations of a rejected target,
+    shares its step)."""
+    stages = {}
+    for o in outliers:
+        reason = str(o.get("reason", ""))
+        if reason.startswith("robust start"):
+            stages[o.get("step")] = "robust start"
+        elif reason.startswith("screening"):
+            stages[o.get("step")] = "screening (before VCE)"
+    return {o.get("step"): stages.get(o.get("step"), "data snooping") for o in outliers}
+
+
 def _section_outliers(doc) -> str:
-    if "snooping" not in doc:
-        return "<h2>Outliers</h2>" + _na("data snooping", "run calibrate with --snoop")
+    """Every removal with the stage that made it (screening before VCE, data snooping), the
+    input file's line, the residual in mm or arc seconds and its test statistic."""
+    parts = []
+    scr, sn = doc.get("screening") or {}, doc.get("snooping") or {}
+    if scr.get("enabled"):
+        parts.append(
+            f"screening before VCE (robust w, family-wise &alpha; = {_fmt(scr.get('family_alpha'), 4)}, "
+            f"critical value {_fmt(scr.get('critical_value'), 2)}): {scr.get('n_removed', 0)} removal(s)"
+        )
+    if sn.get("enabled"):
+        parts.append(
+            f"Baarda data snooping (critical value {_fmt(sn.get('critical_value'), 2)}, "
+            f"one removal per adjustment)"
+        )
+    ps = doc.get("plane_screening")
+    if ps:
+        parts.append(f"plane points: {_e(ps.get('method'))}: {ps.get('n_removed', 0)} removed")
+    if not parts:
+        return "<h2>Removals</h2>" + _na(
+            "screening and data snooping", "run calibrate with --snoop"
+        )
     out = doc.get("outliers") or []
-    sn = doc["snooping"]
-    txt = f"<p>Baarda data snooping, critical value {_fmt(sn.get('critical_value'), 2)}: {len(out)} removal(s).</p>"
-    if not out:
-        return "<h2>Outliers</h2>" + txt
-    keys = [k for k in out[0] if not isinstance(out[0][k], (dict, list))]
-    rows = [
-        tuple(_e(o.get(k)) if not isinstance(o.get(k), float) else _fmt(o.get(k), 3) for k in keys)
-        for o in out
-    ]
-    return "<h2>Outliers</h2>" + txt + _table(keys, rows)
+    txt = "<p>" + "; ".join(parts) + f". {len(out)} target observation(s) removed.</p>"
+    rows, stages = [], _removal_stages(out)
+    for o in out:
+        unit = "mm" if o.get("group") == "range" else '"'
+        rows.append(
+            (
+                o.get("step"),
+                stages[o.get("step")],
+                _e(o.get("line") if o.get("line") is not None else "&ndash;"),
+                _e(o.get("scan")),
+                _e(o.get("target")),
+                _e(o.get("group")),
+                f"{_fmt(o.get('residual'), 2)} {unit}",
+                _fmt(o.get("w"), 2),
+                _e(o.get("reason")),
+            )
+        )
+    head = ("step", "stage", "line", "scan", "target", "group", "residual", "w", "reason")
+    return "<h2>Removals</h2>" + txt + (_table(head, rows, "removals") if rows else "")
 
 
 def _section_eops(doc) -> str:
@@ -440,7 +538,7 @@ h1{font-size:22px;border-bottom:2px solid #234;padding-bottom:4px}h2{font-size:1
 h3{font-size:15px}table{border-collapse:collapse;margin:8px 0}td,th{border:1px solid #bbb;padding:3px 8px;text-align:right}
 th{background:#e8eef4}td:first-child,th:first-child{text-align:left}table.kv td:last-child{text-align:left}
 table.aps td:nth-child(2){text-align:left;font-size:12px;color:#444}.flag{color:#b00;font-weight:bold}
-.na{color:#777;font-style:italic}.accepted{color:#070}.rejected{color:#b00}table.small{font-size:12px}
+.na{color:#777;font-style:italic}table.removals{font-size:12px}table.tests td:nth-child(2){text-align:left}.accepted{color:#070}.rejected{color:#b00}table.small{font-size:12px}
 figure{margin:12px 0}img{max-width:100%;border:1px solid #ccc}figcaption{font-size:12px;color:#555}
 """
 

@@ -12,7 +12,7 @@ from .._inference._statistics import ap_notes, global_test
 from .._io._json import to_json_value, write_json_file
 from .._io._target_lists import ELLIPSOID_95
 from .._model._aps import get_ap
-from ._text import EOP_NAMES
+from ._text import EOP_NAMES, confoundings
 
 #: Result codes whose estimates are numbers (converged, possibly with non-estimable APs held).
 _ESTIMATES_VALID = (0, 2)
@@ -242,6 +242,7 @@ def _result_dict(res, alpha: float) -> dict:
             {"name": n, "correlated_with": w, "max_abs_corr": c}
             for n, w, c in res.weakly_determined
         ],
+        "confoundings": confoundings(res.not_estimable, res.weakly_determined),
         "rank_deficient": list(res.rank_deficient),
         "weighted_constraints": res.weighted_constraints(),
         "estimates": "valid",

@@ -101,10 +101,18 @@ def plot_residuals(
     return path
 
 
+#: Above this many points a residual panel draws their density (hexagonal bins, log count)
+#: instead of one marker per point: 100,000 plane points as dots are a blob.
+DENSE_POINTS = 5000
+
+
 def _residual_panel(ax, result, x, v, used, curve, g, xf):
     """One panel of :func:`plot_residuals`: the residuals of group ``g`` (without the AP terms
     of ``curve`` when it is given, and that fitted curve as a line) against abscissa ``x``; the
-    observations not used as red crosses."""
+    observations not used as red crosses. Dense panels (more than :data:`DENSE_POINTS` used
+    points) show the point density; the y scale is set by the used points (and the curve), so
+    removed observations never set it: those beyond it are drawn at the panel's edge and
+    counted in the legend."""
     f = GROUP_FACTORS[g]
     y = v if curve is None else v - curve["at_obs"]
     label = (
@@ -112,13 +120,46 @@ def _residual_panel(ax, result, x, v, used, curve, g, xf):
         if curve is not None
         else f"APs: {' '.join(result.ap_names) or 'none'}"
     )
-    ax.plot(x[used], y[used] * f, ".", ms=2, alpha=0.6, label=label)
+    xu, yu = x[used], y[used] * f
+    if xu.size > DENSE_POINTS:
+        ax.hexbin(xu, yu, gridsize=(90, 45), bins="log", mincnt=1, cmap="Blues", linewidths=0)
+        ax.plot([], [], "s", color="tab:blue", ms=4, label=f"{label} ({xu.size:,} points, density)")
+    else:
+        ax.plot(xu, yu, ".", ms=2, alpha=0.6, label=label)
+    lim = _y_limits(yu, None if curve is None else -curve["y"] * f)
+    if lim is not None:
+        ax.set_ylim(*lim)
     if (~used).any():
-        ax.plot(x[~used], y[~used] * f, "x", ms=5, color="tab:red", label="removed")
+        yr = y[~used] * f
+        out = 0 if lim is None else int(np.sum((yr < lim[0]) | (yr > lim[1])))
+        if lim is not None:
+            yr = np.clip(yr, *lim)
+        text = f"removed ({int((~used).sum())}" + (
+            f", {out} beyond the axis, at its edge)" if out else ")"
+        )
+        ax.plot(x[~used], yr, "x", ms=5, color="tab:red", label=text, clip_on=False)
     if curve is not None:
         label = f"fitted {' + '.join(curve['terms'])}"
         ax.plot(curve["x"] * xf, -curve["y"] * f, "-", color="tab:orange", lw=1.5, label=label)
     ax.axhline(0.0, color="k", lw=0.5)
+
+
+def _y_limits(y, curve=None):
+    """y range of a residual panel: the 0.05 and 99.95 percentiles of the used residuals (and
+    the curve's range), widened by 10 %; None without finite values."""
+    parts = [np.asarray(y, dtype=float)]
+    if curve is not None:
+        parts.append(np.asarray(curve, dtype=float))
+    allv = np.concatenate([p[np.isfinite(p)] for p in parts])
+    if not allv.size:
+        return None
+    yf = parts[0][np.isfinite(parts[0])]
+    lo, hi = np.percentile(yf, [0.05, 99.95]) if yf.size else (allv.min(), allv.max())
+    if curve is not None and np.isfinite(parts[1]).any():
+        lo, hi = min(lo, np.nanmin(parts[1])), max(hi, np.nanmax(parts[1]))
+    lo, hi = min(lo, 0.0), max(hi, 0.0)
+    pad = 0.1 * (hi - lo) if hi > lo else max(abs(hi), 1.0)
+    return float(lo - pad), float(hi + pad)
 
 
 def _rows(result):

@@ -15,6 +15,44 @@ from .._units import display
 EOP_NAMES = ("Xs", "Ys", "Zs", "omega", "phi", "kappa")
 
 
+def confoundings(not_estimable, weakly_determined) -> list[dict]:
+    """Every confounding named once: the non-estimable APs (with what each is confounded with)
+    first, then the weakly determined pairs, a pair and its mirror (C0 with C3, C3 with C0)
+    counted once. ``parameters``, ``kind``, ``max_abs_corr`` (null where not estimable) and
+    ``text``, the one sentence that the text summary, the JSON (``confoundings``) and the HTML
+    report all print. Entries are tuples ``(name, partner, reason or |corr|)`` as in
+    :class:`tlsjax.CalibrationResult` or dicts as in the result JSON."""
+
+    def triples(items, keys):
+        for it in items or ():
+            yield tuple(it[k] for k in keys) if isinstance(it, dict) else tuple(it)
+
+    out, seen = [], set()
+    for n, w, reason in triples(not_estimable, ("name", "confounded_with", "reason")):
+        seen.add(frozenset((n, w)))
+        out.append(
+            {
+                "parameters": [n, w],
+                "kind": "not estimable",
+                "max_abs_corr": None,
+                "text": f"{n} is not estimable: {reason}",
+            }
+        )
+    for n, w, c in triples(weakly_determined, ("name", "correlated_with", "max_abs_corr")):
+        if frozenset((n, w)) in seen:
+            continue
+        seen.add(frozenset((n, w)))
+        out.append(
+            {
+                "parameters": [n, w],
+                "kind": "weakly determined",
+                "max_abs_corr": float(c),
+                "text": f"{n} and {w} are weakly determined together: |corr| = {float(c):.4f}",
+            }
+        )
+    return out
+
+
 def _number(x: float, width: int, digits: int) -> str:
     """A right-aligned number, or "undefined" where it is not one (never "nan")."""
     return f"{x:{width}.{digits}f}" if np.isfinite(x) else f"{'undefined':>{width}}"
@@ -120,10 +158,8 @@ def summary(res, alpha: float = 0.05, *, after_vce: bool = False) -> str:
             )
             + ("; REJECTED: " + ", ".join(rejected) if rejected else "")
         )
-    for n, w, c in res.weakly_determined:
-        out.append(f"warning: {n} is weakly determined: |corr| = {c:.4f} with {w}")
-    for n, _, r in res.not_estimable:
-        out.append(f"warning: {n} is not estimable: {r}")
+    for c in confoundings(res.not_estimable, res.weakly_determined):
+        out.append(f"warning: {c['text']}")
     findings, implausible = res.plausibility() if hasattr(res, "plausibility") else ((), "")
     if findings:
         level = "error" if any(f.level == "impossible" for f in findings) else "warning"

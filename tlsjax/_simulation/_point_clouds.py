@@ -12,7 +12,16 @@ so that a noise-free observation satisfies the plane condition of SPEC section 4
 ``n . (R^T x + S) - d = 0`` with ``x = (rho - Drho)(cos(alpha - Dalpha) cos(theta - Dtheta),
 cos(alpha - Dalpha) sin(theta - Dtheta), sin(alpha - Dalpha))`` (Lichti 2007; Chow et al.
 2013, eq. 3). Noise: ``sigma_range sec(beta)`` in range (beta = incidence angle between the line
-of sight and the plane normal) and ``sigma_angle`` in both angles (SPEC section 5).
+of sight and the plane normal) and ``sigma_angle`` in both angles (SPEC section 5), each point's
+independent of the others'. ``correlated_sigma_range`` adds a range error that neighbouring
+points share (footprint overlap, surface texture: the correlated noise of dense scans that Chow
+et al. 2013, section 3.2, warn of), ``sec(beta)`` times a stationary Gaussian random field over
+object space, new for every scan, with covariance ``sigma_c^2 exp(-|X - Y|^2 / (2 L^2))``
+(``L = correlation_length``). It is drawn as random Fourier features (Rahimi & Recht 2007),
+``sigma_c sqrt(2 / K) sum_k cos(w_k . X + b_k)`` with ``w_k ~ N(0, I / L^2)``, ``b_k ~ U(0, 2
+pi)``, whose covariance over realisations is that Gaussian function exactly, at a cost linear in
+the points. The a priori range sigma of such clouds is the total, ``sqrt(sigma_range^2 +
+sigma_c^2)``, as a user would state it from the scatter of points about a plane.
 
 Panoramic scanners see directions whose hybrid horizontal direction is >= pi in their second
 face: ``theta = theta' - pi``, ``alpha = pi - alpha'`` (SPEC section 1).
@@ -251,6 +260,8 @@ class CloudDesign:
     boards, the footprint ``beam_width`` [m] + ``beam_divergence`` [rad] x range (standard
     deviation of the spot), ``intensity_noise`` (standard deviation, in reflectance units),
     ``dark_range_bias`` [m] added to the range of the dark share of a target's footprint.
+    ``correlated_sigma_range`` [m] and ``correlation_length`` [m]: the spatially correlated
+    range noise of the module docstring (0: independent noise only).
     """
 
     room: Room = Room()
@@ -276,6 +287,8 @@ class CloudDesign:
     beam_divergence: float = 0.2e-3
     intensity_noise: float = 0.01
     dark_range_bias: float = 0.0
+    correlated_sigma_range: float = 0.0
+    correlation_length: float = 0.02
 
     def __post_init__(self):
         for t in self.spheres:
@@ -298,6 +311,12 @@ class CloudDesign:
                 raise ValueError(f"CloudDesign.{name} must be >= 0, got {getattr(self, name)}")
         if self.beam_width + self.beam_divergence <= 0.0:
             raise ValueError("CloudDesign.beam_width and beam_divergence must not both be 0")
+        if not (np.isfinite(self.correlated_sigma_range) and self.correlated_sigma_range >= 0.0):
+            raise ValueError(
+                f"correlated_sigma_range must be >= 0, got {self.correlated_sigma_range}"
+            )
+        if not (np.isfinite(self.correlation_length) and self.correlation_length > 0.0):
+            raise ValueError(f"correlation_length must be > 0, got {self.correlation_length}")
         if not np.isfinite(self.dark_range_bias):
             raise ValueError(f"dark_range_bias must be finite, got {self.dark_range_bias}")
         if not (0.0 < self.angular_step <= 10.0 * DEG):
@@ -749,9 +768,22 @@ def _paint_plates(design: CloudDesign, scene: _Scene, hits: dict, station) -> No
     hits["white"] = white
 
 
-def _observe_scan(design, eop, hits, rng, coeffs, scanner, names):
+def correlated_field(X, length: float, rng, features: int = 64, chunk: int = 250_000):
+    """A unit-variance stationary random field at the points ``X`` (m, 3) with Gaussian
+    covariance of correlation length ``length`` [m] (random Fourier features, module
+    docstring); in chunks, so that memory stays linear in the points."""
+    w = rng.standard_normal((features, 3)) / length
+    b = rng.uniform(0.0, 2.0 * np.pi, features)
+    out = np.empty(len(X))
+    for i in range(0, len(X), chunk):
+        out[i : i + chunk] = np.cos(X[i : i + chunk] @ w.T + b).sum(axis=1)
+    return out * np.sqrt(2.0 / features)
+
+
+def _observe_scan(design, eop, hits, rng, coeffs, scanner, names, rng_c=None):
     """Observations ``l = F + Delta(l; AP) + e`` of one scan's hit points (module docstring):
-    range noise ``sigma_range sec(beta)`` plus the dark share's range bias, angular noise."""
+    range noise ``sigma_range sec(beta)`` plus the correlated range noise (drawn from ``rng_c``)
+    and the dark share's range bias, angular noise."""
     X = hits["X"]
     m = len(X)
     R = rotation_matrix(*eop[3:], xp=np)
@@ -766,6 +798,9 @@ def _observe_scan(design, eop, hits, rng, coeffs, scanner, names):
         axis=1,
     )
     e = rng.standard_normal(sig.shape) * sig if design.noise else np.zeros_like(sig)
+    if design.noise and design.correlated_sigma_range > 0.0:
+        field = correlated_field(X, design.correlation_length, rng_c)
+        e[:, 0] += design.correlated_sigma_range * field / np.cos(hits["incidence"])
     e[:, 0] += design.dark_range_bias * (1.0 - hits["white"])
     E = np.broadcast_to(eop, (m, 6))
     obs = _observe_in_chunks(X, E, e, face2, coeffs, scanner, names)
@@ -796,8 +831,10 @@ def simulate_point_clouds(design: CloudDesign | None = None, *, seed: int = 0) -
     hits = [render_rays(design, scene, eop, scan_grid(design, scene, eop)) for eop in eops]
     # One scan at a time, so that memory follows the largest scan; the noise is drawn in the
     # same order as for all points at once.
+    # The correlated noise from its own stream: the independent noise of a seed is unchanged.
+    rng_c = np.random.default_rng([seed, 27])
     for eop, h in zip(eops, hits):
-        h["obs"] = _observe_scan(design, eop, h, rng, coeffs, scanner, names)
+        h["obs"] = _observe_scan(design, eop, h, rng, coeffs, scanner, names, rng_c)
     obs = np.concatenate([h["obs"] for h in hits])
     inc = np.concatenate([h["incidence"] for h in hits])
     X = np.concatenate([h["X"] for h in hits])
@@ -827,7 +864,7 @@ def simulate_point_clouds(design: CloudDesign | None = None, *, seed: int = 0) -
         plane_names=scene.plane_names,
         scanner=scanner,
         true_aps=values,
-        sigma_range=design.sigma_range,
+        sigma_range=float(np.hypot(design.sigma_range, design.correlated_sigma_range)),
         sigma_angle=design.sigma_angle,
         levelling=lev,
         intensity=tuple(np.split(intensity, split)),
