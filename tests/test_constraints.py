@@ -291,3 +291,40 @@ def test_constraints_through_the_command_line(tmp_path, capsys):
     assert ("omega", "S5") in kinds  # the tilted scan's tilt reading
     assert doc["redundancy"]["total"]["sum"] == pytest.approx(doc["dof"], rel=1e-9)
     assert "weighted constraints (eq. 7)" in capsys.readouterr().out
+
+
+def test_each_kind_of_constraint_is_its_own_variance_group():
+    """Tilt readings, headings and AP priors each get a variance factor (issue 30 item 2). The
+    headings' a priori sigma is stated 3x too large: their factor comes out near 1/9 (with
+    r_g = 5 the estimate's 99.9 % bound is 0.46), the correctly stated tilt readings' near 1.
+    At convergence the fitted weights make each estimated group's v^T P v / r_g = 1, computed
+    here from the adjustment's own constraint residuals and redundancy numbers."""
+    sim = tj.simulate(
+        tj.Room(n_targets=60),
+        aps="physical",
+        seed=2,
+        sigma_tilt=10 * ARCSEC,
+        sigma_heading=20 * ARCSEC,
+    )
+    net = dataclasses.replace(sim.network, heading_sigma=3 * sim.network.heading_sigma)
+    prior = {"C0": (sim.true_aps.get("C0", 0.0), 5 * ARCSEC)}
+    model = tj.CalibrationModel(tj.Scanner(aps="physical"), ap_priors=prior)
+    tested = tj.calibrate_and_test(net, model, testing=tj.TestingOptions(vce=True))
+    assert tested.ok, tested.message
+    vc = {v.group: v for v in tested.variance_components}
+    assert set(vc) == {"range", "hz", "el", "levelling", "heading", "ap_prior"}
+    assert vc["heading"].n == len(net.scans) and vc["ap_prior"].n == 1
+    assert vc["heading"].estimated and vc["heading"].factor < 0.46
+    assert vc["levelling"].estimated and 0.2 < vc["levelling"].factor < 3.0
+    # One prior has r < 1: held at its a priori sigma, and said why.
+    assert not vc["ap_prior"].estimated and "redundancy" in vc["ap_prior"].note
+    res = tested.calibration
+    kinds = {"levelling": ("omega", "phi"), "heading": ("kappa",)}
+    for group, names in kinds.items():
+        rows = [c for c in res.weighted_constraints() if c["kind"] in names]
+        sigma = vc[group].a_priori_sigma * np.sqrt(vc[group].factor)
+        omega = sum((c["residual"] / sigma) ** 2 for c in rows)
+        r_g = sum(c["redundancy"] for c in rows)
+        assert r_g == pytest.approx(vc[group].redundancy, rel=1e-9)
+        assert omega / r_g == pytest.approx(1.0, abs=0.05), group
+    assert res.redundancy_summary()["total"]["sum"] == pytest.approx(res.dof, rel=1e-9)

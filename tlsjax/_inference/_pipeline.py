@@ -50,7 +50,7 @@ PIN_SIGMA = 1.0
 #: Residual sigma of a group [m, rad, rad, rad] below which the residuals are rounding, not
 #: measurement noise (noise-free data: about 1e-15 m and 1e-16 rad in a float64 adjustment;
 #: the best scanners measure to 1e-4 m and 1e-6 rad).
-ROUNDING_SIGMA = (1e-9, 1e-11, 1e-11, 1e-11)
+ROUNDING_SIGMA = (1e-9, 1e-11, 1e-11, 1e-11, 1e-11, 1e-12)
 
 
 class Adjusted(NamedTuple):
@@ -84,11 +84,15 @@ class Reweighter:
         plane_weight=None,
         fixed_aps=None,
         max_iterations=None,
+        heading_weight=None,
+        ap_prior_weight=None,
     ) -> Adjusted:
         """``weight`` (n, 3) = 1/sigma or 0 (removed); ``pinned`` maps target -> xyz;
         ``plane_weight`` (m, 3) of the plane rows (None: the network's); ``fixed_aps``: AP
         labels held at zero (None: the model's), e.g. candidate terms of an analysed wider
-        model that are not (yet) in the model: one compiled adjustment serves both."""
+        model that are not (yet) in the model: one compiled adjustment serves both;
+        ``heading_weight`` (s,) and ``ap_prior_weight`` (a,) of the observed headings and AP
+        priors (None: the network's and the model's)."""
         adj = self.adjustment
         control = {t: (xyz, PIN_SIGMA) for t, xyz in pinned.items()}
         problem = adj.problem(
@@ -97,6 +101,8 @@ class Reweighter:
             control=control,
             plane_weights=plane_weight,
             fixed_aps=fixed_aps,
+            heading_weights=heading_weight,
+            ap_prior_weights=ap_prior_weight,
         )
         if max_iterations is None:
             state, q = adj.run(problem, params0)
@@ -122,8 +128,9 @@ class Reweighter:
 class TestingContext:
     """What stays fixed during one run of the pipeline: the network, the testing options, the
     analysed adjustment and the a priori sigmas of the observations (n, 3), of the levelling
-    readings (s, 2; inf where a scan is not levelled) and of the plane points (m, 3; held
-    fixed: no variance component, SPEC section 5)."""
+    readings (s, 2; inf where a scan is not levelled), of the observed headings (s,) and AP
+    priors (a,) (inf where none) and of the plane points (m, 3; held fixed: no variance
+    component, SPEC section 5)."""
 
     network: Network
     options: TestingOptions
@@ -132,6 +139,23 @@ class TestingContext:
     levelling_sigma: np.ndarray
     levelling_active: np.ndarray
     plane_sigma: np.ndarray
+    heading_sigma: np.ndarray
+    ap_prior_sigma: np.ndarray
+
+    @property
+    def heading_active(self) -> np.ndarray:
+        return np.isfinite(self.heading_sigma)
+
+    @property
+    def ap_prior_active(self) -> np.ndarray:
+        return np.isfinite(self.ap_prior_sigma)
+
+    def group_sigma(self, g: int) -> np.ndarray:
+        """The a priori sigmas of the used observations of group ``g`` (:data:`GROUPS`)."""
+        if g < 3:
+            return self.base_sigma[:, g]
+        sig = (self.levelling_sigma, self.heading_sigma, self.ap_prior_sigma)[g - 3]
+        return sig[np.isfinite(sig)]
 
     @property
     def vce(self) -> bool:
@@ -142,14 +166,19 @@ class TestingContext:
     @classmethod
     def make(cls, net: Network, model, solver: SolverOptions, options: TestingOptions):
         lev = np.asarray(net.levelling_sigma, dtype=float)
+        reweighter = Reweighter(net, model, solver)
+        wa = reweighter.plan.problem.ap_prior_weight
+        wa = np.zeros(reweighter.plan.spec.n_aps) if wa is None else np.asarray(wa, dtype=float)
         return cls(
             net,
             options,
-            Reweighter(net, model, solver),
+            reweighter,
             np.asarray(net.sigmas, dtype=float),
             lev,
             np.isfinite(lev),
             np.asarray(net.plane_sigmas, dtype=float).reshape(-1, 3),
+            np.asarray(net.heading_sigmas, dtype=float),
+            np.where(wa > 0, 1.0 / np.where(wa > 0, wa, 1.0), np.inf),
         )
 
     @functools.cached_property
@@ -166,8 +195,9 @@ class TestingContext:
 class TestingState:
     """Everything the steps of :data:`._steps.PIPELINE` read and write (module docstring).
 
-    ``factor`` (4,): variance factors of range, hz, el and levelling (the sigmas in use are
-    ``sqrt(factor)`` times the a priori ones); ``estimated`` (4,) and ``notes``: which factors
+    ``factor`` (g,): variance factors of the groups :data:`GROUPS` (range, hz, el, levelling,
+    heading, AP priors; the sigmas in use are ``sqrt(factor)`` times the a priori ones);
+    ``estimated`` (g,) and ``notes``: which factors
     VCE estimated and why the others were held. ``mask`` (n, 3): True where an observation is
     used; ``plane_mask`` (m,): the same for plane points (one condition each, tested and
     removed as a whole). ``pinned``: target index -> xyz of the targets held at their last
@@ -210,9 +240,9 @@ class TestingState:
         """Before the first adjustment: a priori weights, every observation used."""
         net = ctx.network
         return cls(
-            factor=np.ones(4),
-            estimated=np.zeros(4, dtype=bool),
-            notes=("",) * 4,
+            factor=np.ones(len(GROUPS)),
+            estimated=np.zeros(len(GROUPS), dtype=bool),
+            notes=("",) * len(GROUPS),
             mask=np.ones((net.observations.shape[0], 3), dtype=bool),
             plane_mask=np.ones(net.plane_observations.shape[0], dtype=bool),
             critical_value=critical_value,
@@ -261,6 +291,18 @@ def levelling_sigmas(ctx: TestingContext, state: TestingState) -> np.ndarray:
     return ctx.levelling_sigma * np.sqrt(state.factor[3])
 
 
+def constraint_weights(ctx: TestingContext, state: TestingState) -> dict:
+    """The weights in use of the observed headings and AP priors (their groups' factors), as
+    keyword arguments of :meth:`Reweighter.run`; none where the network has none (the
+    problem's own, no change of its structure)."""
+    out = {}
+    if ctx.heading_active.any():
+        out["heading_weight"] = 1.0 / (ctx.heading_sigma * np.sqrt(state.factor[4]))
+    if ctx.ap_prior_active.any():
+        out["ap_prior_weight"] = 1.0 / (ctx.ap_prior_sigma * np.sqrt(state.factor[5]))
+    return out
+
+
 def adjust(ctx: TestingContext, state: TestingState, max_iterations=None) -> TestingState:
     """Re-adjust with the state's weights (factors, mask, pins), warm-started at its
     ``params``; a successful adjustment becomes ``last_ok`` and the next warm start (the datum,
@@ -278,6 +320,7 @@ def adjust(ctx: TestingContext, state: TestingState, max_iterations=None) -> Tes
         plane_weight=pw,
         fixed_aps=state.fixed_aps,
         max_iterations=max_iterations,
+        **constraint_weights(ctx, state),
     )
     changes = dict(adjusted=adjusted, n_adjustments=state.n_adjustments + 1)
     if adjusted.result.ok:
@@ -358,35 +401,53 @@ def add_history(state: TestingState, entry: dict) -> TestingState:
 
 
 def group_statistics(ctx: TestingContext, state: TestingState):
-    """Per group (range, hz, el, levelling) at the latest adjustment and the weights in use:
-    the variance factor estimate ``s_g^2 = v_g^T P_g v_g / r_g`` (Förstner 1979;
-    :func:`._statistics.variance_factor`), the group redundancy ``r_g`` and the number of
-    observations used ``n_g``."""
-    res, mask = state.result, state.mask
+    """Per group (:data:`GROUPS`: range, hz, el, levelling, heading, AP priors) at the latest
+    adjustment and the weights in use: the variance factor estimate
+    ``s_g^2 = v_g^T P_g v_g / r_g`` (Förstner 1979; :func:`._statistics.variance_factor`), the
+    group redundancy ``r_g`` and the number of observations used ``n_g``."""
+    res, mask, ng = state.result, state.mask, len(GROUPS)
     e2 = np.where(mask, (res.residuals / sigmas(ctx, state)) ** 2, 0.0)
     r = np.where(mask, res.redundancy, 0.0)
-    s2, r_g, n_g = np.ones(4), np.zeros(4), np.zeros(4, dtype=int)
+    s2, r_g, n_g = np.ones(ng), np.zeros(ng), np.zeros(ng, dtype=int)
     for g in range(3):
         s2[g], r_g[g] = variance_factor(e2[:, g], r[:, g])
         n_g[g] = int(mask[:, g].sum())
+    for g, (v, rr, sig, active) in _constraint_groups(ctx, state).items():
+        e2c = np.where(active, (v / np.where(active, sig, 1.0)) ** 2, 0.0)
+        s2[g], r_g[g] = variance_factor(e2c[active], rr[active])
+        n_g[g] = int(active.sum())
+    return s2, r_g, n_g
+
+
+def _constraint_groups(ctx: TestingContext, state: TestingState) -> dict:
+    """group index -> (residuals, redundancy numbers, sigmas in use, active) of the weighted
+    constraints with observed values that the network has."""
+    res, out = state.result, {}
     active = ctx.levelling_active
     if active.any():
         # Levelling residuals from the compensator readings of the final poses.
         read = np.asarray(jax.vmap(compensator_reading)(jnp.asarray(res.eops)))
         v = read - res.network.levelling
-        sig = np.where(active, levelling_sigmas(ctx, state), 1.0)
-        e2l = np.where(active, (v / sig) ** 2, 0.0)
-        s2[3], r_g[3] = variance_factor(e2l, res.redundancy_levelling[active])
-        n_g[3] = int(active.sum())
-    return s2, r_g, n_g
+        out[3] = (v, res.redundancy_levelling, levelling_sigmas(ctx, state), active)
+    if ctx.heading_active.any() and res.orientation_residuals is not None:
+        active = ctx.heading_active
+        v, rr = res.orientation_residuals[:, 2], res.redundancy_orientation[:, 2]
+        sig = ctx.heading_sigma * np.sqrt(state.factor[4])
+        out[4] = (np.where(active, v, 0.0), np.where(active, rr, 0.0), sig, active)
+    if ctx.ap_prior_active.any() and res.ap_prior_residuals is not None:
+        active = ctx.ap_prior_active
+        v, rr = res.ap_prior_residuals, res.redundancy_ap_prior
+        sig = ctx.ap_prior_sigma * np.sqrt(state.factor[5])
+        out[5] = (np.where(active, v, 0.0), np.where(active, rr, 0.0), sig, active)
+    return out
 
 
 def rounding_groups(ctx: TestingContext, state: TestingState, s2) -> list:
     """Groups whose residual sigma ``sqrt(factor s_g^2) * median sigma`` is rounding
     (:data:`ROUNDING_SIGMA`): noise-free data."""
     out = []
-    for g in range(4):
-        sig = ctx.base_sigma[:, g] if g < 3 else ctx.levelling_sigma[ctx.levelling_active]
+    for g in range(len(GROUPS)):
+        sig = ctx.group_sigma(g)
         if sig.size and np.isfinite(s2[g]) and s2[g] >= 0:
             if np.sqrt(state.factor[g] * s2[g]) * np.median(sig) < ROUNDING_SIGMA[g]:
                 out.append(GROUPS[g])

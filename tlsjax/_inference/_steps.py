@@ -292,7 +292,7 @@ def screening(ctx: TestingContext, state: TestingState) -> TestingState:
     if len(state.removals) > n_before and state.ok:
         state = _a_priori_after_screening(ctx, state)
     if not t.vce and np.any(state.factor != 1.0):
-        state = adjust(ctx, with_factors(state, np.ones(4)))
+        state = adjust(ctx, with_factors(state, np.ones(len(GROUPS))))
     return state
 
 
@@ -315,14 +315,16 @@ def _balance_groups(ctx: TestingContext, state: TestingState):
     and False when the residuals are at rounding level (nothing to screen)."""
     for _ in range(ROBUST_REWEIGHTING):
         _, scale = _standardised(ctx, state)
-        if rounding_groups(ctx, state, np.append(scale**2, np.nan)):
+        n_constraint = len(GROUPS) - 3
+        if rounding_groups(ctx, state, np.append(scale**2, np.full(n_constraint, np.nan))):
             return state, False
         ok = np.isfinite(scale) & (scale > 0)
         step = bounded_log_step(scale, ok, VCE_MAX_STEP, power=2)
         if np.all(np.abs(step) < np.log(1.1)):
             return state, True
-        # Levelling (a few readings, no robust scale of its own) moves with the others.
-        step = np.append(step, step[ok].mean() if ok.any() else 0.0)
+        # The weighted constraints (a few readings each, no robust scale of their own) move with
+        # the others.
+        step = np.append(step, np.full(n_constraint, step[ok].mean() if ok.any() else 0.0))
         limit = np.log(VCE_FACTOR_LIMIT)
         state = adjust(
             ctx, with_factors(state, np.exp(np.clip(np.log(state.factor) + step, -limit, limit)))
@@ -437,7 +439,7 @@ def _systematic(ctx: TestingContext, state: TestingState, u_top: float) -> str |
 def _a_priori_after_screening(ctx: TestingContext, state: TestingState) -> TestingState:
     """The a priori tests again, on the screened observations (a priori weights)."""
     fitted = state.factor.copy()
-    state = adjust(ctx, with_factors(state, np.ones(4)))
+    state = adjust(ctx, with_factors(state, np.ones(len(GROUPS))))
     if state.ok:
         state = record_a_priori_tests(ctx, state, "after screening")
     return adjust(ctx, with_factors(state, fitted))
@@ -457,8 +459,8 @@ def variance_components(ctx: TestingContext, state: TestingState) -> TestingStat
 def _vce(ctx: TestingContext, state: TestingState) -> TestingState:
     """Every stop leaves the state at weights whose adjustment succeeded."""
     t = ctx.options
-    prev_step = np.zeros(4)
-    relax = np.ones(4)  # halved at every change of direction of a group's step
+    prev_step = np.zeros(len(GROUPS))
+    relax = np.ones(len(GROUPS))  # halved at every change of direction of a group's step
     flips = 0
     for it in range(t.vce_max_iterations):
         s2, r_g, n_g = group_statistics(ctx, state)
@@ -467,7 +469,7 @@ def _vce(ctx: TestingContext, state: TestingState) -> TestingState:
             f"redundancy r_g = {r_g[g]:.2f} < {t.vce_min_redundancy:g}"
             if n_g[g] and not est[g]
             else ""
-            for g in range(4)
+            for g in range(len(GROUPS))
         )
         state = dataclasses.replace(state, estimated=est, notes=notes)
         res = state.result
@@ -510,7 +512,7 @@ def _vce(ctx: TestingContext, state: TestingState) -> TestingState:
 def _adjustment_failed(ctx: TestingContext, state: TestingState, est) -> TestingState:
     """VCE stops where an adjustment with the new weights failed: the last weights whose
     adjustment succeeded are kept."""
-    factors = ", ".join(f"{GROUPS[g]} {state.factor[g]:.4g}" for g in range(4) if est[g])
+    factors = ", ".join(f"{GROUPS[g]} {state.factor[g]:.4g}" for g in range(len(GROUPS)) if est[g])
     state = add_warning(
         state,
         f"VCE stopped: with the re-estimated weights (variance factors {factors}) the "
@@ -524,10 +526,10 @@ def _stop(ctx, state: TestingState, result: VCEResult, reset: bool = False) -> T
     """End VCE with ``result``; ``reset``: back to the a priori weights (re-adjusted)."""
     state = dataclasses.replace(state, vce_result=result)
     if reset and np.any(state.factor != 1.0):
-        state = adjust(ctx, with_factors(state, np.ones(4)))
+        state = adjust(ctx, with_factors(state, np.ones(len(GROUPS))))
     if reset:
-        notes = (result.message.split(":")[0],) * 4
-        state = dataclasses.replace(state, estimated=np.zeros(4, dtype=bool), notes=notes)
+        notes = (result.message.split(":")[0],) * len(GROUPS)
+        state = dataclasses.replace(state, estimated=np.zeros(len(GROUPS), dtype=bool), notes=notes)
     return state
 
 

@@ -18,7 +18,10 @@ from .._units import ARCSEC
 from ._statistics import critical_value
 
 #: Variance-component groups: the three observation groups and the levelling readings.
-GROUPS = ("range", "hz", "el", "levelling")
+#: Variance groups (VCE, group tests): the three components of the target observations, then
+#: the weighted constraints with observed values (eq. 7 of Chow et al. 2013, SPEC section 6):
+#: tilt readings, observed headings (kappa) and AP priors, each its own group.
+GROUPS = ("range", "hz", "el", "levelling", "heading", "ap_prior")
 #: What one rejection removes: one scalar observation, or the target's three in that scan.
 REMOVAL_UNITS = ("observation", "target")
 
@@ -324,7 +327,9 @@ class TestedCalibration:
         if self.options.vce:
             lines.append(f"variance components: {self.vce_result.message}")
         for vc in self.variance_components if self.a_priori_tests else ():
-            unit, f = ("mm", 1e3) if vc.group == "range" else ('"', 1 / ARCSEC)
+            unit, f = {"range": ("mm", 1e3), "ap_prior": ("SI", 1.0)}.get(
+                vc.group, ('"', 1 / ARCSEC)
+            )
             held = "" if vc.estimated else f" (held{': ' + vc.note if vc.note else ''})"
             lines.append(
                 f"  {vc.group:9s} factor {vc.factor:10.4g}  sigma {vc.a_priori_sigma * f:.4g} -> {vc.sigma * f:.4g} {unit}"

@@ -203,7 +203,7 @@ def _variance_components(ctx: TestingContext, state: TestingState) -> list:
     for gi, gname in enumerate(GROUPS):
         if n_g[gi] == 0:
             continue
-        base = ctx.base_sigma[:, gi] if gi < 3 else ctx.levelling_sigma[ctx.levelling_active]
+        base = ctx.group_sigma(gi)
         ap = float(np.median(base))
         f = float(state.factor[gi])
         out.append(

@@ -41,6 +41,8 @@ _GROUP_UNIT = {
     "hz": ('"', 1.0 / ARCSEC),
     "el": ('"', 1.0 / ARCSEC),
     "levelling": ('"', 1.0 / ARCSEC),
+    "heading": ('"', 1.0 / ARCSEC),
+    "ap_prior": ("(SI: m, rad or 1)", 1.0),  # the priors of one group have their APs' units
 }
 NOT_COMPUTED = "not computed"
 
