@@ -169,7 +169,7 @@ def test_oscillating_factors_are_damped_and_reported(sim, monkeypatch):
     def alternating(ctx, state):
         s2, r_g, n_g = real(ctx, state)
         calls["n"] += 1
-        return np.where(np.arange(4) < 3, 4.0 if calls["n"] % 2 else 0.25, s2), r_g, n_g
+        return np.where(np.arange(len(s2)) < 3, 4.0 if calls["n"] % 2 else 0.25, s2), r_g, n_g
 
     monkeypatch.setattr(_steps, "group_statistics", alternating)
     r = calibrate_and_test(
