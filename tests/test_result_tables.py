@@ -16,6 +16,7 @@ from strict_json import load_strict
 
 import tlsjax as tj
 from tlsjax._cli import main
+from tlsjax._units import ARCSEC
 
 
 def _read_csv(path):
@@ -274,3 +275,12 @@ def test_plane_point_tables(tmp_path):
     assert total == pytest.approx(res.dof, rel=1e-6)
     groups = {g["group"]: g for g in tj.group_records(res)}
     assert set(groups) == {"plane range", "plane hz", "plane el"}
+    # planes.csv carries the JSON's plane precision in its display units (mm, arc seconds).
+    doc = tj.result_to_dict(res)
+    for r in _read_csv(tmp_path / "tab" / "planes.csv"):
+        p = doc["planes"][r["plane"]]
+        tilt = [_num(r[f"tilt_sigma_{i}_arcsec"]) * ARCSEC for i in (1, 2)]
+        np.testing.assert_allclose(tilt, p["tilt_sigmas"], rtol=1e-9)
+        axes = [_num(r[f"foot_axis_{i}_mm"]) / 1e3 for i in (1, 2, 3)]
+        np.testing.assert_allclose(axes, p["foot_point_ellipsoid_axes"], rtol=1e-9)
+        assert _num(r["sigma_d_mm"]) / 1e3 == pytest.approx(p["sigma"]["d"], rel=1e-9)

@@ -125,6 +125,9 @@ class CalibrationResult:
     planes: tuple = ()
     plane_params: np.ndarray | None = None  # (k, 4) = (nx, ny, nz, d [m]), n . X = d
     plane_sigmas: np.ndarray | None = None  # (k, 4) a posteriori, inner-constraint datum
+    # (k, 4, 4) a posteriori covariance of each plane (n, d) [1, m] in the datum used: the
+    # constrained (tangent-plane) blocks, n^T C_nn = 0 and n^T C_nd = 0 to rounding.
+    plane_covariance: np.ndarray | None = dataclasses.field(default=None, repr=False)
     plane_residuals: np.ndarray | None = None  # (m, 3) Gauss-Helmert residuals v [m, rad, rad]
     plane_redundancy: np.ndarray | None = None  # (m, 3); the three of a point sum to <= 1
     plane_used: np.ndarray | None = None  # (m, 3)
@@ -429,6 +432,7 @@ def _observation_arrays(net: Network, plan: Plan, q, state, s0sq):
             planes=net.planes,
             plane_params=np.asarray(state.params.prims[fp]),
             plane_sigmas=sig_of(fp),
+            plane_covariance=np.asarray(q.prim_cofactor[fp]) * s0sq,
             plane_residuals=np.asarray(q.residuals[fp]),
             plane_redundancy=np.asarray(q.redundancy[fp]),
             plane_used=np.asarray(plan.problem.families[fp].weight) > 0,

@@ -34,7 +34,8 @@ from .._adjustment._quality import (
     minimal_detectable_bias,
 )
 from .._inference._statistics import critical_value, group_variance_test
-from .._stats import DELTA0, non_centrality
+from .._io._target_lists import ELLIPSOID_95
+from .._stats import DELTA0, confidence_scale, non_centrality
 from .._units import ARCSEC
 
 GROUPS = ("range", "hz", "el")
@@ -385,19 +386,35 @@ def group_csv(res, tested=None) -> str:
 
 
 def planes_csv(res) -> str:
-    """Adjusted planes: normal, d [m] and their sigmas [mm for d, 1e-6 for the normal]."""
+    """Adjusted planes: normal, d [m] and their sigmas [mm for d, 1 for the normal], the tilt
+    sigmas of the normal ["] and the foot point ``d n`` [m] with its 1-sigma ellipsoid
+    semi-axes [mm] (:func:`tlsjax._report._json.plane_ellipsoids`)."""
+    from ._json import plane_ellipsoids
+
     lines = [
         "# tlsjax adjusted planes (n . X = d in the datum of the adjustment); sigmas a "
-        "posteriori: of the normal's components (dimensionless) and of d [mm]",
-        "plane,nx,ny,nz,d_m,sigma_nx,sigma_ny,sigma_nz,sigma_d_mm,n_points,n_scans",
+        "posteriori: of the normal's components (dimensionless) and of d [mm]; tilt_sigma_1..2: "
+        "principal 1-sigma tilts of the normal [arcsec] (x "
+        f"{round(confidence_scale(2), 4)} for the 95 % ellipse); foot = d n [m], "
+        f"foot_axis_1..3: its 1-sigma ellipsoid semi-axes [mm] (x {ELLIPSOID_95} for 95 %)",
+        "plane,nx,ny,nz,d_m,sigma_nx,sigma_ny,sigma_nz,sigma_d_mm,tilt_sigma_1_arcsec,"
+        "tilt_sigma_2_arcsec,foot_x_m,foot_y_m,foot_z_m,foot_axis_1_mm,foot_axis_2_mm,"
+        "foot_axis_3_mm,n_points,n_scans",
     ]
     net = res.network
+    cov = res.plane_covariance
+    e = plane_ellipsoids(
+        res.plane_params, np.full((len(res.planes), 4, 4), np.nan) if cov is None else cov
+    )
     for k, name in enumerate(res.planes):
         rows = net.plane_index == k
         P, S = res.plane_params[k], res.plane_sigmas[k]
         cells = [_cell(name), *(_cell(v) for v in P), *(_cell(v) for v in S[:3])]
-        cells += [_cell(S[3], 1e3), str(int(rows.sum()))]
-        cells.append(str(len(np.unique(net.plane_scan_index[rows]))))
+        cells.append(_cell(S[3], 1e3))
+        cells += [_cell(v, 1 / ARCSEC) for v in e["tilt_sigmas"][k]]
+        cells += [_cell(v) for v in e["foot_point"][k]]
+        cells += [_cell(v, 1e3) for v in e["foot_axes"][k]]
+        cells += [str(int(rows.sum())), str(len(np.unique(net.plane_scan_index[rows])))]
         lines.append(",".join(cells))
     return "\n".join(lines) + "\n"
 
