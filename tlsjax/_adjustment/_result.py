@@ -385,6 +385,13 @@ def _result_code(state, q, rank_def, not_est):
     return ResultCode(int(code))
 
 
+def not_estimable_sentence(name: str, reason: str) -> str:
+    """The one sentence that names a non-estimable AP and why: the result's ``message`` and
+    :func:`tlsjax._report._text.confoundings` (the text summary, the JSON's ``confoundings``,
+    the HTML report) all print it."""
+    return f"{name} is not estimable: {reason}"
+
+
 def _message(code, rank_def, not_est, state, diagnosis):
     msg = code.message
     if code == ResultCode.MAX_ITERATIONS:
@@ -392,7 +399,7 @@ def _message(code, rank_def, not_est, state, diagnosis):
     if rank_def:
         msg += ": " + ", ".join(rank_def[:12])
     if not_est:
-        msg += "; " + "; ".join(f"{n} is not estimable: {reason}" for n, _, reason in not_est)
+        msg += "; " + "; ".join(not_estimable_sentence(n, reason) for n, _, reason in not_est)
     if code in (ResultCode.MAX_ITERATIONS, ResultCode.NONFINITE) and diagnosis.get("summary"):
         msg += "; " + diagnosis["summary"]
     return msg
