@@ -12,6 +12,7 @@ oracle directly.
 
 import types
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -21,6 +22,7 @@ import tlsjax as tj
 from tlsjax._adjustment._families import Params, PlaneFamily, Problem, Spec
 from tlsjax._adjustment._quality import quality
 from tlsjax._adjustment._solver import adjust
+from tlsjax._report._json import result_to_dict
 
 DEG = np.pi / 180
 APS = ("A0", "B6", "B7", "C0")
@@ -192,8 +194,37 @@ def test_calibrate_of_a_plane_network_equals_dense_gauss_helmert(network):
     # hard constraint leaves no variance along the normal: 0 for a normal on an axis).
     s_pl = np.sqrt(np.clip(vtpv / dof * np.diag(Q)[: 4 * n_pl], 0, None)).reshape(n_pl, 4)
     np.testing.assert_allclose(res.plane_sigmas[order], s_pl, rtol=1e-6, atol=1e-12)
+    _check_plane_precision(res, order, x, vtpv / dof * Q, pc.plane_names)
     # Three observations per point: n counts them, the dof counts one condition per point and
     # one unit-normal constraint per plane; four unknowns per plane.
     assert res.n_observations == 3 * len(obs)
     assert res.n_conditions == len(obs) and res.n_constraints == n_pl
     assert res.n_unknowns == 4 * n_pl + 6 * n_s + len(APS)
+
+
+def _check_plane_precision(res, order, x, C, names):
+    """The planes' 4 x 4 covariance blocks and the precision measures of the result JSON
+    (issue 31) against the dense oracle's covariance ``C`` by other routes: the tilt sigmas as
+    the two nonzero eigenvalues of the normal block under the projector ``I - n n^T``, the foot
+    point's ellipsoid through the autodiff Jacobian of ``(n / |n|) d``."""
+    k_pl = len(names)
+    B = np.stack([C[4 * k : 4 * k + 4, 4 * k : 4 * k + 4] for k in range(k_pl)])
+    for k in range(k_pl):
+        np.testing.assert_allclose(
+            res.plane_covariance[order[k]], B[k], rtol=1e-5, atol=1e-6 * np.abs(B[k]).max()
+        )
+    doc = result_to_dict(res)
+    for k, name in enumerate(names):
+        p, P = doc["planes"][name], x[4 * k : 4 * k + 4]
+        n = P[:3] / np.linalg.norm(P[:3])
+        proj = np.eye(3) - np.outer(n, n)
+        tilt = np.sqrt(np.linalg.eigvalsh(proj @ B[k, :3, :3] @ proj)[::-1][:2])
+        np.testing.assert_allclose(p["tilt_sigmas"], tilt, rtol=1e-5)
+        U = np.array(p["tilt_directions"])  # unit columns in the plane, orthogonal
+        np.testing.assert_allclose(U.T @ U, np.eye(2), atol=1e-9)
+        np.testing.assert_allclose(n @ U, 0.0, atol=1e-9)
+        J = np.asarray(jax.jacfwd(lambda q: q[:3] / jnp.linalg.norm(q[:3]) * q[3])(P))
+        foot = np.sqrt(np.clip(np.linalg.eigvalsh(J @ B[k] @ J.T)[::-1], 0, None))
+        np.testing.assert_allclose(p["foot_point_ellipsoid_axes"], foot, rtol=1e-5)
+        np.testing.assert_allclose(p["foot_point"], n * P[3], rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(p["sigma"]["d"], np.sqrt(B[k, 3, 3]), rtol=1e-6)

@@ -16,6 +16,7 @@ from strict_json import load_strict
 
 import tlsjax as tj
 from tlsjax._cli import main
+from tlsjax._units import ARCSEC
 
 
 def _read_csv(path):
@@ -71,6 +72,7 @@ def run(tmp_path_factory):
     assert rc == 0
     return {
         "lines": out,
+        "scans_lines": scans.read_text().splitlines(),
         "blunder_line": blunder_line,
         "doc": load_strict(res_json),
         "obs": _read_csv(tables / "observations.csv"),
@@ -80,15 +82,24 @@ def run(tmp_path_factory):
     }
 
 
+TARGET_GROUPS = ("range", "hz", "el")
+
+
 def test_lines_point_at_the_input_rows(run):
     lines = run["lines"]
-    for r in run["obs"]:
+    for r in (r for r in run["obs"] if r["group"] in TARGET_GROUPS):
         cells = lines[int(r["line"]) - 1].split(",")
         assert (cells[0], cells[1]) == (r["scan"], r["target"])
         if r["group"] == "range" and r["line"] != str(run["blunder_line"]):
             assert float(r["observed"]) == pytest.approx(float(cells[2]), abs=1e-8)
-    rows = [int(r["row"]) for r in run["obs"]]
-    assert rows[0] == 1 and rows[-1] == len(run["obs"]) // 3
+    rows = [int(r["row"]) for r in run["obs"] if r["group"] in TARGET_GROUPS]
+    assert rows[0] == 1 and rows[-1] == len(rows) // 3
+    # The levelling rows point at their scan's row of the scans CSV.
+    scans = run["scans_lines"]
+    levelling = [r for r in run["obs"] if r["group"] == "levelling"]
+    assert levelling and all(r["row"] == "" for r in levelling)
+    for r in levelling:
+        assert scans[int(r["line"]) - 1].split(",")[0] == r["scan"]
 
 
 def test_planted_blunder_is_removed_on_its_line(run):
@@ -100,9 +111,12 @@ def test_planted_blunder_is_removed_on_its_line(run):
 
 def test_redundancy_numbers_sum_to_dof(run):
     doc = run["doc"]
+    # Every row (target observations and levelling readings) has its redundancy number.
     r_obs = sum(_num(r["redundancy"]) for r in run["obs"])
+    assert r_obs == pytest.approx(doc["dof"], rel=1e-6)
     r_lev = sum(g["redundancy"] for g in doc["group_table"] if g["group"] == "levelling")
-    assert r_obs + r_lev == pytest.approx(doc["dof"], rel=1e-6)
+    levelling = sum(_num(r["redundancy"]) for r in run["obs"] if r["group"] == "levelling")
+    assert levelling == pytest.approx(r_lev, rel=1e-6)
     groups = {g["group"]: float(g["redundancy"]) for g in run["groups"]}
     for name in ("range", "hz", "el"):
         assert groups[name] == pytest.approx(
@@ -274,3 +288,45 @@ def test_plane_point_tables(tmp_path):
     assert total == pytest.approx(res.dof, rel=1e-6)
     groups = {g["group"]: g for g in tj.group_records(res)}
     assert set(groups) == {"plane range", "plane hz", "plane el"}
+    # planes.csv carries the JSON's plane precision in its display units (mm, arc seconds).
+    doc = tj.result_to_dict(res)
+    for r in _read_csv(tmp_path / "tab" / "planes.csv"):
+        p = doc["planes"][r["plane"]]
+        tilt = [_num(r[f"tilt_sigma_{i}_arcsec"]) * ARCSEC for i in (1, 2)]
+        np.testing.assert_allclose(tilt, p["tilt_sigmas"], rtol=1e-9)
+        axes = [_num(r[f"foot_axis_{i}_mm"]) / 1e3 for i in (1, 2, 3)]
+        np.testing.assert_allclose(axes, p["foot_point_ellipsoid_axes"], rtol=1e-9)
+        assert _num(r["sigma_d_mm"]) / 1e3 == pytest.approx(p["sigma"]["d"], rel=1e-9)
+
+
+def test_every_weighted_constraint_has_its_row():
+    """Tilt readings, headings and an AP prior get rows with the target observations (JSON
+    ``observation_table``): all redundancy numbers sum to the degrees of freedom, and each
+    levelling or heading residual is the adjusted orientation minus the reading."""
+    from tlsjax._model._geometry import wrap_angle
+    from tlsjax._model._levelling import orientation_reading
+    from tlsjax._report._tables import observation_records, pseudo_records, table_json
+
+    sim = tj.simulate(seed=5, aps="A0 B6 B7 C0", sigma_tilt=5 * ARCSEC, sigma_heading=30 * ARCSEC)
+    model = tj.CalibrationModel(sim.scanner, ap_priors={"A0": (0.0, 2e-3)})
+    res = tj.calibrate(sim.network, model)
+    assert res.ok, res.message
+    net, pseudo = sim.network, pseudo_records(res)
+    assert {r["group"] for r in pseudo} == {"levelling", "heading", "ap prior"}
+    total = sum(r["redundancy"] for r in observation_records(res) + pseudo)
+    assert total == pytest.approx(res.dof, rel=1e-9)
+    read = np.asarray([orientation_reading(e) for e in res.eops])
+    observed = np.column_stack([net.levelling, net.heading_values])
+    for r in pseudo:
+        if r["group"] == "ap prior":
+            assert r["residual"] == pytest.approx(res.ap("A0")["value"], abs=1e-12)
+            continue
+        j, c = net.scans.index(r["scan"]), ("omega", "phi", "kappa").index(r["primitive"])
+        expected = float(wrap_angle(read[j, c] - observed[j, c]))
+        assert r["residual"] == pytest.approx(expected, abs=1e-12)
+        assert r["w"] == pytest.approx(
+            r["residual"] / (r["sigma"] * np.sqrt(r["redundancy"])), rel=1e-9
+        )
+        assert r["line"] is None  # from memory: no scans CSV
+    rows = table_json(res)["observation_table"]["rows"]
+    assert len(rows) == 3 * net.observations.shape[0] + len(pseudo)

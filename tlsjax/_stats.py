@@ -60,6 +60,13 @@ def chi2_quantile(p: float, dof: float) -> float:
     return float(_sps.chi2.ppf(p, dof))
 
 
+def confidence_scale(dim: int, level: float = 0.95) -> float:
+    """``sqrt(chi2_dim^-1(level))``: the factor from the 1-sigma semi-axes of a ``dim``-variate
+    normal estimate to its ``level`` confidence ellipsoid (known variance factor): 1.96, 2.4477
+    and 2.7955 for one, two and three dimensions at 95 %."""
+    return float(np.sqrt(chi2_quantile(level, dim)))
+
+
 def weighted_chi2_sf(x: float, weights, noncentrality=None) -> float:
     """``P(sum_k w_k chi2_1(delta_k^2) > x)`` for weights ``w_k >= 0`` and noncentralities
     ``delta_k^2`` (default 0): Imhof's formula (Imhof 1961, Biometrika 48, eq. 3.2),

@@ -119,6 +119,10 @@ class Network:
     lines: np.ndarray | None = None
     plane_lines: np.ndarray | None = None
     plane_source: str = ""
+    # The scans CSV of the orientation readings (levelling, tilt, heading) and the line of
+    # each scan's row in it (s,), 0 where the scan has none; None where they came from memory.
+    scans_source: str = ""
+    scan_lines: np.ndarray | None = None
 
     @property
     def n_observations(self) -> int:

@@ -125,6 +125,9 @@ class CalibrationResult:
     planes: tuple = ()
     plane_params: np.ndarray | None = None  # (k, 4) = (nx, ny, nz, d [m]), n . X = d
     plane_sigmas: np.ndarray | None = None  # (k, 4) a posteriori, inner-constraint datum
+    # (k, 4, 4) a posteriori covariance of each plane (n, d) [1, m] in the datum used: the
+    # constrained (tangent-plane) blocks, n^T C_nn = 0 and n^T C_nd = 0 to rounding.
+    plane_covariance: np.ndarray | None = dataclasses.field(default=None, repr=False)
     plane_residuals: np.ndarray | None = None  # (m, 3) Gauss-Helmert residuals v [m, rad, rad]
     plane_redundancy: np.ndarray | None = None  # (m, 3); the three of a point sum to <= 1
     plane_used: np.ndarray | None = None  # (m, 3)
@@ -382,6 +385,13 @@ def _result_code(state, q, rank_def, not_est):
     return ResultCode(int(code))
 
 
+def not_estimable_sentence(name: str, reason: str) -> str:
+    """The one sentence that names a non-estimable AP and why: the result's ``message`` and
+    :func:`tlsjax._report._text.confoundings` (the text summary, the JSON's ``confoundings``,
+    the HTML report) all print it."""
+    return f"{name} is not estimable: {reason}"
+
+
 def _message(code, rank_def, not_est, state, diagnosis):
     msg = code.message
     if code == ResultCode.MAX_ITERATIONS:
@@ -389,7 +399,7 @@ def _message(code, rank_def, not_est, state, diagnosis):
     if rank_def:
         msg += ": " + ", ".join(rank_def[:12])
     if not_est:
-        msg += "; " + "; ".join(f"{n} is not estimable: {reason}" for n, _, reason in not_est)
+        msg += "; " + "; ".join(not_estimable_sentence(n, reason) for n, _, reason in not_est)
     if code in (ResultCode.MAX_ITERATIONS, ResultCode.NONFINITE) and diagnosis.get("summary"):
         msg += "; " + diagnosis["summary"]
     return msg
@@ -429,6 +439,7 @@ def _observation_arrays(net: Network, plan: Plan, q, state, s0sq):
             planes=net.planes,
             plane_params=np.asarray(state.params.prims[fp]),
             plane_sigmas=sig_of(fp),
+            plane_covariance=np.asarray(q.prim_cofactor[fp]) * s0sq,
             plane_residuals=np.asarray(q.residuals[fp]),
             plane_redundancy=np.asarray(q.redundancy[fp]),
             plane_used=np.asarray(plan.problem.families[fp].weight) > 0,

@@ -217,6 +217,11 @@ def read_scans(path) -> dict[str, dict[str, float]]:
     file without their sigma columns are refused (they could not be weighted, and dropping them
     would go unnoticed).
     """
+    return _read_scans(path)[0]
+
+
+def _read_scans(path) -> tuple[dict[str, dict[str, float]], dict[str, int]]:
+    """:func:`read_scans` and the file line (1-based) of each scan's row."""
     _check_path(path, "path")
     source = os.fspath(path)
     loc = Located(source)
@@ -259,7 +264,7 @@ def read_scans(path) -> dict[str, dict[str, float]]:
         out = _scan_angles(scan, values, seen, line, loc)
         if out:
             result[scan] = out
-    return result
+    return result, first_line
 
 
 def _scan_angles(scan, values, seen, line, loc) -> dict[str, float]:
@@ -501,9 +506,11 @@ def read_network(
     kwargs["architecture"] = _agreed_architecture(kwargs.get("architecture"), table, plane_table)
     # The scans CSV holds the observed orientation angles of eq. (7): tilt readings of levelled
     # and tilted scans, headings.
-    orientation = read_scans(scans_path) if scans_path is not None else None
+    orientation, scan_lines = None, {}
+    if scans_path is not None:
+        orientation, scan_lines = _read_scans(scans_path)
     if table is None:
-        return make_network(
+        net = make_network(
             (),
             (),
             np.zeros((0, 3)),
@@ -512,20 +519,26 @@ def read_network(
             source=plane_table.source,
             **kwargs,
         )
-    return make_network(
-        table.scans,
-        table.primitives,
-        table.observations,
-        sigmas=table.sigmas,
-        incidence=None if table.incidence is None else np.nan_to_num(table.incidence, nan=0.0),
-        instruments=table.instruments,
-        orientation=orientation,
-        drop_single_targets=drop_single_targets,
-        source=table.source,
-        rows=table.rows,
-        planes=plane_table,
-        **kwargs,
-    )
+    else:
+        net = make_network(
+            table.scans,
+            table.primitives,
+            table.observations,
+            sigmas=table.sigmas,
+            incidence=None if table.incidence is None else np.nan_to_num(table.incidence, nan=0.0),
+            instruments=table.instruments,
+            orientation=orientation,
+            drop_single_targets=drop_single_targets,
+            source=table.source,
+            rows=table.rows,
+            planes=plane_table,
+            **kwargs,
+        )
+    if scans_path is None:
+        return net
+    # The line of each scan's row in the scans CSV, for the per-observation tables.
+    lines = np.array([scan_lines.get(s, 0) for s in net.scans], dtype=np.int64)
+    return dataclasses.replace(net, scans_source=os.fspath(scans_path), scan_lines=lines)
 
 
 def _agreed_architecture(architecture, *tables):

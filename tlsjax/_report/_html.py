@@ -502,13 +502,29 @@ def _section_planes(doc) -> str:
             " ".join(_fmt(v, 4) for v in p.get("normal", [])),
             _fmt(p.get("d"), 4),
             _fmt((p.get("sigma") or {}).get("d"), 3, 1e3),
+            " / ".join(_fmt(v, 2, 1 / ARCSEC) for v in p.get("tilt_sigmas") or [None, None]),
+            " / ".join(_fmt(v, 3, 1e3) for v in p.get("foot_point_ellipsoid_axes") or [None] * 3),
             p.get("n_points"),
             p.get("n_scans"),
         )
         for k, p in planes.items()
     ]
-    head = ("plane", "normal [-]", "d [m]", "sigma d [mm]", "points", "scans")
-    return "<h2>Planes</h2>" + _table(head, rows, "small")
+    head = (
+        "plane",
+        "normal [-]",
+        "d [m]",
+        "sigma d [mm]",
+        "tilt sigmas [&quot;]",
+        "foot point d&middot;n: semi-axes [mm]",
+        "points",
+        "scans",
+    )
+    note = (
+        "<p>1-sigma, a posteriori: the principal tilts of the normal (x 2.45 for "
+        "the 95 % ellipse) and the semi-axes of the foot point's ellipsoid (x 2.80 for 95 %), "
+        "in the datum of the adjustment.</p>"
+    )
+    return "<h2>Planes</h2>" + _table(head, rows, "small") + note
 
 
 def _section_provenance(doc) -> str:

@@ -12,6 +12,7 @@ from .._inference._statistics import ap_notes, global_test
 from .._io._json import to_json_value, write_json_file
 from .._io._target_lists import ELLIPSOID_95
 from .._model._aps import get_ap
+from .._stats import confidence_scale
 from ._text import EOP_NAMES, confoundings
 
 #: Result codes whose estimates are numbers (converged, possibly with non-estimable APs held).
@@ -45,18 +46,74 @@ def scanner_settings(scanner) -> dict:
     }
 
 
+def principal_axes(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """1-sigma semi-axes (..., k), largest first, and their unit directions (..., k, k), one per
+    column, of the k x k covariances ``cov`` (..., k, k): the square roots of the eigenvalues and
+    the eigenvectors; NaN where a block is not finite."""
+    cov = np.asarray(cov, dtype=np.float64)
+    k = cov.shape[-1]
+    flat = cov.reshape(-1, k, k)
+    ok = np.all(np.isfinite(flat), axis=(1, 2))
+    axes = np.full((flat.shape[0], k), np.nan)
+    dirs = np.full((flat.shape[0], k, k), np.nan)
+    if ok.any():
+        w, v = np.linalg.eigh(0.5 * (flat[ok] + np.swapaxes(flat[ok], 1, 2)))
+        axes[ok] = np.sqrt(np.clip(w[:, ::-1], 0, None))
+        dirs[ok] = v[:, :, ::-1]
+    return axes.reshape(cov.shape[:-1]), dirs.reshape(cov.shape)
+
+
 def target_ellipsoids(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """1-sigma semi-axes (t, 3), largest first, and their unit directions (t, 3, 3), one per
     column, of the 3 x 3 target covariances ``cov`` (t, 3, 3); NaN where a block is not finite."""
-    cov = np.asarray(cov, dtype=np.float64).reshape(-1, 3, 3)
-    ok = np.all(np.isfinite(cov), axis=(1, 2))
-    axes = np.full((cov.shape[0], 3), np.nan)
-    dirs = np.full((cov.shape[0], 3, 3), np.nan)
-    if ok.any():
-        w, v = np.linalg.eigh(0.5 * (cov[ok] + np.swapaxes(cov[ok], 1, 2)))
-        axes[ok] = np.sqrt(np.clip(w[:, ::-1], 0, None))
-        dirs[ok] = v[:, :, ::-1]
-    return axes, dirs
+    return principal_axes(np.asarray(cov, dtype=np.float64).reshape(-1, 3, 3))
+
+
+def plane_ellipsoids(params: np.ndarray, cov: np.ndarray) -> dict:
+    """Precision of adjusted planes ``(n, d)`` (k, 4) from their a posteriori covariances
+    ``cov`` (k, 4, 4) [1, m], the planes' counterpart of a point's confidence ellipsoid.
+
+    A plane has four parameters and one hard constraint ``|n| = 1``, so its covariance has rank
+    three and lives in the tangent space: ``n^T C_nn = 0``, ``n^T C_nd = 0``. JAG3D gives a
+    point's ellipsoid; a plane has no point of its own, so tlsjax reports the three rigorous
+    measures that together describe its 3 x 3 precision:
+
+    - ``sigma_d = sqrt(C_dd)`` [m]: the plane's offset along its normal at the foot point;
+    - ``tilt_sigmas`` [rad] with ``tilt_directions`` (3, 2): the principal axes of the normal's
+      covariance in its tangent plane, ``C_t = T^T C_nn T`` with T (3, 2) an orthonormal basis of
+      the plane orthogonal to n (eigenvalues, largest first, and the object-space directions
+      ``T u_k`` in which the normal tips); a unit vector moved by a small angle e moves by e, so
+      these are the sigmas of the two tilt angles;
+    - ``foot_point = d n`` [m] (the point of the plane nearest the datum's origin) and its
+      covariance ``C_f = J C J^T``, ``J = [d I_3, n]`` (3, 4) (first-order propagation), as
+      ellipsoid semi-axes ``foot_axes`` (k, 3) [m], largest first, and ``foot_directions``.
+      Along n its variance is ``C_dd``; across n it is ``d^2`` times the tilt's, so it grows with
+      the plane's distance from the origin (the datum is part of the statement, as for targets).
+
+    The plane's sigma along its normal at any point X is ``sqrt(a^T C a)``, ``a = (X, -1)``.
+    All 1-sigma; the confidence ellipsoids at 95 % are ``tlsjax._stats.confidence_scale(m)``
+    times them (m = 1, 2, 3: 1.96, 2.4477, 2.7955). NaN where a block is not finite.
+    """
+    P = np.asarray(params, dtype=np.float64).reshape(-1, 4)
+    C = np.asarray(cov, dtype=np.float64).reshape(-1, 4, 4)
+    n, d = P[:, :3] / np.linalg.norm(P[:, :3], axis=1, keepdims=True), P[:, 3]
+    # Orthonormal tangent basis: the last two right-singular vectors of n^T (exact for any n;
+    # a non-finite plane gets NaN measures through its covariance or d, never an SVD error).
+    safe = np.where(np.all(np.isfinite(n), axis=1, keepdims=True), n, [0.0, 0.0, 1.0])
+    T = np.linalg.svd(safe[:, None, :])[2][:, 1:, :].transpose(0, 2, 1)  # (k, 3, 2)
+    tilt, u = principal_axes(np.einsum("kia,kij,kjb->kab", T, C[:, :3, :3], T))
+    bad = ~np.all(np.isfinite(P), axis=1)
+    tilt[bad], u[bad] = np.nan, np.nan
+    J = np.concatenate([d[:, None, None] * np.eye(3), n[:, :, None]], axis=2)  # (k, 3, 4)
+    foot_axes, foot_dirs = principal_axes(J @ C @ np.swapaxes(J, 1, 2))
+    return {
+        "sigma_d": np.sqrt(np.clip(C[:, 3, 3], 0, None)),
+        "tilt_sigmas": tilt,
+        "tilt_directions": T @ u,
+        "foot_point": d[:, None] * n,
+        "foot_axes": foot_axes,
+        "foot_directions": foot_dirs,
+    }
 
 
 def target_scan_counts(res) -> np.ndarray:
@@ -153,6 +210,8 @@ def _withhold_estimates(d: dict, reason: str) -> None:
     for p in d.get("planes", {}).values():
         p["normal"], p["d"] = [None, None, None], None
         p["sigma"] = {k: None for k in p["sigma"]}
+        for key, _ in _PLANE_PRECISION:
+            p[key] = to_json_value(np.full(np.shape(p[key]), np.nan).tolist())
     for t in d.get("targets", {}).values():
         t["xyz"], t["sigma"], t["ellipsoid_axes"] = [None] * 3, [None] * 3, [None] * 3
         t["ellipsoid_directions"] = [[None] * 3 for _ in range(3)]
@@ -260,10 +319,13 @@ def _scanner_dict(res) -> dict:
 
 
 def _planes_dict(res) -> dict:
-    """Plane parameters with sigmas and the Gauss-Helmert residual summary (plane networks)."""
+    """Plane parameters with sigmas and the precision measures of :func:`plane_ellipsoids`,
+    and the Gauss-Helmert residual summary (plane networks)."""
     if not getattr(res, "planes", ()):
         return {}
     P, S = res.plane_params, res.plane_sigmas
+    cov = getattr(res, "plane_covariance", None)
+    e = plane_ellipsoids(P, np.full((len(res.planes), 4, 4), np.nan) if cov is None else cov)
     net = res.network
     planes = {}
     for k, name in enumerate(res.planes):
@@ -277,6 +339,7 @@ def _planes_dict(res) -> dict:
                 "nz": _num(S[k, 2]),
                 "d": _num(S[k, 3]),
             },
+            **_plane_precision(e, k),
             "n_points": int(rows.sum()),
             "n_scans": int(len(np.unique(net.plane_scan_index[rows]))),
         }
@@ -288,9 +351,35 @@ def _planes_dict(res) -> dict:
     }
     return {
         "planes": planes,
+        "planes_units": PLANES_UNITS,
         "plane_residual_rms": rms,
         "n_plane_points": int(used.any(axis=1).sum()),
     }
+
+
+#: What the planes' precision fields are (JSON, SI units; :func:`plane_ellipsoids`).
+PLANES_UNITS = (
+    "normal 1, d m, sigma a posteriori; tilt_sigmas: 1-sigma principal axes of the normal's "
+    "covariance in its tangent plane [rad], largest first (x "
+    f"{round(confidence_scale(2), 4)} for the 95 % ellipse), tilt_directions: one unit column "
+    "per axis (the object-space direction the normal tips in); foot_point = d n [m] and its "
+    "1-sigma ellipsoid semi-axes foot_point_ellipsoid_axes [m], largest first (x "
+    f"{round(confidence_scale(3), 4)} for 95 %), foot_point_ellipsoid_directions: one unit "
+    "column per axis"
+)
+
+_PLANE_PRECISION = (
+    ("tilt_sigmas", "tilt_sigmas"),
+    ("tilt_directions", "tilt_directions"),
+    ("foot_point", "foot_point"),
+    ("foot_point_ellipsoid_axes", "foot_axes"),
+    ("foot_point_ellipsoid_directions", "foot_directions"),
+)
+
+
+def _plane_precision(e: dict, k: int) -> dict:
+    """The JSON fields of plane ``k`` from :func:`plane_ellipsoids` (null where undefined)."""
+    return {key: to_json_value(np.asarray(e[src][k]).tolist()) for key, src in _PLANE_PRECISION}
 
 
 def write_json(res, path, *, extra: dict | None = None, **kw) -> dict:

@@ -33,9 +33,10 @@ from .._adjustment._quality import (
     external_reliability_factor,
     minimal_detectable_bias,
 )
-from .._inference._statistics import critical_value, group_variance_test
-from .._stats import DELTA0, non_centrality
-from .._units import ARCSEC
+from .._inference._statistics import critical_value, group_variance_test, w_tests
+from .._io._target_lists import ELLIPSOID_95
+from .._stats import DELTA0, confidence_scale, non_centrality
+from .._units import ARCSEC, DISPLAY_UNITS
 
 GROUPS = ("range", "hz", "el")
 #: Display unit and factor from SI of each group in the CSV tables.
@@ -122,9 +123,7 @@ def _delta0(tested) -> float:
 
 def _columns(v, r, sig, used, crit, delta0, *, extra, removed, observed) -> dict:
     v, r, sig = (np.asarray(a, dtype=np.float64) for a in (v, r, sig))
-    ok = used & (r > MIN_TESTABLE_REDUNDANCY)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        w = np.where(ok, v / (sig * np.sqrt(np.where(ok, r, 1.0))), np.nan)
+    w = np.where(used, w_tests(v, sig, r), np.nan)
     mdb = np.where(used, minimal_detectable_bias(sig, r, delta0), np.nan)
     ext = np.where(used, external_reliability_factor(r, delta0), np.nan)
     return {
@@ -187,6 +186,83 @@ def _kind_arrays(res, tested, kind):
         [net.scans[j] for j in net.plane_scan_index],
         [net.planes[k] for k in net.plane_index],
     )
+
+
+#: The groups of the weighted constraints' rows (``CalibrationResult.weighted_constraints``
+#: kinds): tilt readings, observed kappa, AP priors.
+PSEUDO_GROUPS = {"omega": "levelling", "phi": "levelling", "kappa": "heading", "ap": "ap prior"}
+
+
+def _pseudo_arrays(res, tested):
+    """(columns (p, 1) each, lines or None, scan names, names) of the weighted constraints
+    with observed values (tilt readings, headings, AP priors; SPEC section 6), through the same
+    :func:`_columns` as the target observations; None when there are none. ``primitive`` is
+    the angle (omega, phi, kappa) or the AP, ``scan`` the scan (empty for an AP prior), ``line``
+    that of the scan's row in the scans CSV. The tilt readings take the levelling group's VCE
+    factor (:func:`tlsjax.calibrate_and_test`), the others their a priori sigmas."""
+    cons = res.weighted_constraints()
+    if not cons:
+        return None
+    net = res.network
+    vc = {v.group: v for v in tested.variance_components} if tested is not None else {}
+    lev = vc.get("levelling")
+    lev_factor = lev.sigma_factor if lev is not None and np.isfinite(lev.sigma_factor) else 1.0
+    col = lambda key: np.array([[c[key]] for c in cons], dtype=np.float64)
+    sig = col("sigma") * np.array(
+        [[lev_factor if c["kind"] in ("omega", "phi") else 1.0] for c in cons]
+    )
+    crit, delta0 = (
+        (float(tested.critical_value), _delta0(tested))
+        if tested is not None
+        else (critical_value(PLAIN_ALPHA), DELTA0)
+    )
+    p = len(cons)
+    cols = _columns(
+        col("residual"),
+        col("redundancy"),
+        sig,
+        np.ones((p, 1), bool),
+        crit,
+        delta0,
+        extra={
+            "external_ap_sigmas": np.full((p, 1), np.nan),
+            "external_ap": np.full((p, 1), "", dtype=object),
+        },
+        removed={},
+        observed=col("observed"),
+    )
+    scans = [c["name"] if c["kind"] != "ap" else "" for c in cons]
+    line_of = {} if net.scan_lines is None else dict(zip(net.scans, net.scan_lines.tolist()))
+    # 0: the scan has no row in the scans CSV (an orientation given in memory).
+    lines = [line_of.get(c["name"]) or None if c["kind"] != "ap" else None for c in cons]
+    names = [c["kind"] if c["kind"] != "ap" else c["name"] for c in cons]
+    groups = [PSEUDO_GROUPS[c["kind"]] for c in cons]
+    return cols, lines, scans, names, groups
+
+
+def pseudo_records(res, tested=None) -> list[dict]:
+    """One dict per weighted constraint with observed values (keys
+    :data:`OBSERVATION_COLUMNS`, SI units: rad, or the AP's unit), in the order of
+    ``res.weighted_constraints()``; ``row`` is null (the rows are not the observation
+    file's)."""
+    got = _pseudo_arrays(res, tested)
+    if got is None:
+        return []
+    cols, lines, scans, names, groups = got
+    out = []
+    for i in range(len(scans)):
+        rec = {
+            "row": None,
+            "line": lines[i],
+            "scan": scans[i],
+            "primitive": names[i],
+            "group": groups[i],
+        }
+        for k in OBSERVATION_COLUMNS[5:]:
+            x = cols[k][i, 0]
+            rec[k] = x if isinstance(x, str) else _finite(x)
+        out.append(rec)
+    return out
 
 
 def _is_csv(source) -> bool:
@@ -281,7 +357,7 @@ def table_json(res, tested=None) -> dict:
     """The JSON fields of the tables (SI units): ``observation_table`` (the target
     observations, column-wise: ``columns`` and one list per row), ``group_table``, and a note
     where the plane points are (their table can hold millions of rows: CSV only)."""
-    recs = observation_records(res, tested, kind="target")
+    recs = observation_records(res, tested, kind="target") + pseudo_records(res, tested)
     net = res.network
     out = {
         "group_table": group_records(res, tested),
@@ -291,7 +367,11 @@ def table_json(res, tested=None) -> dict:
             "external (Baarda's factor delta0 sqrt((1 - r) / r)), external_ap_sigmas: "
             "dimensionless",
             "rows_are": "row: 1-based position among the observations of the file; line: the "
-            "file's line (1-based, header and comment lines counted; null for arrays)",
+            "file's line (1-based, header and comment lines counted; null for arrays); then one "
+            "row per weighted constraint with an observed value (group levelling: the tilt "
+            "readings omega, phi; heading: kappa; ap prior; row null, line that of the scan's "
+            "row in scans_source, residual = adjusted orientation minus reading)",
+            "scans_source": None if net is None or not net.scans_source else net.scans_source,
             "columns": list(OBSERVATION_COLUMNS),
             "rows": [[r[k] for k in OBSERVATION_COLUMNS] for r in recs],
         },
@@ -319,7 +399,9 @@ def _cell(x, scale=1.0) -> str:
 
 def observation_csv(res, tested=None, *, kind: str = "target") -> str:
     """The per-observation table as CSV text: residual, sigma and MDB in mm (range) or arc
-    seconds (hz, el), the observation in m or degrees."""
+    seconds (hz, el), the observation in m or degrees; for ``kind="target"`` followed by the
+    rows of the weighted constraints (:func:`pseudo_records`: levelling and heading in arc
+    seconds, AP priors in the AP's report unit)."""
     net = res.network
     source = net.source if kind == "target" else (net.plane_source or net.source)
     head = (
@@ -335,9 +417,14 @@ def observation_csv(res, tested=None, *, kind: str = "target") -> str:
         "sqrt((1 - r) / r); external_ap_sigmas: largest effect on one AP (external_ap)",
         head,
     ]
-    for r in observation_records(res, tested, kind=kind):
-        unit, f = DISPLAY[r["group"]]
-        obs_unit, fo = ("m", 1.0) if r["group"] == "range" else ("deg", 180 / math.pi)
+    recs = observation_records(res, tested, kind=kind)
+    if kind == "target":
+        recs += pseudo_records(res, tested)
+        if net.scans_source:
+            lines.insert(2, f"# levelling and heading rows: line = that of {net.scans_source}")
+    ap_unit = dict(zip(res.ap_names, res.ap_units))
+    for r in recs:
+        unit, f, obs_unit, fo = _display(r, ap_unit)
         cells = [
             _cell(r["row"]),
             _cell(r["line"]),
@@ -360,6 +447,19 @@ def observation_csv(res, tested=None, *, kind: str = "target") -> str:
         ]
         lines.append(",".join(cells))
     return "\n".join(lines) + "\n"
+
+
+def _display(rec, ap_unit) -> tuple:
+    """(unit, factor from SI) of a row's residual, sigma and MDB, and of its observed value."""
+    g = rec["group"]
+    if g in DISPLAY:
+        unit, f = DISPLAY[g]
+        return (unit, f, "m", 1.0) if g == "range" else (unit, f, "deg", 180 / math.pi)
+    if g == "ap prior":
+        label, f = DISPLAY_UNITS[ap_unit[rec["primitive"]]]
+        label = "arcsec" if label == '"' else label
+        return label, f, label, f
+    return "arcsec", 1 / ARCSEC, "arcsec", 1 / ARCSEC  # tilt readings and headings
 
 
 def group_csv(res, tested=None) -> str:
@@ -385,19 +485,35 @@ def group_csv(res, tested=None) -> str:
 
 
 def planes_csv(res) -> str:
-    """Adjusted planes: normal, d [m] and their sigmas [mm for d, 1e-6 for the normal]."""
+    """Adjusted planes: normal, d [m] and their sigmas [mm for d, 1 for the normal], the tilt
+    sigmas of the normal ["] and the foot point ``d n`` [m] with its 1-sigma ellipsoid
+    semi-axes [mm] (:func:`tlsjax._report._json.plane_ellipsoids`)."""
+    from ._json import plane_ellipsoids
+
     lines = [
         "# tlsjax adjusted planes (n . X = d in the datum of the adjustment); sigmas a "
-        "posteriori: of the normal's components (dimensionless) and of d [mm]",
-        "plane,nx,ny,nz,d_m,sigma_nx,sigma_ny,sigma_nz,sigma_d_mm,n_points,n_scans",
+        "posteriori: of the normal's components (dimensionless) and of d [mm]; tilt_sigma_1..2: "
+        "principal 1-sigma tilts of the normal [arcsec] (x "
+        f"{round(confidence_scale(2), 4)} for the 95 % ellipse); foot = d n [m], "
+        f"foot_axis_1..3: its 1-sigma ellipsoid semi-axes [mm] (x {ELLIPSOID_95} for 95 %)",
+        "plane,nx,ny,nz,d_m,sigma_nx,sigma_ny,sigma_nz,sigma_d_mm,tilt_sigma_1_arcsec,"
+        "tilt_sigma_2_arcsec,foot_x_m,foot_y_m,foot_z_m,foot_axis_1_mm,foot_axis_2_mm,"
+        "foot_axis_3_mm,n_points,n_scans",
     ]
     net = res.network
+    cov = res.plane_covariance
+    e = plane_ellipsoids(
+        res.plane_params, np.full((len(res.planes), 4, 4), np.nan) if cov is None else cov
+    )
     for k, name in enumerate(res.planes):
         rows = net.plane_index == k
         P, S = res.plane_params[k], res.plane_sigmas[k]
         cells = [_cell(name), *(_cell(v) for v in P), *(_cell(v) for v in S[:3])]
-        cells += [_cell(S[3], 1e3), str(int(rows.sum()))]
-        cells.append(str(len(np.unique(net.plane_scan_index[rows]))))
+        cells.append(_cell(S[3], 1e3))
+        cells += [_cell(v, 1 / ARCSEC) for v in e["tilt_sigmas"][k]]
+        cells += [_cell(v) for v in e["foot_point"][k]]
+        cells += [_cell(v, 1e3) for v in e["foot_axes"][k]]
+        cells += [str(int(rows.sum())), str(len(np.unique(net.plane_scan_index[rows])))]
         lines.append(",".join(cells))
     return "\n".join(lines) + "\n"
 
@@ -440,8 +556,10 @@ def write_tables(res, folder, tested=None) -> list[str]:
         write_text_atomic(path, text, "--tables ")
         written.append(path)
 
-    if net.has_targets:
+    if net.has_targets or res.weighted_constraints():
+        # Target observations and the weighted constraints (levelling, headings, AP priors).
         put("observations.csv", observation_csv(res, tested, kind="target"))
+    if net.has_targets:
         path = os.path.join(os.fspath(folder), "targets.csv")
         targets_csv(res, path)
         written.append(path)

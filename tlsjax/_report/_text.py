@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._adjustment._result import not_estimable_sentence
 from .._inference._statistics import global_test
 from .._units import display
 
@@ -35,7 +36,7 @@ def confoundings(not_estimable, weakly_determined) -> list[dict]:
                 "parameters": [n, w],
                 "kind": "not estimable",
                 "max_abs_corr": None,
-                "text": f"{n} is not estimable: {reason}",
+                "text": not_estimable_sentence(n, reason),
             }
         )
     for n, w, c in triples(weakly_determined, ("name", "correlated_with", "max_abs_corr")):
