@@ -198,19 +198,23 @@ def _pseudo_arrays(res, tested):
     with observed values (tilt readings, headings, AP priors; SPEC section 6), through the same
     :func:`_columns` as the target observations; None when there are none. ``primitive`` is
     the angle (omega, phi, kappa) or the AP, ``scan`` the scan (empty for an AP prior), ``line``
-    that of the scan's row in the scans CSV. The tilt readings take the levelling group's VCE
-    factor (:func:`tlsjax.calibrate_and_test`), the others their a priori sigmas."""
+    that of the scan's row in the scans CSV. Each kind takes its variance group's VCE factor
+    (:func:`tlsjax.calibrate_and_test`: levelling, heading, AP priors)."""
     cons = res.weighted_constraints()
     if not cons:
         return None
     net = res.network
     vc = {v.group: v for v in tested.variance_components} if tested is not None else {}
-    lev = vc.get("levelling")
-    lev_factor = lev.sigma_factor if lev is not None and np.isfinite(lev.sigma_factor) else 1.0
+
+    def factor(kind):
+        # Tilt readings and headings: the network's a priori sigma times their group's VCE
+        # sigma factor. AP priors: the result's sigma is already the one the adjustment used
+        # (the prior weights of the problem, VCE factor included).
+        v = vc.get({"omega": "levelling", "phi": "levelling", "kappa": "heading"}.get(kind, ""))
+        return v.sigma_factor if v is not None and np.isfinite(v.sigma_factor) else 1.0
+
     col = lambda key: np.array([[c[key]] for c in cons], dtype=np.float64)
-    sig = col("sigma") * np.array(
-        [[lev_factor if c["kind"] in ("omega", "phi") else 1.0] for c in cons]
-    )
+    sig = col("sigma") * np.array([[factor(c["kind"])] for c in cons])
     crit, delta0 = (
         (float(tested.critical_value), _delta0(tested))
         if tested is not None
