@@ -114,3 +114,20 @@ def test_target_and_plane_designs_of_a_design():
     res = tj.calibrate(dn.network(td), dn.model)  # no seed: no noise
     assert res.ok
     np.testing.assert_allclose(res.ap_values, [0.010, 1e-4], rtol=0, atol=1e-9)
+
+
+def test_monte_carlo_draws_from_a_design():
+    # A0 only and no noise: every plane row's range is the distance from its scan's station to
+    # its true point plus A0, which fixes the truth's row order; the points lie on their planes.
+    nd = tj.NetworkDesign(n_targets=30, faces_as_planes=True, aps=("A0",), noise_scale=0.0)
+    truth = tj.simulate_design(nd, seed=2).truth()
+    net = truth.network
+    rho = np.linalg.norm(truth.plane_points - truth.eops[net.plane_scan_index, :3], axis=1)
+    np.testing.assert_allclose(net.plane_observations[:, 0] - rho, 0.010, rtol=0, atol=1e-12)
+    P = truth.planes[net.plane_index]
+    np.testing.assert_allclose(np.sum(P[:, :3] * truth.plane_points, 1), P[:, 3], atol=1e-12)
+    opts = tj.MonteCarloOptions(runs=40, progress=False)
+    mc = tj.monte_carlo(nd, tj.CalibrationModel(tj.Scanner(aps=("A0",))), opts).to_dict()
+    assert mc["successful"] == 40
+    a0 = mc["aps"]["A0"]
+    assert a0["truth_mean"] == 0.010 and abs(a0["bias"]) < 4 * a0["formal_sigma"] / np.sqrt(40)

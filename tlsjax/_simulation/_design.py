@@ -44,6 +44,7 @@ from .._model._scanner import ARCHITECTURES, Scanner
 from .._units import DEG
 from ._point_clouds import Board, _observe_in_chunks
 from ._room import default_true_value
+from ._truth import SimulationTruth
 
 
 @dataclasses.dataclass(frozen=True)
@@ -154,7 +155,9 @@ class DesignSimulation:
     inward normals), ``true_eops`` (s, 6) for ``network.scans``, ``true_aps`` name -> value.
     ``noise_sigmas`` (n, 3) and ``plane_noise_sigmas`` (m, 3): the standard deviations the noise
     was drawn with (incidence applied), in the network's row order. ``target_normals`` (t, 3):
-    the inward normals of the faces the targets sit on (NaN: a free-standing target).
+    the inward normals of the faces the targets sit on (NaN: a free-standing target);
+    ``plane_points`` (m, 3): the true point of every plane row. :meth:`truth` hands all of it
+    to :func:`tlsjax.monte_carlo`.
     """
 
     network: Network
@@ -167,10 +170,25 @@ class DesignSimulation:
     noise_sigmas: np.ndarray
     plane_noise_sigmas: np.ndarray
     target_normals: np.ndarray | None = None
+    plane_points: np.ndarray | None = None
 
     @property
     def expected_sigma0(self) -> float:
         return self.design.expected_sigma0
+
+    def truth(self) -> SimulationTruth:
+        """The network with its truth, for :func:`tlsjax.monte_carlo` (which draws its noise
+        from the network's a priori sigmas, i.e. as if ``noise_scale = sigma_scale``)."""
+        n = len(self.network.instruments)
+        return SimulationTruth(
+            self.network,
+            (self.scanner,) * n,
+            (dict(self.true_aps),) * n,
+            self.true_eops,
+            self.true_targets,
+            self.true_planes,
+            np.zeros((0, 3)) if self.plane_points is None else self.plane_points,
+        )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -512,4 +530,5 @@ def _with_truth(
         noise_sigmas=sig_t[keep] if len(rows_t) else np.zeros((0, 3)),
         plane_noise_sigmas=sig_p.reshape(-1, 3),
         target_normals=n_t[targets].reshape(-1, 3),
+        plane_points=np.array([r[2] for r in rows_p]).reshape(-1, 3),
     )

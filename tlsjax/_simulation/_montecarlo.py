@@ -56,6 +56,7 @@ from .._stats import t_critical_value
 from .._summary import SummaryText, finite_or_none
 from .._units import display_unit
 from ._batch import auto_chunk, compile_batched, device_key, round_chunk, run_batched
+from ._design import NetworkDesign, simulate_design
 from ._truth import SimulationTruth
 
 
@@ -112,10 +113,13 @@ class MonteCarloOptions:
 def _truth_of(simulation) -> SimulationTruth:
     if isinstance(simulation, SimulationTruth):
         return simulation
+    if isinstance(simulation, NetworkDesign):  # the one design description: its geometry of seed 0
+        return simulate_design(simulation).truth()
     if hasattr(simulation, "truth"):
         return simulation.truth()
     raise ValueError(
-        "monte_carlo: give a tlsjax.Simulation, a tlsjax.PointClouds or a SimulationTruth "
+        "monte_carlo: give a tlsjax.NetworkDesign, a tlsjax.Simulation, a tlsjax.PointClouds, "
+        "a tlsjax.DesignSimulation or a SimulationTruth "
         f"(e.g. clouds.truth(max_points=...)), got {type(simulation).__name__}"
     )
 
@@ -562,8 +566,10 @@ def monte_carlo(
 ) -> MonteCarloResult:
     """Simulate and self-calibrate N realisations of one network design as one compiled batch.
 
-    ``simulation``: a :class:`tlsjax.Simulation` (targets), a :class:`tlsjax.PointClouds`
-    (planes; all its points), or a :class:`tlsjax.SimulationTruth` (any design, e.g.
+    ``simulation``: a :class:`tlsjax.NetworkDesign` (the network :func:`tlsjax.simulate_design`
+    draws from it with seed 0; the noise is drawn from its a priori sigmas), a
+    :class:`tlsjax.DesignSimulation`, a :class:`tlsjax.Simulation` (targets), a
+    :class:`tlsjax.PointClouds` (planes; all its points), or a :class:`tlsjax.SimulationTruth` (any design, e.g.
     ``clouds.truth(max_points=50)`` or a target and a plane truth combined). ``model``: the
     calibration model whose APs are estimated (default: the data's scanners). Realisation k:
     ``l = F(X, EOP) + Delta(l; AP_true) + e``, ``e ~ N(0, Sigma_l)`` drawn from
