@@ -65,7 +65,13 @@ from .._model._targets import (
     sphere_ray_distance,
 )
 from .._units import DEG
-from ._room import Room, default_true_value, room_scans, simulated_levelling
+from ._room import (
+    Room,
+    default_true_value,
+    design_scanner_settings,
+    room_scans,
+    simulated_levelling,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -309,26 +315,13 @@ class CloudDesign:
                 "CloudDesign.from_design: only Board planes have a point-cloud counterpart "
                 "(no DesignPlane, no free-standing targets)"
             )
-        if design.sigma_scale != 1.0 or design.noise_scale not in (0.0, 1.0):
-            raise ValueError(
-                "CloudDesign.from_design: the clouds draw the nominal noise or none "
-                "(noise_scale 1 or 0, sigma_scale 1)"
-            )
         settings = dict(
             room=Room.from_design(design, n_targets=max(design.n_targets, 12)),
             boards=tuple(design.planes),
-            architecture=design.architecture,
-            aps=design.aps,
-            true_aps=design.true_aps,
             elevation_limits=design.elevation_limits,
             max_incidence=design.max_incidence,
-            noise=design.noise_scale > 0,
-            sigma_range=design.sigma_range,
-            sigma_angle=design.sigma_angle,
-            unit_length=design.unit_length,
-            levelling=design.levelling,
-            sigma_levelling=design.sigma_levelling,
             scans=design.scans,
+            **design_scanner_settings(design, "CloudDesign.from_design"),
         )
         return cls(**(settings | cloud_settings))
 

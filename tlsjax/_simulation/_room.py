@@ -225,14 +225,24 @@ def _from_network_design(design, given: dict) -> dict:
             "simulate(NetworkDesign) simulates targets on the room's faces only: free-standing "
             "targets and planes need tlsjax.simulate_design (or simulate_point_clouds)"
         )
-    if design.sigma_scale != 1.0 or design.noise_scale not in (0.0, 1.0):
-        raise ValueError(
-            "simulate(NetworkDesign) draws the nominal noise or none (noise_scale 1 or 0, "
-            "sigma_scale 1): use tlsjax.simulate_design for other scales"
-        )
     return dict(
         room=Room.from_design(design),
         scans=np.asarray(design.scans, dtype=np.float64),
+        **design_scanner_settings(design, "simulate(NetworkDesign)"),
+    )
+
+
+def design_scanner_settings(design, who: str) -> dict:
+    """The scanner, APs and true APs, sigmas, levelling and noise switch of a NetworkDesign, as
+    the settings of :func:`simulate` and :class:`~tlsjax.CloudDesign` (which draw the nominal
+    noise or none: a ``noise_scale`` other than 1 or 0, or a ``sigma_scale`` other than 1, is
+    refused, naming ``who``)."""
+    if design.sigma_scale != 1.0 or design.noise_scale not in (0.0, 1.0):
+        raise ValueError(
+            f"{who} draws the nominal noise or none (noise_scale 1 or 0, sigma_scale 1): use "
+            "tlsjax.simulate_design for other scales"
+        )
+    return dict(
         architecture=design.architecture,
         aps=design.aps,
         true_aps=design.true_aps,
