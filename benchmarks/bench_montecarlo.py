@@ -133,13 +133,16 @@ def bench_case(label, aps, runs, chunk, scipy_runs, seed, tol, lsmr_tol, max_nfe
         "failures": res.failures(),
     }
     out["arithmetic"] = _arithmetic(sim, scanner, res)
-    sm = res.summary()
+    sm = res.to_dict()  # strict JSON: None where undefined (no successful realisation)
     out["coverage"] = {
         "sigma0_sq_mean": sm["sigma0_sq_mean"],
         "sigma0_sq_std": sm["sigma0_sq_std"],
         "dof": sm["dof"],
         "empirical_over_formal_sigma": {n: a["ratio"] for n, a in sm["aps"].items()},
-        "bias_over_formal_sigma": {n: a["bias"] / a["formal_sigma"] for n, a in sm["aps"].items()},
+        "bias_over_formal_sigma": {
+            n: None if None in (a["bias"], a["formal_sigma"]) else a["bias"] / a["formal_sigma"]
+            for n, a in sm["aps"].items()
+        },
         "ratio_sampling_sigma": 1.0 / np.sqrt(2 * (runs - 1)),
     }
     times, ap_sc, nfev = scipy_loop(sim, scanner, scipy_runs, seed, tol, lsmr_tol, max_nfev)

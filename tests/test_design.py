@@ -77,7 +77,8 @@ def test_optimiser_beats_its_start_verified_by_calibrate(room):
         dnl, crit, tj.DesignSpace(room=ROOM), starts=2, steps=25, progress=False, seed=1
     )
     assert out.value < out.start_value and out.history.shape == (25, 2)
-    json.dumps(out.summary(), allow_nan=False)
+    json.dumps(out.to_dict(), allow_nan=False)
+    assert "criterion" in out.summary() and "kappa [deg]" in out.summary()
     # Independent calibrate of noisy networks of both designs.
     opts = tj.SolverOptions(full_covariance=True)
     before = tj.calibrate(dnl.network(start, seed=3), dnl.model, opts)

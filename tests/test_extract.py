@@ -163,7 +163,7 @@ def test_disjoint_coplanar_patches_and_overlap():
         ex, np.zeros((1, 6)), MatchingOptions(overlap_distance=0.5, merge_coplanar_in_scan=False)
     )
     assert len(merged.planes) == 2 and len(joined.planes) == 2 and len(apart.planes) == 3
-    floor = [p for p in merged.summary() if abs(p["normal"][2]) > 0.9]
+    floor = [p for p in merged.to_dict()["planes"] if abs(p["normal"][2]) > 0.9]
     assert len(floor) == 1 and floor[0]["n_patches"] == 2 and floor[0]["n_points"] == 4000
 
 
@@ -210,7 +210,7 @@ def test_no_chaining_past_the_angle_limit():
     specs = [((1.0 + 1.05 * k, 0.0, -1.5), (np.sin(k * t), 0.0, np.cos(k * t))) for k in range(3)]
     planes = match_planes(_patches(specs, rng), np.zeros((1, 6)))
     assert len(planes.planes) == 2
-    for p in planes.summary():
+    for p in planes.to_dict()["planes"]:
         assert np.degrees(p["max_patch_angle"]) <= 3.0
     groups = [set(np.flatnonzero(planes.patch_plane == g)) for g in range(2)]
     assert {0, 2} not in [g & {0, 2} for g in groups]  # the ends are never one plane
@@ -218,7 +218,7 @@ def test_no_chaining_past_the_angle_limit():
     t = np.radians(1.1)
     specs = [((1.0, 0.0, -1.5), (0, 0, 1)), ((3.0, 0.0, -1.502), (np.sin(t), 0, np.cos(t)))]
     one = match_planes(_patches(specs, rng), np.zeros((1, 6)))
-    assert len(one.planes) == 1 and one.summary()[0]["n_patches"] == 2
+    assert len(one.planes) == 1 and one.to_dict()["planes"][0]["n_patches"] == 2
 
 
 def test_table_and_npz_round_trip(tmp_path, room, small):
@@ -436,5 +436,5 @@ def test_cli_on_a_real_scan(tmp_path, capsys):
     assert len(planes.planes) >= 5
     n, d = planes.planes[0, :3], planes.planes[0, 3]
     assert abs(n[2]) > np.cos(np.radians(1.0)) and 1.8 < abs(d) < 2.0
-    for p in planes.summary():
+    for p in planes.to_dict()["planes"]:
         assert p["rms"] < ExtractionOptions().max_rms and p["n_scans"] == 1

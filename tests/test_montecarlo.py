@@ -46,7 +46,7 @@ def test_realisation_equals_calibrate(design, model, mc):
 
 
 def test_empirical_precision_matches_formal(mc):
-    sm = mc.summary()
+    sm = mc.to_dict()
     assert sm["successful"] == N
     # s0^2 ~ chi2(r)/r: the mean of N has sigma sqrt(2 / r / N).
     assert abs(sm["sigma0_sq_mean"] - 1) < 4 * np.sqrt(2 / mc.dof / N)
@@ -59,14 +59,15 @@ def test_empirical_precision_matches_formal(mc):
 
 def test_power_of_absent_term_is_the_size(mc):
     # B7 is not in the data: |t| > t_crit happens in alpha of the realisations (binomial).
-    p = mc.summary()["aps"]["B7"]["power"]
-    assert abs(p - 0.05) < 4 * np.sqrt(0.05 * 0.95 / N)
-    assert mc.summary()["aps"]["B6"]["power"] == 1.0
+    aps = mc.to_dict()["aps"]
+    assert abs(aps["B7"]["power"] - 0.05) < 4 * np.sqrt(0.05 * 0.95 / N)
+    assert aps["B6"]["power"] == 1.0
 
 
 def test_table_and_plot(mc, tmp_path):
     text = mc.table()
     assert "mm" in text and '"' in text and "B7" in text
+    assert mc.summary().endswith(text) and f"{N} realisations" in mc.summary()
     fig = tj.plot_monte_carlo(mc, tmp_path / "mc.png")
     assert (tmp_path / "mc.png").stat().st_size > 1000
     labels = [ax.get_xlabel() for ax in fig.axes]

@@ -5,9 +5,10 @@ one per layer. Imports run one way, down this list: a module imports only from t
 below its own (and from modules of its own subpackage, without circles); nothing imports this
 module except the command line.
 
-1. ``_units``, ``_stats``, ``_jit``, ``_optional``, ``_version``: units and display factors,
-   quantiles and the constants derived from them (scipy.stats), the compiler settings, the
-   optional libraries, the version. They import nothing of tlsjax.
+1. ``_units``, ``_stats``, ``_jit``, ``_optional``, ``_summary``, ``_version``: units and
+   display factors, quantiles and the constants derived from them (scipy.stats), the compiler
+   settings, the optional libraries, the ``summary()``/``to_dict()`` convention of the result
+   types, the version. They import nothing of tlsjax.
 2. ``_model``: the mathematics of one observation (geometry, the AP registry, the scanner, the
    point and plane models, levelling, the datum).
 3. ``_adjustment``: one adjustment of a network (data and boundary checks, index plan,

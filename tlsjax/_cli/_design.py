@@ -193,7 +193,7 @@ def cli_design(args) -> int:
             f"S{j + 1:<4d} {e[0]:7.2f} {e[1]:7.2f} {e[2]:7.2f} "
             f"{e[3] / DEG:8.2f} {e[4] / DEG:8.2f} {e[5] / DEG:8.2f}"
         )
-    summary = out.summary()
+    summary = out.to_dict()
     ok = True
     for label, design in (("start", dn.design), ("optimised", out.design)):
         res, sig, value = _verify(dn, design, crit, args.verify_seed)

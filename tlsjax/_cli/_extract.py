@@ -170,10 +170,5 @@ def cli_extract(args) -> int:
         f"{len(planes.point_patch)} points -> {args.out}"
     )
     if planes.planes is not None:
-        print("plane  scans  patches   points  RMS [mm]  max patch angle [deg]")
-        for p in planes.summary():
-            print(
-                f"{p['plane']:5s} {p['n_scans']:6d} {p['n_patches']:8d} {p['n_points']:8d} "
-                f"{p['rms'] * 1e3:9.2f} {np.degrees(p['max_patch_angle']):22.2f}"
-            )
+        print(planes.summary().split("\n", 1)[1])  # the per-plane lines (counts printed above)
     return 0

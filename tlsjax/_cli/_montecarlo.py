@@ -86,7 +86,7 @@ def cli_montecarlo(args) -> int:
     )
     print(res.table())
     print(f"compile {res.compile_s:.1f} s, {res.runs} realisations in {res.run_s:.2f} s")
-    summary = res.summary()
+    summary = res.to_dict()
     if not res.ok.all():
         summary["diagnosis"] = _diagnose(sim)
         print(f"why realisations fail: {summary['diagnosis']}")

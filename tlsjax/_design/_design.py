@@ -46,6 +46,7 @@ from .._model._geometry import TWO_PI, rotation_matrix, second_face, spherical_f
 from .._model._levelling import compensator_reading
 from .._model._points import distorted_observations
 from .._model._scanner import Scanner
+from .._simulation._design import DesignSimulation, NetworkDesign, simulate_design
 from .._simulation._room import Simulation
 from .._units import DEG
 
@@ -93,6 +94,27 @@ class TargetDesign(eqx.Module):
             f(sigma_levelling, DEFAULT_SIGMA_LEVELLING),
         )
 
+    @classmethod
+    def from_design(cls, design: NetworkDesign, *, seed: int = 0) -> TargetDesign:
+        """The targets of a :class:`~tlsjax.NetworkDesign` (the one design description), as
+        :func:`tlsjax.simulate_design` places them with ``seed``: its scans, the targets of
+        its network with their faces' normals, its true APs (in the order of
+        ``simulate_design(design).scanner.aps``) and its a priori sigmas (``sigma_scale`` x
+        nominal). :meth:`DesignNetwork.targets` observes every target from every scan: build
+        the design with ``common_targets=True`` for the same rows as ``simulate_design``."""
+        sim = simulate_design(design, seed=seed)
+        if len(sim.true_targets) == 0 or np.isnan(sim.target_normals).any():
+            raise ValueError(
+                "TargetDesign.from_design needs targets on the room's faces (n_targets > 0; "
+                "free-standing targets have no surface normal for the incidence angle)"
+            )
+        return cls(
+            jnp.asarray(sim.true_eops),
+            jnp.asarray(sim.true_targets),
+            jnp.asarray(sim.target_normals),
+            *_aps_and_sigmas(sim),
+        )
+
 
 class PlaneDesign(eqx.Module):
     """A plane-based calibration design: ``eops`` (s, 6), ``planes`` (k, 4) = (n, d) with
@@ -104,6 +126,28 @@ class PlaneDesign(eqx.Module):
     sigma_range: Float[Array, ""]
     sigma_angle: Float[Array, ""]
     sigma_levelling: Float[Array, ""]
+
+    @classmethod
+    def from_design(cls, design: NetworkDesign, *, seed: int = 0) -> PlaneDesign:
+        """The planes of a :class:`~tlsjax.NetworkDesign` (the one design description), as
+        :func:`tlsjax.simulate_design` observes them with ``seed``: its scans, the planes of
+        its network (faces with inward normals, clipped planes, boards), its true APs and its
+        a priori sigmas (``sigma_scale`` x nominal)."""
+        sim = simulate_design(design, seed=seed)
+        if len(sim.true_planes) == 0:
+            raise ValueError("PlaneDesign.from_design: the design observes no plane")
+        return cls(jnp.asarray(sim.true_eops), jnp.asarray(sim.true_planes), *_aps_and_sigmas(sim))
+
+
+def _aps_and_sigmas(sim: DesignSimulation) -> tuple:
+    """True APs (in the scanner's order) and a priori sigmas of a design's simulation."""
+    d = sim.design
+    return (
+        jnp.asarray([sim.true_aps[n] for n in sim.scanner.aps], dtype=jnp.float64),
+        jnp.asarray(d.sigma_scale * d.sigma_range),
+        jnp.asarray(d.sigma_scale * d.sigma_angle),
+        jnp.asarray(d.sigma_scale * d.sigma_levelling),
+    )
 
 
 def _sigmoid_edge(x):

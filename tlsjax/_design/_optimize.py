@@ -25,6 +25,7 @@ from tqdm.auto import tqdm
 
 from .._jit import jit
 from .._simulation._room import Room
+from .._summary import SummaryText, finite_or_none
 from .._units import DEG
 from ._criteria import DesignCriterion, predicted_cofactor
 
@@ -177,22 +178,45 @@ class DesignOptimisation:
     compile_s: float
     run_s: float
 
-    def summary(self) -> dict:
-        """Strict-JSON summary (non-finite values as null)."""
-        f = lambda v: float(v) if np.isfinite(v) else None
+    def to_dict(self) -> dict:
+        """Strict-JSON data (non-finite values as None): ``criterion``, ``value``,
+        ``start_value``, ``values_per_start`` (dimensionless criterion values), ``stations_m``
+        (s, 3) [m], ``omega_deg``, ``phi_deg``, ``kappa_deg`` (s,) [deg], ``compile_s``,
+        ``run_s`` [s]."""
         eops = np.asarray(self.design.eops)
-        return {
-            "criterion": self.criterion,
-            "value": f(self.value),
-            "start_value": f(self.start_value),
-            "values_per_start": [f(v) for v in self.values],
-            "stations_m": eops[:, :3].tolist(),
-            "omega_deg": (eops[:, 3] / DEG).tolist(),
-            "phi_deg": (eops[:, 4] / DEG).tolist(),
-            "kappa_deg": (eops[:, 5] / DEG).tolist(),
-            "compile_s": self.compile_s,
-            "run_s": self.run_s,
-        }
+        return finite_or_none(
+            {
+                "criterion": self.criterion,
+                "value": float(self.value),
+                "start_value": float(self.start_value),
+                "values_per_start": [float(v) for v in self.values],
+                "stations_m": eops[:, :3].tolist(),
+                "omega_deg": (eops[:, 3] / DEG).tolist(),
+                "phi_deg": (eops[:, 4] / DEG).tolist(),
+                "kappa_deg": (eops[:, 5] / DEG).tolist(),
+                "compile_s": self.compile_s,
+                "run_s": self.run_s,
+            }
+        )
+
+    def summary(self) -> str:
+        """Text: the criterion, its value at the start and at the best design, and the best
+        design's stations [m] and attitudes [deg]. (Indexing it like the dict of earlier
+        releases still works for one release, with a DeprecationWarning: use :meth:`to_dict`.)"""
+        eops = np.asarray(self.design.eops)
+        lines = [
+            f"Design optimisation: {self.criterion}",
+            f"criterion {self.start_value:.4g} at the start -> {self.value:.4g} at the best of "
+            f"{len(self.values)} starts; compile {self.compile_s:.1f} s, run {self.run_s:.1f} s",
+            f"{'scan':>5} {'X [m]':>8} {'Y [m]':>8} {'Z [m]':>8} "
+            f"{'omega [deg]':>11} {'phi [deg]':>9} {'kappa [deg]':>11}",
+        ]
+        for j, e in enumerate(eops):
+            lines.append(
+                f"S{j + 1:<4d} {e[0]:8.3f} {e[1]:8.3f} {e[2]:8.3f} "
+                f"{e[3] / DEG:11.2f} {e[4] / DEG:9.2f} {e[5] / DEG:11.2f}"
+            )
+        return SummaryText("\n".join(lines), self.to_dict())
 
 
 def optimize_design(

@@ -10,6 +10,7 @@ import numpy as np
 
 from .._adjustment._network import ObservationTable
 from .._model._geometry import cartesian_from_spherical, rotation_matrix
+from .._summary import SummaryText, finite_or_none
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -48,11 +49,44 @@ class ExtractedPlanes:
     def point_scan(self) -> np.ndarray:
         return self.patch_scan[self.point_patch]
 
-    def summary(self) -> list[dict]:
-        """Per global plane of matched planes: the scans, patches and points that support it,
-        the RMS [m] of the kept points' orthogonal distances from it (object space) and the
-        largest angle [rad] between one of its patches and the plane."""
-        return plane_summary(self)
+    def to_dict(self) -> dict:
+        """Strict-JSON data (undefined values as None): ``scans``, ``n_patches``, ``n_points``
+        and ``planes``, None before matching, else per global plane: ``plane`` (name),
+        ``normal``, ``d`` [m] in object space, ``n_scans``, ``n_patches``, ``n_points``,
+        ``n_inliers`` that support it, ``rms`` [m] of the kept points' orthogonal distances
+        from it and ``max_patch_angle`` [rad], the largest angle between one of its patches and
+        the plane."""
+        planes = None if self.planes is None or self.poses is None else plane_summary(self)
+        return finite_or_none(
+            {
+                "scans": list(self.scans),
+                "n_patches": int(len(self.patch_scan)),
+                "n_points": int(len(self.point_patch)),
+                "planes": planes,
+            }
+        )
+
+    def summary(self) -> str:
+        """Text: the counts, then one line per global plane once matched: the scans, patches
+        and points that support it, its RMS [mm] and largest patch angle [deg]. (Indexing it
+        like the list of earlier releases still works for one release, with a
+        DeprecationWarning: use :meth:`to_dict`.)"""
+        matched = self.planes is not None and self.poses is not None
+        head = (
+            f"{len(self.scans)} scan(s), {len(self.patch_scan)} patches, "
+            f"{len(self.point_patch)} points; "
+            + (f"{len(self.planes)} planes" if matched else "not matched across scans yet")
+        )
+        if not matched:
+            return SummaryText(head)
+        rows = plane_summary(self)
+        lines = [head, "plane  scans  patches   points  RMS [mm]  max patch angle [deg]"]
+        lines += [
+            f"{p['plane']:5s} {p['n_scans']:6d} {p['n_patches']:8d} {p['n_points']:8d} "
+            f"{p['rms'] * 1e3:9.2f} {np.degrees(p['max_patch_angle']):22.2f}"
+            for p in rows
+        ]
+        return SummaryText("\n".join(lines), rows)
 
     def to_table(self) -> ObservationTable:
         """Plane observations (SPEC section 11): one row per kept point of a matched plane.

@@ -305,8 +305,9 @@ def plot_monte_carlo(result, path=None):
     ax.set_ylabel("realisations")
     ax = axes[-1][1] if cols > 1 else None
     if ax is not None:
-        sm = result.summary()["aps"]
-        ax.bar(range(na), [sm[n]["power"] for n in result.ap_names], color="0.5")
+        sm = result.to_dict()["aps"]
+        power = [sm[n]["power"] for n in result.ap_names]
+        ax.bar(range(na), [np.nan if p is None else p for p in power], color="0.5")
         ax.set_xticks(range(na))
         ax.set_xticklabels(result.ap_names, rotation=90, fontsize=7)
         ax.set_ylabel(f"power (|t| > t_crit, alpha {result.alpha:g}) [-]")

@@ -44,6 +44,7 @@ from .._model._scanner import ARCHITECTURES, Scanner
 from .._units import DEG
 from ._point_clouds import Board, _observe_in_chunks
 from ._room import default_true_value
+from ._truth import SimulationTruth
 
 
 @dataclasses.dataclass(frozen=True)
@@ -153,7 +154,10 @@ class DesignSimulation:
     ``true_planes`` (k, 4) = (n, d) with ``n . X = d`` for ``network.planes`` (room faces with
     inward normals), ``true_eops`` (s, 6) for ``network.scans``, ``true_aps`` name -> value.
     ``noise_sigmas`` (n, 3) and ``plane_noise_sigmas`` (m, 3): the standard deviations the noise
-    was drawn with (incidence applied), in the network's row order.
+    was drawn with (incidence applied), in the network's row order. ``target_normals`` (t, 3):
+    the inward normals of the faces the targets sit on (NaN: a free-standing target);
+    ``plane_points`` (m, 3): the true point of every plane row. :meth:`truth` hands all of it
+    to :func:`tlsjax.monte_carlo`.
     """
 
     network: Network
@@ -165,10 +169,26 @@ class DesignSimulation:
     true_planes: np.ndarray
     noise_sigmas: np.ndarray
     plane_noise_sigmas: np.ndarray
+    target_normals: np.ndarray | None = None
+    plane_points: np.ndarray | None = None
 
     @property
     def expected_sigma0(self) -> float:
         return self.design.expected_sigma0
+
+    def truth(self) -> SimulationTruth:
+        """The network with its truth, for :func:`tlsjax.monte_carlo` (which draws its noise
+        from the network's a priori sigmas, i.e. as if ``noise_scale = sigma_scale``)."""
+        n = len(self.network.instruments)
+        return SimulationTruth(
+            self.network,
+            (self.scanner,) * n,
+            (dict(self.true_aps),) * n,
+            self.true_eops,
+            self.true_targets,
+            self.true_planes,
+            np.zeros((0, 3)) if self.plane_points is None else self.plane_points,
+        )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -409,7 +429,7 @@ def simulate_design(
     )
     net = _make_network(design, len(eops), patches, rows_t, rows_p, obs_t, obs_p, lev)
     return _with_truth(
-        net, scanner, design, values, eops, X_t, patches, rows_t, rows_p, sig_t, sig_p
+        net, scanner, design, values, eops, X_t, n_t, patches, rows_t, rows_p, sig_t, sig_p
     )
 
 
@@ -489,21 +509,26 @@ def _observe(design, eops, rows_t, rows_p, scanner, coeffs, names, noise_seed):
     return obs[:n_t], obs[n_t:], sig[:n_t], sig[n_t:], lev
 
 
-def _with_truth(net, scanner, design, values, eops, X_t, patches, rows_t, rows_p, sig_t, sig_p):
+def _with_truth(
+    net, scanner, design, values, eops, X_t, n_t, patches, rows_t, rows_p, sig_t, sig_p
+):
     """The truth and the noise sigmas in the network's order (scans in order of appearance,
     targets seen in one scan dropped)."""
     scan_of = {f"S{j + 1}": j for j in range(len(eops))}
     keep = np.array([f"T{r[1] + 1:03d}" not in set(net.dropped) for r in rows_t], dtype=bool)
     k_of = {name: k for k, name in enumerate(patches.names)}
     planes = np.concatenate([patches.normal, patches.d[:, None]], axis=1)
+    targets = [int(t[1:]) - 1 for t in net.targets]
     return DesignSimulation(
         network=net,
         scanner=scanner,
         design=design,
         true_aps=dict(values),
         true_eops=eops[[scan_of[s] for s in net.scans]],
-        true_targets=X_t[[int(t[1:]) - 1 for t in net.targets]].reshape(-1, 3),
+        true_targets=X_t[targets].reshape(-1, 3),
         true_planes=planes[[k_of[k] for k in net.planes]].reshape(-1, 4),
         noise_sigmas=sig_t[keep] if len(rows_t) else np.zeros((0, 3)),
         plane_noise_sigmas=sig_p.reshape(-1, 3),
+        target_normals=n_t[targets].reshape(-1, 3),
+        plane_points=np.array([r[2] for r in rows_p]).reshape(-1, 3),
     )

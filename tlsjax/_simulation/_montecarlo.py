@@ -53,8 +53,10 @@ from .._model._aps import ap_corrections, on_reregistration
 from .._model._levelling import compensator_reading
 from .._model._points import FIXED_POINT_ITERATIONS, distorted_observations
 from .._stats import t_critical_value
+from .._summary import SummaryText, finite_or_none
 from .._units import display_unit
 from ._batch import auto_chunk, compile_batched, device_key, round_chunk, run_batched
+from ._design import NetworkDesign, simulate_design
 from ._truth import SimulationTruth
 
 
@@ -111,10 +113,13 @@ class MonteCarloOptions:
 def _truth_of(simulation) -> SimulationTruth:
     if isinstance(simulation, SimulationTruth):
         return simulation
+    if isinstance(simulation, NetworkDesign):  # the one design description: its geometry of seed 0
+        return simulate_design(simulation).truth()
     if hasattr(simulation, "truth"):
         return simulation.truth()
     raise ValueError(
-        "monte_carlo: give a tlsjax.Simulation, a tlsjax.PointClouds or a SimulationTruth "
+        "monte_carlo: give a tlsjax.NetworkDesign, a tlsjax.Simulation, a tlsjax.PointClouds, "
+        "a tlsjax.DesignSimulation or a SimulationTruth "
         f"(e.g. clouds.truth(max_points=...)), got {type(simulation).__name__}"
     )
 
@@ -486,10 +491,9 @@ class MonteCarloResult:
         codes, counts = np.unique(self.result[~self.ok], return_counts=True)
         return {RESULT_MESSAGES[int(c)]: int(n) for c, n in zip(codes, counts)}
 
-    def summary(self) -> dict:
-        """Empirical precision per AP (Lichti 2008): mean, bias, empirical and mean formal sigma,
-        their ratio, and power = share of realisations with ``|t| > t_crit`` at ``alpha``.
-        Values in SI units. The ratio's own sampling sigma is about ``1/sqrt(2 (N - 1))``."""
+    def _statistics(self) -> dict:
+        """Empirical precision per AP (Lichti 2008), SI units, NaN where undefined (the data
+        of :meth:`to_dict`, of :meth:`table` and of the old ``summary()``)."""
         ok = self.ok
         n = int(ok.sum())
         v = self.ap_values[ok]
@@ -520,9 +524,27 @@ class MonteCarloResult:
             }
         return out
 
+    def to_dict(self) -> dict:
+        """Strict-JSON data (undefined values as None): ``runs``, ``successful``, ``failures``
+        ({message: count}), ``dof``, ``sigma0_sq_mean``, ``sigma0_sq_std``, ``t_critical`` and
+        per AP in ``aps``: ``unit``, ``truth_mean``, ``mean``, ``bias``, ``empirical_sigma``,
+        ``formal_sigma`` (SI units), ``ratio`` (empirical / formal; its own sampling sigma is
+        about ``1/sqrt(2 (N - 1))``) and ``power`` (share of realisations with
+        ``|t| > t_crit`` at ``alpha``). Lichti (2008)."""
+        return finite_or_none(self._statistics())
+
+    def summary(self) -> str:
+        """Text: a header line and :meth:`table`. (Indexing it like the dict of earlier
+        releases still works for one release, with a DeprecationWarning: use :meth:`to_dict`.)"""
+        head = (
+            f"Monte Carlo of {self.runs} realisations (seed {self.seed}, alpha {self.alpha:g}); "
+            f"compile {self.compile_s:.1f} s, run {self.run_s:.2f} s"
+        )
+        return SummaryText(head + "\n" + self.table(), self._statistics())
+
     def table(self) -> str:
-        """Text table of :meth:`summary` in mm, arc seconds and ppm."""
-        sm = self.summary()
+        """Text table of the empirical precision per AP in mm, arc seconds and ppm."""
+        sm = self._statistics()
         lines = [
             f"Monte Carlo: {sm['successful']} of {sm['runs']} realisations converged; dof {sm['dof']}; "
             f"mean s0^2 = {sm['sigma0_sq_mean']:.4f} (std {sm['sigma0_sq_std']:.4f})",
@@ -544,8 +566,10 @@ def monte_carlo(
 ) -> MonteCarloResult:
     """Simulate and self-calibrate N realisations of one network design as one compiled batch.
 
-    ``simulation``: a :class:`tlsjax.Simulation` (targets), a :class:`tlsjax.PointClouds`
-    (planes; all its points), or a :class:`tlsjax.SimulationTruth` (any design, e.g.
+    ``simulation``: a :class:`tlsjax.NetworkDesign` (the network :func:`tlsjax.simulate_design`
+    draws from it with seed 0; the noise is drawn from its a priori sigmas), a
+    :class:`tlsjax.DesignSimulation`, a :class:`tlsjax.Simulation` (targets), a
+    :class:`tlsjax.PointClouds` (planes; all its points), or a :class:`tlsjax.SimulationTruth` (any design, e.g.
     ``clouds.truth(max_points=50)`` or a target and a plane truth combined). ``model``: the
     calibration model whose APs are estimated (default: the data's scanners). Realisation k:
     ``l = F(X, EOP) + Delta(l; AP_true) + e``, ``e ~ N(0, Sigma_l)`` drawn from

@@ -65,7 +65,13 @@ from .._model._targets import (
     sphere_ray_distance,
 )
 from .._units import DEG
-from ._room import Room, default_true_value, room_scans, simulated_levelling
+from ._room import (
+    Room,
+    default_true_value,
+    design_scanner_settings,
+    room_scans,
+    simulated_levelling,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -262,6 +268,9 @@ class CloudDesign:
     ``dark_range_bias`` [m] added to the range of the dark share of a target's footprint.
     ``correlated_sigma_range`` [m] and ``correlation_length`` [m]: the spatially correlated
     range noise of the module docstring (0: independent noise only).
+    ``scans`` (s, 6): the scan poses (X, Y, Z [m], omega, phi, kappa [rad]); None: those of
+    :func:`~tlsjax.simulate`'s room (three scans at each of ``room.stations``, ``tilted``).
+    :meth:`from_design` builds one from a :class:`~tlsjax.NetworkDesign`.
     """
 
     room: Room = Room()
@@ -289,6 +298,38 @@ class CloudDesign:
     dark_range_bias: float = 0.0
     correlated_sigma_range: float = 0.0
     correlation_length: float = 0.02
+    scans: tuple | None = None
+
+    @classmethod
+    def from_design(cls, design, **cloud_settings) -> CloudDesign:
+        """The point-cloud view of a :class:`~tlsjax.NetworkDesign` (the one design
+        description): its room (:meth:`Room.from_design`), scans, the planes that are
+        :class:`Board` s, scanner, APs and true APs, sigmas, levelling, field of view and
+        largest incidence; noise on when ``noise_scale`` > 0. ``cloud_settings``: the fields
+        of the scanning itself (``angular_step``, targets, intensity, ...). The design's
+        infinite planes (:class:`~tlsjax.DesignPlane`) and its targets have no point-cloud
+        counterpart and are refused; a ``noise_scale`` or ``sigma_scale`` other than 1 (or 0)
+        too (the clouds draw the nominal noise)."""
+        if any(not isinstance(p, Board) for p in design.planes) or design.n_free_targets:
+            raise ValueError(
+                "CloudDesign.from_design: only Board planes have a point-cloud counterpart "
+                "(no DesignPlane, no free-standing targets)"
+            )
+        settings = dict(
+            room=Room.from_design(design, n_targets=max(design.n_targets, 12)),
+            boards=tuple(design.planes),
+            elevation_limits=design.elevation_limits,
+            max_incidence=design.max_incidence,
+            scans=design.scans,
+            **design_scanner_settings(design, "CloudDesign.from_design"),
+        )
+        return cls(**(settings | cloud_settings))
+
+    def scan_poses(self) -> np.ndarray:
+        """(s, 6) scan poses: ``scans``, or the room's (:func:`tlsjax._simulation._room.room_scans`)."""
+        if self.scans is None:
+            return room_scans(self.room, self.tilted)
+        return np.asarray(self.scans, dtype=np.float64)
 
     def __post_init__(self):
         for t in self.spheres:
@@ -338,6 +379,15 @@ class CloudDesign:
                 raise ValueError(f"boards must be Board instances, got {type(b).__name__}")
         object.__setattr__(self, "aps", resolve_aps(self.aps))
         object.__setattr__(self, "boards", tuple(self.boards))
+        if self.scans is not None:
+            scans = np.asarray(self.scans, dtype=np.float64)
+            size = np.array([self.room.length, self.room.width, self.room.height])
+            if scans.ndim != 2 or scans.shape[1] != 6 or not np.all(np.isfinite(scans)):
+                raise ValueError(f"CloudDesign.scans must be (s, 6) finite, got {scans.shape}")
+            for j, s in enumerate(scans):
+                if not np.all((s[:3] > 0) & (s[:3] < size)):
+                    raise ValueError(f"scan {j + 1}: station {tuple(s[:3])} is outside the room")
+            object.__setattr__(self, "scans", tuple(tuple(float(c) for c in s) for s in scans))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -813,19 +863,23 @@ def _observe_scan(design, eop, hits, rng, coeffs, scanner, names, rng_c=None):
 def simulate_point_clouds(design: CloudDesign | None = None, *, seed: int = 0) -> PointClouds:
     """Simulate the scans of the calibration room as point clouds (SPEC section 8).
 
-    Poses from :func:`tlsjax._simulate.room_scans` (two stations, three scans each; tilted
-    variant with omega = -45, +45 deg). ``seed`` fixes the noise. Returns a :class:`PointClouds`
+    ``design``: a :class:`CloudDesign`, or a :class:`~tlsjax.NetworkDesign` (the one design
+    description; :meth:`CloudDesign.from_design` with the default scanning settings). Poses
+    from ``design.scans``, else :func:`tlsjax._simulation._room.room_scans` (two stations,
+    three scans each; tilted variant with omega = -45, +45 deg). ``seed`` fixes the noise. Returns a :class:`PointClouds`
     whose observations satisfy ``l = F + Delta(l; AP) + e`` (see the module docstring), with
     the intensity of every point and the targets' truth.
     """
     design = design or CloudDesign()
+    if not isinstance(design, CloudDesign):  # a NetworkDesign
+        design = CloudDesign.from_design(design)
     rng = np.random.default_rng(seed)
     values = {n: default_true_value(n) for n in design.aps}
     values.update(design.true_aps or {})
     names = tuple(values)
     scanner = Scanner(architecture=design.architecture, aps=names, unit_length=design.unit_length)
     scene = _scene(design)
-    eops = room_scans(design.room, design.tilted)
+    eops = design.scan_poses()
 
     coeffs = jnp.asarray([values[n] for n in names], dtype=jnp.float64)
     hits = [render_rays(design, scene, eop, scan_grid(design, scene, eop)) for eop in eops]

@@ -10,6 +10,7 @@ dual-axis-compensator observations omega = phi = 0 +- 10".
 from __future__ import annotations
 
 import dataclasses
+import inspect
 from collections.abc import Mapping
 
 import jax.numpy as jnp
@@ -53,6 +54,16 @@ class Room:
                 raise ValueError(
                     f"station {s} is outside the {self.length} x {self.width} x {self.height} m room"
                 )
+
+    @classmethod
+    def from_design(cls, design, *, n_targets: int | None = None) -> Room:
+        """The room of a :class:`~tlsjax.NetworkDesign`: its box, ``margin`` and the distinct
+        stations of its scans (in order of first use); ``n_targets`` (default: the design's
+        targets on faces) targets spread over the faces."""
+        stations = tuple(dict.fromkeys(tuple(float(c) for c in s[:3]) for s in design.scans))
+        L, W, H = design.room
+        n = design.n_targets if n_targets is None else n_targets
+        return cls(L, W, H, n_targets=n, stations=stations, margin=design.margin)
 
     @classmethod
     def parse(cls, text: str, **kw) -> Room:
@@ -190,6 +201,60 @@ def room_scans(room: Room, tilted: bool) -> np.ndarray:
     return np.array(eops, dtype=np.float64)
 
 
+#: The settings of :func:`simulate` that a NetworkDesign carries itself.
+_DESIGN_SETTINGS = (
+    "architecture", "tilted", "aps", "true_aps", "noise", "sigma_range", "sigma_angle",
+    "sigma_levelling", "levelling", "unit_length", "two_face",
+)  # fmt: skip
+
+
+def _from_network_design(design, given: dict) -> dict:
+    """The room, scans and settings of :func:`simulate` from a NetworkDesign (the one design
+    description): its box and stations, its scans, scanner, APs, sigmas and levelling; noise
+    on or off (``noise_scale`` 1 or 0). Refuses what this simulation cannot reproduce and a
+    setting given beside the design (it belongs on the design)."""
+    defaults = inspect.signature(simulate).parameters
+    for name in _DESIGN_SETTINGS:
+        if given[name] != defaults[name].default:
+            raise ValueError(
+                f"simulate(NetworkDesign): {name} comes from the design; set it there "
+                "(dataclasses.replace(design, ...)) or give a Room"
+            )
+    if design.n_free_targets or design.planes or design.faces_as_planes:
+        raise ValueError(
+            "simulate(NetworkDesign) simulates targets on the room's faces only: free-standing "
+            "targets and planes need tlsjax.simulate_design (or simulate_point_clouds)"
+        )
+    return dict(
+        room=Room.from_design(design),
+        scans=np.asarray(design.scans, dtype=np.float64),
+        **design_scanner_settings(design, "simulate(NetworkDesign)"),
+    )
+
+
+def design_scanner_settings(design, who: str) -> dict:
+    """The scanner, APs and true APs, sigmas, levelling and noise switch of a NetworkDesign, as
+    the settings of :func:`simulate` and :class:`~tlsjax.CloudDesign` (which draw the nominal
+    noise or none: a ``noise_scale`` other than 1 or 0, or a ``sigma_scale`` other than 1, is
+    refused, naming ``who``)."""
+    if design.sigma_scale != 1.0 or design.noise_scale not in (0.0, 1.0):
+        raise ValueError(
+            f"{who} draws the nominal noise or none (noise_scale 1 or 0, sigma_scale 1): use "
+            "tlsjax.simulate_design for other scales"
+        )
+    return dict(
+        architecture=design.architecture,
+        aps=design.aps,
+        true_aps=design.true_aps,
+        noise=design.noise_scale > 0,
+        sigma_range=design.sigma_range,
+        sigma_angle=design.sigma_angle,
+        sigma_levelling=design.sigma_levelling,
+        levelling=design.levelling,
+        unit_length=design.unit_length,
+    )
+
+
 def simulate(
     room: Room | None = None,
     *,
@@ -226,7 +291,23 @@ def simulate(
     alpha)`` in one scan and ``(theta, pi - alpha)`` in the other (SPEC section 1: hz in [0, 180)
     deg in both faces). The terms whose sign flips between the faces (collimation, trunnion,
     index, mirror tilt) are then seen without a second station.
+
+    ``room`` may be a :class:`~tlsjax.NetworkDesign` (the one design description): its box,
+    stations and scans, scanner, APs, sigmas, levelling and noise on or off are taken from it
+    (``Room.from_design``); the settings above that it carries must then be left at their
+    defaults. Its ``n_targets`` are spread over the faces as here, all seen from every scan
+    (this simulation's design: no field-of-view, range or incidence limit).
     """
+    scans = None
+    if room is not None and not isinstance(room, Room):  # a NetworkDesign
+        d = _from_network_design(room, locals())
+        room, scans, architecture, aps = d["room"], d["scans"], d["architecture"], d["aps"]
+        true_aps, noise, unit_length, levelling = (
+            d["true_aps"], d["noise"], d["unit_length"], d["levelling"]
+        )  # fmt: skip
+        sigma_range, sigma_angle, sigma_levelling = (
+            d["sigma_range"], d["sigma_angle"], d["sigma_levelling"]
+        )  # fmt: skip
     room = room or Room()
     rng = np.random.default_rng(seed)
     names = resolve_aps(aps)
@@ -235,7 +316,9 @@ def simulate(
     names = tuple(values)
     scanner = Scanner(architecture=architecture, aps=names, unit_length=unit_length)
     X, normals = room_targets(room, rng)
-    if two_face:
+    if scans is not None:
+        eops = scans
+    elif two_face:
         if architecture != "panoramic":
             raise ValueError("the two-face design needs a panoramic scanner (architecture)")
         eops = np.array([[*room.stations[0], 0.0, 0.0, 0.0], [*room.stations[0], 0.0, 0.0, np.pi]])
