@@ -33,9 +33,10 @@ def small():
     rw = Reweighter(net, model, tj.SolverOptions())
     w = 1.0 / net.sigmas
     lw = np.where(np.isfinite(net.levelling_sigma), 1.0 / net.levelling_sigma, 0.0)
-    full, _, _ = rw.run(w, lw, {})
+    full = rw.run(w, lw, {}).result
     w[ROW, COL] = 0.0
-    res, _, infl = rw.run(w, lw, {})
+    adjusted = rw.run(w, lw, {})
+    res, infl = adjusted.result, adjusted.influence
     # Oracle: an infinite sigma removes the row from the normal equations.
     sig = net.sigmas.copy()
     sig[ROW, COL] = np.inf

@@ -127,13 +127,13 @@ def test_target_removal_and_undetermined_target(sim):
     rw = Reweighter(net, MODEL, tj.SolverOptions(full_covariance=False))
     w = 1.0 / net.sigmas
     lw = np.where(np.isfinite(net.levelling_sigma), 1.0 / net.levelling_sigma, 0.0)
-    full, _, _ = rw.run(w, lw, {})
+    full = rw.run(w, lw, {}).result
     mask = np.ones_like(w, dtype=bool)
     rows = np.flatnonzero(net.target_index == 0)
     mask[rows[:-1]] = False  # target 0 is left in one scan only
     extra, mask, pinned = _undetermined_targets(net, full, mask, {}, 1)
     assert len(extra) == 3 and 0 in pinned and not mask[rows].any()
-    res, _, _ = rw.run(np.where(mask, w, 0.0), lw, pinned)
+    res = rw.run(np.where(mask, w, 0.0), lw, pinned).result
     assert res.ok, res.message
     # The target's 3 x n_scans observations and its 3 unknowns leave; the pin adds 3 and 3.
     assert res.dof == full.dof - 3 * len(rows) + 3

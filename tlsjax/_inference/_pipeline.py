@@ -363,6 +363,8 @@ def dominant_misfit(ctx: TestingContext, state: TestingState) -> str | None:
     group's misfit ``sum (v_i / sigma_i)^2`` at the latest adjustment (a gross error: then a
     far-off variance factor says nothing about the units), or None."""
     res = state.result
+    if not res.residuals.size:
+        return None  # plane points only: their misfit is screened and snooped per point
     e2 = np.where(state.mask, (res.residuals / sigmas(ctx, state)) ** 2, 0.0)
     e2 = np.where(np.isfinite(e2), e2, 0.0)
     i, g = np.unravel_index(int(np.argmax(e2)), e2.shape)

@@ -397,7 +397,10 @@ def _screen(ctx: TestingContext, state: TestingState) -> TestingState:
         # A gross error (far beyond the band of a systematic misfit's tails, GROSS_BAND) is
         # removed without asking: a first least-squares adjustment spreads it over the
         # residuals, so a candidate term can look as if it explained it.
-        term = _systematic(ctx, state, u[i, g]) if top <= GROSS_BAND * crit else None
+        # Score tests are of the target observations' model (:mod:`._score`): a plane point's
+        # misfit is not weighed against a missing term.
+        target = g != PLANE
+        term = _systematic(ctx, state, u[i, g]) if target and top <= GROSS_BAND * crit else None
         if term is not None:
             return add_warning(state, term)
         if removed >= limit or len(state.removals) >= t.max_removals:
