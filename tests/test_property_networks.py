@@ -103,7 +103,7 @@ def _holds(case: Case):
     check(case, sim, res, tested)
 
 
-@settings(max_examples=examples(16))
+@settings(max_examples=examples(6))
 @given(case=cases(point_case))
 @example(case=Case(_scaled(POINT_ROOM, 0.0, 1.0)))
 @example(case=Case(_scaled(POINT_ROOM, 1.0, 1e-6)))
@@ -116,7 +116,7 @@ def test_point_networks(case):
     _holds(case)
 
 
-@settings(max_examples=examples(10))
+@settings(max_examples=examples(4))
 @given(case=cases(plane_case))
 @example(case=Case(OBLIQUE_ROOM, kind="planes"))
 @example(case=Case(_scaled(PLANE_ROOM, 0.0, 1.0), kind="planes"))
@@ -127,7 +127,7 @@ def test_plane_networks(case):
     _holds(case)
 
 
-@settings(max_examples=examples(4))
+@settings(max_examples=examples(2))
 @given(case=cases(partial_case))
 def test_partial_visibility(case):
     _holds(case)
