@@ -44,6 +44,10 @@ def add_targets_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--architecture", choices=("hybrid", "panoramic"), default="hybrid",
                    help="panoramic: observations in the two-face form (SPEC section 1)")  # fmt: skip
     p.add_argument("--poses", help="scan poses CSV replacing the files' (LAS needs one)")
+    p.add_argument("--columns", metavar="NAMES",
+                   help="columns of text point files without a header naming them, e.g. "
+                   "x,y,z,r,g,b,intensity (other names are skipped; default: the header's "
+                   "names, else x y z [intensity] by the column count)")  # fmt: skip
     p.add_argument(
         "--target-list",
         help="name the targets by this list of approximate coordinates in any one frame (a "
@@ -151,8 +155,9 @@ def cli_targets(args) -> int:
     poses = read_poses(args.poses) if args.poses else None
     progress = not args.no_progress and sys.stderr.isatty()
     found = extract_targets_from_files(
-        args.scans, options, architecture=args.architecture, poses=poses, progress=progress
-    )
+        args.scans, options, architecture=args.architecture, poses=poses, columns=args.columns,
+        progress=progress,
+    )  # fmt: skip
     for note in found.notes:
         print(f"warning: {note}", file=sys.stderr)
     targets = match_targets(found, matching, target_list=target_list)

@@ -593,10 +593,15 @@ def extract_targets_from_files(
     *,
     architecture: str = "hybrid",
     poses=None,
+    columns: str | None = None,
     progress: bool = False,
 ) -> ExtractedTargets:
-    """Find the target centres in point-cloud files (E57, PTX, LAS/LAZ, PLY, PCD, XYZ), every
-    scan of each file, streamed in chunks (``options.chunk_points``): two passes per scan, and
-    only the points near candidates held. ``poses``: scan name -> pose (replacing the files')."""
-    sources = [s for p in paths for s in open_scans(p, poses=poses)]
+    """Find the target centres in point-cloud files (E57, PTX, LAS/LAZ, PLY, PCD, and text:
+    XYZ, TXT, ASC, CSV, PTS), every scan of each file, streamed in chunks
+    (``options.chunk_points``): two passes per scan, and only the points near candidates
+    held. ``poses``: scan name -> pose (replacing the files'). Intensity is taken by name
+    (a text file's header, E57/LAS/PLY fields); ``columns`` names the columns of text files
+    without a header, e.g. "x,y,z,r,g,b,intensity" (unnamed columns beyond x y z intensity are
+    refused, never guessed)."""
+    sources = [s for p in paths for s in open_scans(p, poses=poses, columns=columns)]
     return _run(sources, options or TargetExtractionOptions(), architecture, progress)
