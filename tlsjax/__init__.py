@@ -44,6 +44,10 @@ from ._adjustment._result import CalibrationResult as CalibrationResult
 from ._adjustment._result import ResultCode as ResultCode
 from ._clouds._extract import ExtractionOptions as ExtractionOptions
 from ._clouds._extract import extract_planes as extract_planes
+from ._clouds._field_check import FieldCheck as FieldCheck
+from ._clouds._field_check import FieldCheckOptions as FieldCheckOptions
+from ._clouds._field_check import field_check as field_check
+from ._clouds._field_check import field_check_centres as field_check_centres
 from ._clouds._match import MatchingOptions as MatchingOptions
 from ._clouds._match import match_planes as match_planes
 from ._clouds._target_match import TargetMatching as TargetMatching
