@@ -75,7 +75,10 @@ def add_targets_parser(subparsers) -> argparse.ArgumentParser:
                    help="matching tolerance of distances between targets [mm] (default 20)")  # fmt: skip
     p.add_argument("--min-common", type=positive_int, default=TargetMatchingOptions.min_common,
                    help="targets a scan must share with the others to be named (at least 3; "
-                   f"default {TargetMatchingOptions.min_common})")  # fmt: skip
+                   f"default {TargetMatchingOptions.min_common}). A scan placed on exactly 3 "
+                   "is named only when their distances agree within 5 mm + 0.5 mm/m and a "
+                   "chance match of 3 is improbable among the centres; else it is reported "
+                   "as undecided")  # fmt: skip
     p.add_argument("--length-unit", choices=("m", "mm"), default="m")
     p.add_argument("--angle-unit", choices=("rad", "deg", "gon", "arcsec"), default="deg")
     p.add_argument("--seed", type=non_negative_int, default=0)
