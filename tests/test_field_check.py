@@ -96,6 +96,22 @@ def test_cli_field_check_from_target_patches(tmp_path, capsys):
     assert "overall: PASS" in out and "Delta 3,4" in out
     doc = json.load(open(tmp_path / "f.json"))
     assert doc["repeats"]["S1"] == {"T1": 2, "T2": 2, "T3": 2, "T4": 2}
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".tlsjax-")]  # atomic
+    # --json over an input, or where nothing can be written: refused before any extraction
+    # (no patch is read: the files are truncated to prove it), the input left untouched.
+    patch = args[args.index("--s1") + 1]
+    text = open(patch).read()
+    bad = args[: args.index("--json")] + args[args.index("--json") + 2 :]
+    capsys.readouterr()
+    assert main(bad + ["--json", patch]) == 2
+    assert "--json" in (err := capsys.readouterr().err) and "is the input --s1" in err
+    assert open(patch).read() == text
+    blocker = tmp_path / "a_file"
+    blocker.write_text("")
+    for f in args[args.index("--s2") + 1 :]:
+        open(f, "w").close()  # an extraction would now fail on them
+    assert main(bad + ["--json", str(blocker / "f.json")]) == 2
+    assert "a_file is a file, not a directory" in capsys.readouterr().err
 
 
 def _two_scans(A, B, rng, noise=1e-3):

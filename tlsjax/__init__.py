@@ -101,6 +101,7 @@ from ._io._correct_files import CorrectedScan as CorrectedScan
 from ._io._correct_files import correct_point_cloud as correct_point_cloud
 from ._io._extracted import ExtractedPlanes as ExtractedPlanes
 from ._io._las import write_las as write_las
+from ._io._outputs import check_outputs as check_outputs
 from ._io._plane_files import load_planes as load_planes
 from ._io._plane_files import save_planes as save_planes
 from ._io._ply import write_ply as write_ply

@@ -5,7 +5,6 @@ target scans of two stations. Public API only (``import tlsjax as tj``)."""
 from __future__ import annotations
 
 import argparse
-import json
 import re
 import sys
 
@@ -98,6 +97,8 @@ def cli_field_check(args) -> int:
         raise ValueError(
             "nothing to look for: give --spheres R [R ...], --checkerboards or --circles"
         )
+    inputs = [("--s1", p) for p in args.s1] + [("--s2", p) for p in args.s2]
+    tj.check_outputs([("--json", args.json)], inputs + [("--reference", args.reference)])
     opts = tj.TargetExtractionOptions(
         spheres=tuple(args.spheres), checkerboards=args.checkerboards, circles=args.circles,
         pattern_size=args.pattern_size,
@@ -118,6 +119,5 @@ def cli_field_check(args) -> int:
     )
     print(result.summary())
     if args.json:
-        with open(args.json, "w", encoding="utf-8") as fh:
-            json.dump(result.to_dict(), fh, indent=1, allow_nan=False)
+        result.write_json(args.json)  # strict, atomic; checked before the extraction
     return EXIT_OK if result.passed else EXIT_FAILED

@@ -127,6 +127,14 @@ class FieldCheck:
             "messages": list(self.messages),
         }
 
+    def write_json(self, path) -> dict:
+        """Write :meth:`to_dict` to ``path`` as strict JSON, atomically (the file is complete
+        or untouched; its folder is created); a path that cannot be written is a one-line
+        ValueError naming it. Returns the dict written."""
+        from .._io._json import write_json_file
+
+        return write_json_file(path, self.to_dict())
+
 
 def _type_a(repeats):
     """Pooled experimental standard deviation of one centre coordinate and its degrees of
