@@ -369,3 +369,52 @@ def test_sphere_rms_limit_from_the_scans_noise():
         pc.observations[:1], dataclasses.replace(opts, max_radius_misfit=3e-3)
     )
     assert not strict.accepted.any() and "differs from the nominal" in " ".join(strict.reason)
+
+
+def _one_target_scans(target, station, seeds, **design):
+    """Scanner-space centre errors [m] (seeds, 3) of one target seen from one levelled station
+    of a 40 x 40 x 4 m hall on a 0.03 deg grid, one simulation per seed (NaN: not accepted)."""
+    errors = []
+    for seed in range(seeds):
+        d = tj.CloudDesign(
+            room=tj.Room(length=40.0, width=40.0, height=4.0, stations=(station,)),
+            scans=((*station, 0.0, 0.0, 0.2),), boards=(), angular_step=3 * DEG,
+            target_step=0.03 * DEG, **design,
+        )  # fmt: skip
+        pc = tj.simulate_point_clouds(d, seed=seed)
+        kinds = dict(spheres=(0.0725,)) if design.get("spheres") else dict(checkerboards=True)
+        found = tj.extract_targets(
+            pc.observations, tj.TargetExtractionOptions(**kinds), intensity=pc.intensity
+        )
+        X = cartesian_from_spherical(next(iter(pc.target_observations().values())), xp=np)
+        acc = np.flatnonzero(found.accepted)
+        errors.append(found.centre[acc[0]] - X if len(acc) == 1 else np.full(3, np.nan))
+    return np.array(errors)
+
+
+def test_far_sphere_judged_by_its_angular_noise_too():
+    # At 28 m, 20" moves the limb's points along the sphere's normal by up to 2.7 mm, which
+    # the voxels (one or two points each there) do not measure: with 0.5 mm of range noise the
+    # fit RMS (about 2 mm) was judged against twice the voxels' 0.5 mm and the sphere refused
+    # (benchmarks/bench_target_rooms.py lost such spheres at 1 mm of range noise too).
+    err = _one_target_scans(
+        None, (8.0, 20.0, 1.5), 2, sigma_range=0.5e-3,
+        spheres=(tj.SphereTarget((36.0, 21.0, 1.6), 0.0725),),
+    )  # fmt: skip
+    assert np.all(np.isfinite(err)) and np.max(np.linalg.norm(err, axis=1)) < 2.5e-3
+
+
+def test_checkerboard_points_go_onto_the_plate_along_their_noise():
+    # 6.3 m at 57 deg, 4 mm of range noise on the black squares: projected along the plate's
+    # normal, each point kept dr sin(57 deg) = 3.4 mm of it in the plane and the centres
+    # scattered by 0.54 mm along the incidence (8 seeds); moved as a condition adjustment of
+    # the point moves it (nearly along its ray), by 0.19 mm.
+    beta = 57 * DEG
+    c = np.array([39.998, 20.0, 1.5])
+    station = (40.0 - 6.3 * np.cos(beta), 20.0 - 6.3 * np.sin(beta), 1.5)
+    target = tj.PlanarTarget(tuple(c), (-1, 0, 0), "checkerboard", rotation=0.3)
+    err = _one_target_scans(
+        target, station, 6, sigma_range=1e-3, dark_noise_factor=4.0, planar_targets=(target,)
+    )
+    assert np.all(np.isfinite(err))
+    assert np.sqrt(np.mean(np.sum(err**2, axis=1))) < 0.35e-3

@@ -423,6 +423,14 @@ def _scan_spheres(scan, vox, options, rng, bar):
         rec["noise"] = vox.noise(near, radial) if len(near) else np.nan
         if not np.isfinite(rec["noise"]):
             rec["noise"] = options.sigma_range
+        # Toward the limb the angular noise moves points along the sphere's normal by
+        # rho sigma_a sin(beta) (2.7 mm at 28 m for 20"), which a voxel of a quarter radius,
+        # holding one or two points at that range, does not measure: the fit's residuals
+        # carry it, so the noise they are judged by does too (a priori sigma_angle: the
+        # scan's angle noise cannot be told from its points).
+        if rec.get("points") is not None and len(rec["points"]):
+            lateral = _spheres.radial_sigma(rec["points"], rec["centre"], 0.0, options.sigma_angle)
+            rec["noise"] = float(np.hypot(rec["noise"], np.sqrt(np.mean(lateral**2))))
         # A sphere of another of the given radii votes for this one's too: take the nearest.
         rec["size"] = float(radii[np.argmin(np.abs(radii - rec["radius_fit"]))])
         rec["reason"] = _judge_sphere(rec, options)
