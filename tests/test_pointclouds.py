@@ -195,3 +195,67 @@ def test_ptx_transform_convention_by_hand(tmp_path):
     X = scan.points @ rotation_matrix(*scan.pose[3:], xp=np) + scan.pose[:3]
     np.testing.assert_allclose(X, [[10, 21, 30], [10, 20, 32]], atol=1e-14)
     np.testing.assert_allclose(scan.observations, [[1, 0, 0], [2, 0, np.pi / 2]], atol=1e-15)
+
+
+_LAYOUTS = [
+    # (file name, header, columns written, where x y z and intensity are)
+    ("cc.txt", "//X Y Z R G B Intensity", "xyzrgbi", "by the header"),
+    ("cc_comma.asc", "//X,Y,Z,Rf,Gf,Bf,Intensity", "xyzrgbi", "by the header"),
+    ("plain.csv", "X,Y,Z,Intensity", "xyzi", "by the header"),
+    (
+        "riscan.txt",
+        "X[m] Y[m] Z[m] Amplitude[dB] Reflectance[dB] Deviation",
+        "xyzaid",
+        "by the header",
+    ),
+    ("pcl.xyz", "# x y z intensity", "xyzi", "by the header"),
+    ("cyclone.pts", "{n}", "xyzirgb", "by the column count"),
+    ("four.xyz", None, "xyzi", "by the column count"),
+]
+
+
+def _write_columns(path, header, layout, P, inten):
+    rng = np.random.default_rng(0)
+    cols = {"x": P[:, 0], "y": P[:, 1], "z": P[:, 2], "i": inten}
+    cols |= {k: rng.integers(0, 255, len(P)).astype(float) for k in "rgbad"}
+    sep = "," if path.suffix == ".csv" or (header and "," in header) else " "
+    with open(path, "w") as fh:
+        if header:
+            fh.write(header.format(n=len(P)) + "\n")
+        np.savetxt(fh, np.stack([cols[c] for c in layout], 1), fmt="%.6f", delimiter=sep)
+
+
+@pytest.mark.parametrize("name, header, layout, how", _LAYOUTS)
+def test_text_columns_by_name(tmp_path, name, header, layout, how):
+    # Intensity by its name (never the red column of "//X Y Z R G B Intensity"; RiSCAN's
+    # reflectance, not its amplitude), PTS by its format; the streamed reader and the whole-file
+    # reader agree on x y z.
+    from tlsjax._io._point_clouds import text_layout
+    from tlsjax._io._scan_chunks import open_scans
+
+    rng = np.random.default_rng(1)
+    P, inten = rng.uniform(-5, 5, (50, 3)), rng.uniform(100, 2000, 50)
+    path = tmp_path / name
+    _write_columns(path, header, layout, P, inten)
+    lines = path.read_text().splitlines()
+    assert text_layout(lines, str(path), pts=name.endswith(".pts")).how == how
+    ((pts, got, _),) = list(open_scans(path)[0].chunks())
+    np.testing.assert_allclose(pts, P, atol=1e-6)
+    np.testing.assert_allclose(got, inten, atol=1e-6)
+    (scan,) = read_point_clouds(path)
+    np.testing.assert_allclose(scan.points, P, atol=1e-6)
+
+
+def test_unnamed_columns_are_refused_with_the_fix(tmp_path):
+    from tlsjax._io._scan_chunks import open_scans
+
+    rng = np.random.default_rng(2)
+    P, inten = rng.uniform(-5, 5, (20, 3)), rng.uniform(100, 2000, 20)
+    path = tmp_path / "seven.txt"
+    _write_columns(path, None, "xyzrgbi", P, inten)
+    with pytest.raises(ValueError, match=r"seven.txt: 7 unnamed columns.*--columns x,y,z"):
+        open_scans(path)
+    ((_, got, _),) = list(open_scans(path, columns="x,y,z,r,g,b,intensity")[0].chunks())
+    np.testing.assert_allclose(got, inten, atol=1e-6)
+    (scan,) = read_point_clouds(path)  # x y z only: the first three in every convention
+    np.testing.assert_allclose(scan.points, P, atol=1e-6)

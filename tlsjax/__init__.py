@@ -44,6 +44,10 @@ from ._adjustment._result import CalibrationResult as CalibrationResult
 from ._adjustment._result import ResultCode as ResultCode
 from ._clouds._extract import ExtractionOptions as ExtractionOptions
 from ._clouds._extract import extract_planes as extract_planes
+from ._clouds._field_check import FieldCheck as FieldCheck
+from ._clouds._field_check import FieldCheckOptions as FieldCheckOptions
+from ._clouds._field_check import field_check as field_check
+from ._clouds._field_check import field_check_centres as field_check_centres
 from ._clouds._match import MatchingOptions as MatchingOptions
 from ._clouds._match import match_planes as match_planes
 from ._clouds._target_match import TargetMatching as TargetMatching
@@ -97,6 +101,7 @@ from ._io._correct_files import CorrectedScan as CorrectedScan
 from ._io._correct_files import correct_point_cloud as correct_point_cloud
 from ._io._extracted import ExtractedPlanes as ExtractedPlanes
 from ._io._las import write_las as write_las
+from ._io._outputs import check_outputs as check_outputs
 from ._io._plane_files import load_planes as load_planes
 from ._io._plane_files import save_planes as save_planes
 from ._io._ply import write_ply as write_ply

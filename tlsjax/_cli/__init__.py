@@ -1,5 +1,6 @@
 """Command line: ``tlsjax demo | simulate | calibrate | extract-planes | extract-targets |
-correct | report | montecarlo | compare | design | import-targets | check-targets``.
+correct | report | montecarlo | compare | design | import-targets | check-targets |
+field-check``.
 
 Every subcommand is a thin layer over the public API. Bad input is reported as one line
 naming the file, line, scan, target or parameter (exit code 2), and so is every file-system
@@ -26,6 +27,7 @@ from ._correct import add_correct_parser
 from ._design import add_design_parser
 from ._extract import add_extract_parser
 from ._extract_targets import add_targets_parser
+from ._field_check import add_field_check_parser
 from ._montecarlo import add_montecarlo_parser
 from ._report import add_report_parser
 from ._simulate import add_demo_parser, add_simulate_parser
@@ -78,6 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
         add_design_parser,
         add_import_targets_parser,
         add_check_targets_parser,
+        add_field_check_parser,
     ):
         add(sub)
     return ap

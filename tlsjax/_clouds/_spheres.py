@@ -161,10 +161,9 @@ def radial_sigma(P, c, sigma_range, sigma_angle):
     return np.sqrt(sigma_range**2 + (rho * sigma_angle) ** 2 * np.clip(1 - cosb**2, 0, 1))
 
 
-def coverage(P, c, R):
-    """Share of the visible hemisphere covered (module docstring), in [0, 1]."""
-    if len(P) == 0:
-        return 0.0
+def _disc_coordinates(P, c, R):
+    """The unit vectors ``(x_i - c) / R`` projected onto the plane across the line of sight
+    to c: (a, b) on the unit disc."""
     los = c / np.linalg.norm(c)
     u = (P - c) / R
     u -= np.outer(u @ los, los)
@@ -173,7 +172,27 @@ def coverage(P, c, R):
         e1 = np.cross(los, [1.0, 0.0, 0.0])
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(los, e1)
-    return disc_coverage(u @ e1, u @ e2)
+    return u @ e1, u @ e2
+
+
+def residual_trend(P, c, R, res) -> float:
+    """RMS [m] of the quadratic trend ``1, a, b, a^2, a b, b^2`` over the visible disc
+    (:func:`_disc_coordinates`) fitted to the radial residuals ``res``: a sphere leaves noise
+    (a trend of about ``sigma sqrt(6 / n)``), a cylinder or a bump that voted for a centre
+    leaves its shape (residuals of one sign along its axis, the other across)."""
+    if len(P) < 12:
+        return np.nan
+    a, b = _disc_coordinates(P, c, R)
+    A = np.stack([np.ones_like(a), a, b, a * a, a * b, b * b], 1)
+    fit = A @ np.linalg.lstsq(A, res, rcond=None)[0]
+    return float(np.sqrt(np.mean(fit**2)))
+
+
+def coverage(P, c, R):
+    """Share of the visible hemisphere covered (module docstring), in [0, 1]."""
+    if len(P) == 0:
+        return 0.0
+    return disc_coverage(*_disc_coordinates(P, c, R))
 
 
 def disc_coverage(a, b) -> float:
@@ -269,6 +288,7 @@ def _record(q, P, R, fits, options):
         U = P / np.linalg.norm(P, axis=1)[:, None]
         res = np.linalg.norm(P - y[0, 3] * (U - uc) - c, axis=1) - R
     return {
+        "trend": residual_trend(P, c, R, res),
         "kind": "sphere",
         "size": float(R),
         "centre": c,

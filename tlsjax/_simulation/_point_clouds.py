@@ -265,7 +265,10 @@ class CloudDesign:
     target (None: the room grid only). Intensity: ``reflectance`` of the room's faces and
     boards, the footprint ``beam_width`` [m] + ``beam_divergence`` [rad] x range (standard
     deviation of the spot), ``intensity_noise`` (standard deviation, in reflectance units),
-    ``dark_range_bias`` [m] added to the range of the dark share of a target's footprint.
+    ``dark_range_bias`` [m] added to the range of the dark share of a target's footprint;
+    ``dark_noise_factor``: the range noise of a footprint wholly on a target's dark print is
+    this many times ``sigma_range`` (a phase scanner's range noise grows as the returned power
+    falls: 3-5 times on black paper), interpolated by the dark share.
     ``correlated_sigma_range`` [m] and ``correlation_length`` [m]: the spatially correlated
     range noise of the module docstring (0: independent noise only).
     ``scans`` (s, 6): the scan poses (X, Y, Z [m], omega, phi, kappa [rad]); None: those of
@@ -296,6 +299,7 @@ class CloudDesign:
     beam_divergence: float = 0.2e-3
     intensity_noise: float = 0.01
     dark_range_bias: float = 0.0
+    dark_noise_factor: float = 1.0
     correlated_sigma_range: float = 0.0
     correlation_length: float = 0.02
     scans: tuple | None = None
@@ -360,6 +364,8 @@ class CloudDesign:
             raise ValueError(f"correlation_length must be > 0, got {self.correlation_length}")
         if not np.isfinite(self.dark_range_bias):
             raise ValueError(f"dark_range_bias must be finite, got {self.dark_range_bias}")
+        if not (np.isfinite(self.dark_noise_factor) and self.dark_noise_factor >= 1.0):
+            raise ValueError(f"dark_noise_factor must be >= 1, got {self.dark_noise_factor}")
         if not (0.0 < self.angular_step <= 10.0 * DEG):
             raise ValueError(
                 f"angular_step must be in (0, 10 deg], got {self.angular_step / DEG:g} deg"
@@ -841,7 +847,9 @@ def _observe_scan(design, eop, hits, rng, coeffs, scanner, names, rng_c=None):
     face2 = second_face(hyb[:, 1], design.architecture)
     sig = np.stack(
         [
-            design.sigma_range / np.cos(hits["incidence"]),
+            design.sigma_range
+            * (1.0 + (design.dark_noise_factor - 1.0) * (1.0 - hits["white"]))
+            / np.cos(hits["incidence"]),
             np.full(m, design.sigma_angle),
             np.full(m, design.sigma_angle),
         ],
