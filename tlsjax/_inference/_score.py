@@ -31,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -191,7 +192,7 @@ class ScoreTester:
         adj = self.adjustment
         aps = np.zeros(adj.plan.spec.n_aps)
         aps[self.model_index] = np.asarray(params.aps)
-        wide = Params(params.prims, params.eops, jnp.asarray(aps))
+        wide = Params(params.prims, params.eops, jax.device_put(aps))
         problem = adj.problem(
             weights=weights,
             levelling_weights=levelling_weights,
@@ -208,7 +209,7 @@ def tests_in(adjustment, problem, params, names, alpha: float) -> ScoreTests:
     stepwise selection asks of its one wide adjustment, and :class:`ScoreTester` of its own."""
     spec, tol = adjustment.plan.spec, float(adjustment.options.rank_tolerance)
     labels = adjustment.plan.ap_labels
-    K, rhs, vtpv, nzz = _score_system(spec, problem, params, jnp.asarray(tol, dtype=jnp.float64))
+    K, rhs, vtpv, nzz = _score_system(spec, problem, params, np.float64(tol))
     free = ~np.asarray(problem.fixed)
     idx = np.array([labels.index(n) for n in names], dtype=int)
     return _tests(
