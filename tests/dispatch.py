@@ -14,6 +14,7 @@ import collections
 import contextlib
 
 import jax
+from jax import monitoring
 from jax._src import pjit
 from jax._src.interpreters import pxla
 
@@ -47,3 +48,20 @@ def _clear_fast_paths():
     pjit._cpp_pjit_cache_fun_only.clear()
     pjit._cpp_pjit_cache_explicit_attributes.clear()
     jax._src.lib._jax.PjitFunctionCache.clear_all()
+
+
+@contextlib.contextmanager
+def compiled_programs():
+    """Yields a ``collections.Counter`` of the programs compiled inside the block (an XLA
+    compile, or an executable read back from the persistent cache: either is a new program)."""
+    counts = collections.Counter()
+
+    def on(event, seconds, fun_name=None, **_):
+        if event == "/jax/core/compile/backend_compile_duration":
+            counts[fun_name] += 1
+
+    monitoring.register_event_duration_secs_listener(on)
+    try:
+        yield counts
+    finally:
+        monitoring.unregister_event_duration_listener(on)

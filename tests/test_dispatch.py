@@ -8,13 +8,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from dispatch import executed_programs
+from dispatch import compiled_programs, executed_programs
 
 import tlsjax as tj
 
-#: The compiled programs of the engine: the adjustment with its quality (``run``; ``_run`` is
-#: the same function where a caller's trace nests it) and the score tests' reduced system.
-ENGINE = {"jit(run)", "jit(_score_system)"}
+#: The compiled programs of the engine: the adjustment with its quality (``run``) and the
+#: score tests' reduced system (``system``).
+ENGINE = {"jit(run)", "jit(system)"}
 
 
 @pytest.fixture(scope="module")
@@ -37,6 +37,10 @@ def test_the_counter_sees_an_eager_operation_and_a_compiled_call():
     assert counts["jit(<lambda>)"] == 1
     assert counts["jit(sin)"] == 1 and counts["jit(cos)"] == 1
     assert sum(counts.values()) == 3
+    with compiled_programs() as compiled:
+        jax.jit(lambda a: a - 1.0)(x)  # a new program: compiled (or read from the cache)
+        f(x)
+    assert compiled == {"jit(<lambda>)": 1}, dict(compiled)
 
 
 def test_a_second_solve_runs_one_compiled_program(network):

@@ -20,7 +20,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._jit import compiler_options, jit
+from .._jit import StoredProgram, jit
+from .._model._aps import get_ap
 from .._model._plausibility import PlausibilityWarning
 from ._config import CalibrationModel, SolverOptions
 from ._families import Params, grid_layout, on_grid
@@ -49,7 +50,16 @@ def _flat_run(spec, treedef, full_covariance: bool):
         problem, params0, options = jax.tree.unflatten(treedef, leaves)
         return _run(spec, problem, params0, options, full_covariance)
 
-    return jax.jit(run, compiler_options=compiler_options())
+    # Stored traced (a re-run in a new process neither traces nor compiles it), keyed on what
+    # it closes over: the spec with its AP terms, the arguments' structure, full_covariance.
+    return StoredProgram(run, ("adjustment", spec_key(spec), treedef, full_covariance))
+
+
+def spec_key(spec) -> tuple:
+    """What a program specialised on ``spec`` closes over besides tlsjax's code: the spec and
+    its AP terms (a user's own term has no stable description: such a program is not stored,
+    :class:`tlsjax._jit.StoredProgram`)."""
+    return spec, tuple(get_ap(n) for names in spec.ap_names for n in names)
 
 
 def estimate(spec, problem, params0, options):
