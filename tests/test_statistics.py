@@ -1,23 +1,23 @@
 """VCE, data snooping, reliability and AP tests (SPEC sections 5, 7) against independent
 references: the dense oracle, direct re-adjustment with an injected bias, counting.
 
-Private imports: the compile cache of the adjustment (no recompilation), the re-weighted
-adjustment and the rule for targets left without redundancy (private steps of the pipeline),
-the residual plot's AP curves.
+Private imports: the re-weighted adjustment and the rule for targets left without redundancy
+(private steps of the pipeline), the residual plot's AP curves, the constants of _stats; no
+recompilation is counted with tests/dispatch.py.
 """
 
 import dataclasses
 
 import numpy as np
 import pytest
+from dispatch import compiled_programs
 
 import tlsjax as tj
 from tlsjax import TestingOptions as Opts
 from tlsjax import calibrate_and_test
-from tlsjax._adjustment._calibrate import _run
 from tlsjax._inference._pipeline import Reweighter, _undetermined_targets
 from tlsjax._inference._statistics import critical_value
-from tlsjax._stats import non_centrality
+from tlsjax._stats import confidence_scale, non_centrality
 
 APS = ("A0", "B6", "B7", "C0")
 MODEL = tj.CalibrationModel(tj.Scanner(aps=APS))
@@ -29,6 +29,17 @@ def sim():
 
 
 def test_constants():
+    from scipy import stats
+
+    # tlsjax._stats keeps scipy.stats out of ``import tlsjax``: the normal quantiles from the
+    # standard library, the 95 % ellipsoid factors as scipy gives them.
+    assert critical_value(0.001) == pytest.approx(stats.norm.ppf(1 - 0.0005), rel=1e-15)
+    assert non_centrality() == pytest.approx(
+        stats.norm.ppf(0.9995) + stats.norm.ppf(0.8), rel=1e-15
+    )
+    for dim in (1, 2, 3):
+        assert confidence_scale(dim) == np.sqrt(stats.chi2.ppf(0.95, dim))
+    assert confidence_scale(3, 0.99) == pytest.approx(np.sqrt(stats.chi2.ppf(0.99, 3)), rel=1e-15)
     assert np.isclose(critical_value(0.001), 3.2905, atol=1e-4)
     assert np.isclose(non_centrality(0.001, 0.8), 4.1321, atol=1e-3)
     with pytest.raises(ValueError, match="alpha"):
@@ -82,10 +93,10 @@ def test_reweighting_and_masking_do_not_recompile(sim):
     obs[50, 2] -= 30 * net.sigmas[50, 2]
     bad = net.with_observations(obs)
     calibrate_and_test(bad, MODEL)  # compiles this (spec, shapes) once
-    before = _run._cache_size()
-    r = calibrate_and_test(bad, MODEL, testing=Opts(alpha=0.0001))
-    assert r.n_adjustments > 3  # VCE iterations and removals all went through _run
-    assert _run._cache_size() == before
+    with compiled_programs() as compiled:
+        r = calibrate_and_test(bad, MODEL, testing=Opts(alpha=0.0001))
+    assert r.n_adjustments > 3  # VCE iterations and removals all ran the compiled adjustment
+    assert sum(compiled.values()) == 0, dict(compiled)
     found = {(o.row, o.group) for o in r.outliers}
     assert {(10, "range"), (50, "el")} <= found
     for o in r.outliers:

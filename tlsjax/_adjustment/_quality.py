@@ -48,6 +48,7 @@ from ._families import (
     n_pseudo,
     on_grid,
     orientation_observations,
+    orientation_residual,
     pseudo_cost,
     settled_state,
 )
@@ -106,6 +107,10 @@ class Quality(eqx.Module):
     K_over_N: object  # diag(K) / diag(N_zz): share of a parameter the primitives do not explain
     ap_influence: tuple = ()  # per family (m, rows, a): dx_AP / sigma_AP for a 1-sigma error
     redundancy_ap_prior: object = None  # (a,): of the AP priors (0 where none)
+    # Orientation pseudo-observations per scan (s, 3): residuals v = f(x) - l [rad] (also where
+    # not observed) and weights (0: not observed), for the result's table of constraints.
+    orientation_residuals: object = None
+    orientation_weight: object = None
 
 
 def _quad(Jl, Q, Jr):
@@ -248,6 +253,8 @@ def quality_from(spec, problem, grid, params, lin, full_covariance: bool = False
         pivots=red.pivots,
         K_over_N=K_over_N,
         ap_influence=back("influence"),
+        orientation_residuals=orientation_residual(grid, params.eops),
+        orientation_weight=lw,
     )
 
 

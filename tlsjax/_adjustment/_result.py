@@ -11,11 +11,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._model._aps import get_ap
-from .._model._geometry import wrap_angle
-from .._model._levelling import orientation_reading
 from .._model._plausibility import ap_findings, implausible_summary, likely_causes
 from ._diagnose import confounded_partners, failure_diagnosis
-from ._families import orientation_observations
 from ._network import Network
 from ._plan import Plan
 
@@ -55,10 +52,13 @@ def result_code_of(*, finite, rank_deficient, converged, not_estimable):
     no convergence, APs not estimable; success otherwise. Traceable (``jnp.where`` on booleans
     or traced booleans), so the host-side assembly of a result and the compiled batch of a
     Monte Carlo (:func:`._calibrate.result_code`) share it; an int32 code."""
-    code = jnp.where(not_estimable, NOT_ESTIMABLE, SUCCESS)
-    code = jnp.where(converged, code, MAX_ITERATIONS)
-    code = jnp.where(rank_deficient, RANK_DEFICIENT, code)
-    return jnp.where(finite, code, NONFINITE).astype(jnp.int32)
+    flags = (finite, rank_deficient, converged, not_estimable)
+    # numpy on the host (Python booleans): no JAX operation dispatched one at a time.
+    xp = jnp if any(isinstance(f, jax.Array) for f in flags) else np
+    code = xp.where(not_estimable, NOT_ESTIMABLE, SUCCESS)
+    code = xp.where(converged, code, MAX_ITERATIONS)
+    code = xp.where(rank_deficient, RANK_DEFICIENT, code)
+    return xp.where(finite, code, NONFINITE).astype(xp.int32)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -542,10 +542,8 @@ def _constraint_arrays(plan: Plan, q, state) -> dict:
     """Residuals and redundancy numbers of the weighted constraints with observed values
     (orientation readings and AP priors), NaN where there is none."""
 
-    values, weight = (np.asarray(a) for a in orientation_observations(plan.problem))
-    eops = np.asarray(state.params.eops)
-    read = np.asarray(jax.vmap(orientation_reading)(eops))
-    observed = weight > 0
+    # Computed in the compiled quality: here only numpy (nothing eager on the host path).
+    observed = np.asarray(q.orientation_weight) > 0
     nan = lambda a, m: np.where(m, a, np.nan)
     wa = np.zeros(plan.spec.n_aps)
     prior = np.zeros(plan.spec.n_aps)
@@ -553,7 +551,7 @@ def _constraint_arrays(plan: Plan, q, state) -> dict:
         wa, prior = np.asarray(plan.problem.ap_prior_weight), np.asarray(plan.problem.ap_prior)
     r_prior = q.redundancy_ap_prior
     return dict(
-        orientation_residuals=nan(np.asarray(wrap_angle(read - values)), observed),
+        orientation_residuals=nan(np.asarray(q.orientation_residuals), observed),
         redundancy_orientation=nan(np.asarray(q.redundancy_levelling), observed),
         ap_prior_residuals=nan(np.asarray(state.params.aps) - prior, wa > 0),
         redundancy_ap_prior=nan(

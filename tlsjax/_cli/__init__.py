@@ -33,24 +33,6 @@ from ._report import add_report_parser
 from ._simulate import add_demo_parser, add_simulate_parser
 from ._targets import add_check_targets_parser, add_import_targets_parser
 
-
-def _enable_compilation_cache():
-    # Compiling the adjustment costs seconds; the CLI is run again and again on the same
-    # shapes, so JAX's persistent cache pays (PERFORMANCE.md).
-    import jax
-
-    path = os.environ.get(
-        "TLSJAX_CACHE_DIR", os.path.join(os.path.expanduser("~"), ".cache", "tlsjax", "jax")
-    )
-    if path.lower() in ("", "0", "off", "none"):
-        return
-    try:
-        os.makedirs(path, exist_ok=True)
-        jax.config.update("jax_compilation_cache_dir", path)
-    except OSError:
-        pass
-
-
 #: Exit code of a command stopped by Ctrl-C (128 + SIGINT, as shells report it).
 EXIT_INTERRUPTED = 130
 
@@ -107,7 +89,6 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     if getattr(args, "devices", None):
         use_host_devices(args.devices)
-    _enable_compilation_cache()
     reset_warnings()
     prefix = f"tlsjax {args.command}: error:"
     try:

@@ -41,8 +41,6 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import connected_components
 
 from .._model._targets import checkerboard_white
 from ._lsq import FIT_POINTS, covariance, fit_batch
@@ -65,6 +63,9 @@ def _components(vox, label, link):
     ok[:, 0] = False  # the voxel itself
     indptr = np.concatenate([[0], np.cumsum(ok.sum(axis=1))])
     cols = idx[ok]
+    from scipy.sparse import csr_matrix  # at first use: it is slow to import
+    from scipy.sparse.csgraph import connected_components
+
     graph = csr_matrix((np.ones(len(cols), dtype=np.int8), cols, indptr), shape=(m, m))
     return connected_components(graph, directed=False)[1]
 

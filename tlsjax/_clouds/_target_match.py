@@ -58,7 +58,6 @@ import dataclasses
 import itertools
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .._model._geometry import angles_from_matrix, rigid_fit
 
@@ -250,6 +249,8 @@ def _chance(A, ka, B, kb, options):
 def _support(R, t, A, ka, B, kb, options):
     """Per motion: number of A's centres with a same-kind centre of B within the tolerance
     (``tolerance + relative_tolerance x`` the centre's range in its scan)."""
+    from scipy.spatial import cKDTree  # at first use: it is slow to import
+
     tree = cKDTree(B)
     tol = _tol(np.linalg.norm(A, axis=1), options)
     Y = np.einsum("hij,nj->hni", R, A) + t[:, None, :]

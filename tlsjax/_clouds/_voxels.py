@@ -29,7 +29,6 @@ import dataclasses
 import functools
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 #: Nearest neighbours of a voxel centroid used for its local surface and connectivity.
 NEIGHBOURS = 12
@@ -128,6 +127,8 @@ class VoxelCloud:
         """Distances (m, k) and indices (m, k) of each centroid's k = 12 nearest centroids
         (itself first), computed once for the sphere and the planar target candidates."""
         k = min(NEIGHBOURS, len(self.centroid))
+        from scipy.spatial import cKDTree  # at first use: it is slow to import
+
         tree = cKDTree(self.centroid)
         d = np.empty((len(self.centroid), k), dtype=np.float32)
         i = np.empty((len(self.centroid), k), dtype=np.int32 if len(d) < 2**31 else np.int64)
@@ -251,6 +252,8 @@ def crop(scan, centres, radii, *, chunk: int, bar=None):
         if not len(sel):
             continue
         sub = pts[sel]
+        from scipy.spatial import cKDTree
+
         for q, idx in enumerate(cKDTree(sub).query_ball_point(centres, radii)):
             if idx:
                 out_p[q].append(sub[idx])

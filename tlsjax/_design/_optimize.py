@@ -20,8 +20,6 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
-from tqdm.auto import tqdm
 
 from .._jit import jit
 from .._simulation._room import Room
@@ -257,6 +255,9 @@ def optimize_design(
     U = [u0] + [param.random(rng) for _ in range(starts - 1)]
     U = jax.tree.map(lambda *a: jnp.stack(a), *U)
     loss = lambda u: criterion.smooth(predicted_cofactor(dn, param.design(u)), spec.n_scans, names)
+    import optax  # here, not at import: it takes longer to import than tlsjax's core
+    from tqdm.auto import tqdm
+
     opt = optax.adam(learning_rate)
 
     @jit

@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._adjustment._calibrate import _run, analyze
+from .._adjustment._calibrate import analyze
 from .._adjustment._config import CalibrationModel, SolverOptions
 from .._adjustment._network import Network
 from .._adjustment._result import CalibrationResult, assemble
@@ -104,14 +104,13 @@ class Reweighter:
             heading_weights=heading_weight,
             ap_prior_weights=ap_prior_weight,
         )
-        if max_iterations is None:
-            state, q = adj.run(problem, params0)
-        else:  # e.g. 0: the misclosures and redundancy numbers at params0 (traced: no recompile)
+        opts = None
+        if max_iterations is not None:
+            # e.g. 0: the misclosures and redundancy numbers at params0 (data: the same program)
             opts = eqx.tree_at(
-                lambda o: o.max_iterations, adj.options.arrays(), jnp.asarray(max_iterations)
+                lambda o: o.max_iterations, adj.options.arrays(), np.asarray(int(max_iterations))
             )
-            params0 = adj.initial if params0 is None else params0
-            state, q = _run(adj.plan.spec, problem, params0, opts, adj.options.full_covariance)
+        state, q = adj.run(problem, params0, opts)
         plan = dataclasses.replace(self.plan, problem=problem)
         res = assemble(self.net, self.model, plan, state, q)
         infl = np.zeros((self.net.observations.shape[0], 3, plan.spec.n_aps))
@@ -428,7 +427,7 @@ def _constraint_groups(ctx: TestingContext, state: TestingState) -> dict:
     active = ctx.levelling_active
     if active.any():
         # Levelling residuals from the compensator readings of the final poses.
-        read = np.asarray(jax.vmap(compensator_reading)(jnp.asarray(res.eops)))
+        read = compensator_reading(res.eops, np)
         v = read - res.network.levelling
         out[3] = (v, res.redundancy_levelling, levelling_sigmas(ctx, state), active)
     if ctx.heading_active.any() and res.orientation_residuals is not None:

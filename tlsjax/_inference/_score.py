@@ -31,15 +31,16 @@ from __future__ import annotations
 import dataclasses
 import functools
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._adjustment._calibrate import analyze
+from .._adjustment._calibrate import analyze, spec_key
 from .._adjustment._config import CalibrationModel, SolverOptions
 from .._adjustment._families import Params, on_grid
 from .._adjustment._network import Network
 from .._adjustment._normal import linearise_rows, linearised_cost, null_space, reduce, reduced_rhs
-from .._jit import jit
+from .._jit import StoredProgram
 from .._model._aps import PRESETS, get_ap, registered_aps
 from .._model._scanner import Scanner
 from .._stats import chi2_quantile, chi2_sf
@@ -143,7 +144,16 @@ def default_candidates(scanner: Scanner) -> tuple:
     return tuple(a for a in (_NIST if nist else _CHOW) + own if a not in scanner.aps)
 
 
-@functools.partial(jit, static_argnums=(0,))
+@functools.cache
+def _score_program(spec, treedef):
+    """:func:`_score_system` compiled for one spec and argument structure, stored traced."""
+
+    def system(*leaves):
+        return _score_system(spec, *jax.tree.unflatten(treedef, leaves))
+
+    return StoredProgram(system, ("score tests", spec_key(spec), treedef))
+
+
 def _score_system(spec, problem, params, rank_tolerance):
     """The reduced normal matrix K (poses + APs), the reduced right-hand side ``-J^T e`` and
     ``v^T P v`` at ``params``, and the diagonal of the unreduced matrix (the scale of the
@@ -191,7 +201,7 @@ class ScoreTester:
         adj = self.adjustment
         aps = np.zeros(adj.plan.spec.n_aps)
         aps[self.model_index] = np.asarray(params.aps)
-        wide = Params(params.prims, params.eops, jnp.asarray(aps))
+        wide = Params(params.prims, params.eops, jax.device_put(aps))
         problem = adj.problem(
             weights=weights,
             levelling_weights=levelling_weights,
@@ -208,7 +218,8 @@ def tests_in(adjustment, problem, params, names, alpha: float) -> ScoreTests:
     stepwise selection asks of its one wide adjustment, and :class:`ScoreTester` of its own."""
     spec, tol = adjustment.plan.spec, float(adjustment.options.rank_tolerance)
     labels = adjustment.plan.ap_labels
-    K, rhs, vtpv, nzz = _score_system(spec, problem, params, jnp.asarray(tol, dtype=jnp.float64))
+    leaves, treedef = jax.tree.flatten((problem, params, np.float64(tol)))
+    K, rhs, vtpv, nzz = _score_program(spec, treedef)(*leaves)
     free = ~np.asarray(problem.fixed)
     idx = np.array([labels.index(n) for n in names], dtype=int)
     return _tests(
