@@ -85,7 +85,7 @@ class HypothesisDrawer:
 @dataclasses.dataclass(frozen=True)
 class Case:
     """One drawn network: its design, the seed of its geometry and noise, whether to run
-    ``calibrate_and_test`` (VCE and data snooping) and what kind of design it is."""
+    ``self_calibrate`` with VCE and data snooping and what kind of design it is."""
 
     design: tj.NetworkDesign
     seed: int = 0
@@ -305,8 +305,8 @@ def run(case: Case, sim=None):
     sim = sim or tj.simulate_design(case.design, seed=case.seed)
     model = tj.CalibrationModel(sim.scanner)
     if case.testing:
-        tested = tj.calibrate_and_test(
-            sim.network, model, testing=tj.TestingOptions(vce=True, snooping=True)
+        tested = tj.self_calibrate(
+            sim.network, model, tj.CalibrationOptions(snooping=tj.SnoopingOptions())
         )
         return sim, tested.calibration, tested
     return sim, tj.calibrate(sim.network, model), None

@@ -181,3 +181,32 @@ def test_old_summary_access_warns_and_returns_the_old_value():
         warnings.simplefilter("error")
         assert text[:11] == "Monte Carlo" and text.splitlines()[0].startswith("Monte")
         assert _extracted_planes().summary()[0:2] == "1 "
+
+
+def test_settings_and_models_round_trip_through_strict_json():
+    """What a result records of the settings that made it reads back as the same objects
+    (issue 40 item 5: a result can be re-run from its own file)."""
+    options = tj.CalibrationOptions(
+        solver=tj.SolverOptions(max_iterations=7),
+        vce=None,
+        snooping=tj.SnoopingOptions(w_test_level=0.01, removal="target", critical_value=3.0),
+        tests=tj.TestOptions(candidates="A3 C2", score_test_level=0.01),
+        selection=tj.SelectionOptions(candidates="A3 C2", test_level=0.02),
+    )
+    text = json.dumps(options.to_dict(), allow_nan=False)
+    assert tj.CalibrationOptions.from_dict(json.loads(text)) == options
+    model = tj.CalibrationModel(
+        {"a": tj.Scanner(aps="A0 B6"), "b": tj.Scanner(architecture="panoramic", aps="A0 C0")},
+        datum="inner",
+        correlation_threshold=0.95,
+        fixed_aps=("C0[b]",),
+        ap_priors={"B6[a]": (1e-4, 1e-5)},
+    )
+    text = json.dumps(model.to_dict(), allow_nan=False)
+    assert tj.CalibrationModel.from_dict(json.loads(text)) == model
+    with pytest.raises(ValueError, match="VCEOptions: unknown setting.*tol"):
+        tj.VCEOptions.from_dict({"tol": 1e-3})
+    with pytest.raises(
+        TypeError, match="CalibrationOptions.snooping must be a tlsjax SnoopingOptions"
+    ):
+        tj.CalibrationOptions(snooping=True)

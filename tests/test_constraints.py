@@ -309,7 +309,7 @@ def test_each_kind_of_constraint_is_its_own_variance_group():
     net = dataclasses.replace(sim.network, heading_sigma=3 * sim.network.heading_sigma)
     prior = {"C0": (sim.true_aps.get("C0", 0.0), 5 * ARCSEC)}
     model = tj.CalibrationModel(tj.Scanner(aps="physical"), ap_priors=prior)
-    tested = tj.calibrate_and_test(net, model, testing=tj.TestingOptions(vce=True))
+    tested = tj.self_calibrate(net, model, tj.CalibrationOptions(snooping=tj.SnoopingOptions()))
     assert tested.ok, tested.message
     vc = {v.group: v for v in tested.variance_components}
     assert set(vc) == {"range", "hz", "el", "levelling", "heading", "ap_prior"}

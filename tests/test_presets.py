@@ -170,10 +170,10 @@ def test_none_calibrates_planes_and_selection_starts_from_it():
     assert res.ok and res.ap_names == () and res.dof > 0, res.message
     assert res.redundancy_summary()["total"]["sum"] == pytest.approx(res.dof, rel=1e-9)
     sim = tj.simulate(tj.Room(n_targets=40), aps="A0 B7", seed=2)
-    sel = tj.select_aps(
+    selection = tj.SelectionOptions(candidates="physical")
+    sel = tj.self_calibrate(
         sim.network,
         tj.CalibrationModel(tj.Scanner(aps="none")),
-        start="none",
-        candidates="physical",
-    )
+        tj.CalibrationOptions(vce=None, selection=selection),
+    ).selection
     assert set(sel.aps) >= {"A0", "B7"}, sel.aps

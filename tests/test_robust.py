@@ -10,6 +10,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from helpers import printed_is_summary, same_run
 
 import tlsjax as tj
 from tlsjax._inference._robust import igg3
@@ -37,11 +38,12 @@ def test_igg3_weights():
 def test_blunders_on_planes_are_found_whatever_the_sigmas(clouds, sigma_factor):
     pc, _, net, bad = clouds
     net = dataclasses.replace(net, plane_sigmas=net.plane_sigmas * sigma_factor)
-    s = tj.screen_planes(net, tj.CalibrationModel(pc.scanner))
+    result = tj.self_calibrate(net, tj.CalibrationModel(pc.scanner))
+    s = result.plane_screening
     found = set(s.removed.tolist())
     assert set(bad.tolist()) <= found
     assert len(found - set(bad.tolist())) <= 3  # clean points near the family-wise limit
-    res = s.calibration
+    res = result.calibration
     assert res.ok, res.message
     assert not res.plane_used[s.removed].any()
     truth = np.array([pc.true_aps[a] for a in res.ap_names])
@@ -52,13 +54,14 @@ def test_blunders_on_planes_are_found_whatever_the_sigmas(clouds, sigma_factor):
 
 def test_clean_planes_lose_almost_nothing(clouds):
     pc, net, _, _ = clouds
-    s = tj.screen_planes(net, tj.CalibrationModel(pc.scanner))
+    result = tj.self_calibrate(net, tj.CalibrationModel(pc.scanner))
+    s = result.plane_screening
     plain = tj.calibrate(net, tj.CalibrationModel(pc.scanner))
     assert len(s.removed) <= 2
     assert np.isclose(s.scale, 1.0, atol=0.1)
     # Without removals the final adjustment is the plain one.
     if len(s.removed) == 0:
-        np.testing.assert_allclose(s.calibration.ap_values, plain.ap_values, rtol=1e-9)
+        np.testing.assert_allclose(result.calibration.ap_values, plain.ap_values, rtol=1e-9)
 
 
 def test_cli_screens_plane_points_by_default(clouds, tmp_path, capsys):
@@ -90,3 +93,9 @@ def test_cli_screens_plane_points_by_default(clouds, tmp_path, capsys):
     js = json.loads(out.read_text())
     assert js["plane_screening"]["n_removed"] >= len(bad)
     assert js["n_plane_points"] == len(net.plane_index) - js["plane_screening"]["n_removed"]
+    # What the command printed and wrote is the entry's result (plane networks: no VCE).
+    result = tj.self_calibrate(
+        tj.read_network(planes=str(path)), tj.CalibrationModel(), tj.CalibrationOptions(vce=None)
+    )
+    same_run(js, result.to_dict())
+    printed_is_summary(printed, result.summary())

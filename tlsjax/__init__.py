@@ -18,7 +18,9 @@ module except the command line.
 5. ``_inference`` (tests, VCE, snooping, selection, compatibility), ``_design`` (network
    design) and ``_clouds`` (planes and targets from point clouds): on layers 1-4.
 6. ``_report``: text, JSON, plots and the HTML report.
-7. this module (the public API), then ``_cli`` (the command line), which may use everything.
+7. ``_workflow``: the one tested entry of a self-calibration (:func:`self_calibrate`) and its
+   result, which composes the pipeline of layer 5 with the text and JSON of layer 6.
+8. this module (the public API), then ``_cli`` (the command line), which uses the public API.
 """
 
 import jax as _jax
@@ -74,35 +76,41 @@ from ._inference._compat import CompatibilityResult as CompatibilityResult
 from ._inference._compat import compatibility_batch as compatibility_batch
 from ._inference._compat import compatibility_statistic as compatibility_statistic
 from ._inference._compat import compatibility_test as compatibility_test
+from ._inference._options import CalibrationOptions as CalibrationOptions
+from ._inference._options import ScreeningOptions as ScreeningOptions
+from ._inference._options import SnoopingOptions as SnoopingOptions
+from ._inference._options import TestOptions as TestOptions
+from ._inference._options import VCEOptions as VCEOptions
 from ._inference._robust import PlaneScreening as PlaneScreening
 from ._inference._robust import PlaneScreeningOptions as PlaneScreeningOptions
-from ._inference._robust import screen_planes as screen_planes
 from ._inference._score import ScoreTest as ScoreTest
 from ._inference._score import ScoreTests as ScoreTests
 from ._inference._score import score_tests as score_tests
 from ._inference._selection import SelectionOptions as SelectionOptions
 from ._inference._selection import SelectionResult as SelectionResult
-from ._inference._selection import select_aps as select_aps
 from ._inference._sensitivity import Sensitivity as Sensitivity
 from ._inference._sensitivity import ap_sensitivity as ap_sensitivity
 from ._inference._statistics import ap_t_tests as ap_t_tests
 from ._inference._statistics import global_test as global_test
-from ._inference._tested import TestedCalibration as TestedCalibration
-from ._inference._tested import TestingOptions as TestingOptions
+from ._inference._tested import Removal as Removal
+from ._inference._tested import VarianceComponent as VarianceComponent
 from ._inference._tested import VCEResult as VCEResult
-from ._inference._testing import calibrate_and_test as calibrate_and_test
 from ._io._correct import Calibration as Calibration
 from ._io._correct import correct_points as correct_points
 from ._io._correct_files import CorrectedScan as CorrectedScan
 from ._io._correct_files import correct_point_cloud as correct_point_cloud
 from ._io._extracted import ExtractedPlanes as ExtractedPlanes
+from ._io._json import read_result_json as read_result_json
 from ._io._las import write_las as write_las
+from ._io._outputs import check_outputs as check_outputs
 from ._io._plane_files import load_planes as load_planes
 from ._io._plane_files import save_planes as save_planes
 from ._io._ply import write_ply as write_ply
 from ._io._point_clouds import PointCloudScan as PointCloudScan
 from ._io._point_clouds import PointCloudWarning as PointCloudWarning
 from ._io._point_clouds import read_point_clouds as read_point_clouds
+from ._io._priors import parse_ap_prior as parse_ap_prior
+from ._io._priors import read_ap_priors as read_ap_priors
 from ._io._tables import read_network as read_network
 from ._io._tables import read_observations as read_observations
 from ._io._tables import read_planes as read_planes
@@ -127,6 +135,7 @@ from ._report._plots import plot_residuals as plot_residuals
 from ._report._plots import plot_sensitivity as plot_sensitivity
 from ._report._tables import group_records as group_records
 from ._report._tables import observation_records as observation_records
+from ._report._tables import write_adjusted_targets as write_adjusted_targets
 from ._report._tables import write_tables as write_tables
 from ._report._target_plots import plot_targets as plot_targets
 from ._report._text import ap_table as ap_table
@@ -150,6 +159,8 @@ from ._simulation._room import Simulation as Simulation
 from ._simulation._room import simulate as simulate
 from ._simulation._truth import SimulationTruth as SimulationTruth
 from ._version import __version__ as __version__
+from ._workflow._self_calibration import SelfCalibration as SelfCalibration
+from ._workflow._self_calibration import self_calibrate as self_calibrate
 
 # Names of earlier releases, kept one release with a DeprecationWarning (issue 34): notebooks that
 # use them keep working while they move to the one word for settings objects, "Options".

@@ -1,8 +1,11 @@
-"""The convention of the public result types: ``summary()`` is text, ``to_dict()`` strict JSON.
+"""The conventions of the public types: a result's ``summary()`` is text and its ``to_dict()``
+strict JSON; a settings object's ``to_dict()`` is strict JSON that ``from_dict()`` reads back.
 
 Layer 1 (imports nothing of tlsjax). Every public result type answers ``summary()`` with
 human-readable text and ``to_dict()`` with strict-JSON data (plain types; NaN and infinities,
-undefined values, as None: :func:`finite_or_none`). Three types returned data from ``summary()`` before
+undefined values, as None: :func:`finite_or_none`). Every settings object (``...Options``) is a
+frozen dataclass of plain fields (:class:`Settings`), so that a result can carry the settings
+that made it and be re-run from its own file. Three types returned data from ``summary()`` before
 (:class:`~tlsjax.MonteCarloResult` and :class:`~tlsjax.DesignOptimisation` a dict,
 :class:`~tlsjax.ExtractedPlanes` a list); their text is a :class:`SummaryText`, which still
 answers the old indexing with a :class:`DeprecationWarning`, so that notebooks written against
@@ -11,6 +14,7 @@ the old return value keep running for one release.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import warnings
 
@@ -72,3 +76,36 @@ def finite_or_none(obj):
     if isinstance(obj, float) and not math.isfinite(obj):
         return None
     return obj
+
+
+class Settings:
+    """The settings convention: ``to_dict()`` (strict JSON: the fields, tuples as lists) and
+    ``from_dict()`` (the fields back; an unknown name is a one-line ValueError naming it). A
+    field whose value is itself settings (or None) is written as its dict (or null); subclasses
+    whose fields hold other settings types read them back by overriding
+    :meth:`_field_from_dict`."""
+
+    def to_dict(self) -> dict:
+        out = {}
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            out[f.name] = v.to_dict() if isinstance(v, Settings) else finite_or_none(v)
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict):
+        if not isinstance(data, dict):
+            raise ValueError(f"{cls.__name__}: expected a JSON object, got {type(data).__name__}")
+        names = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - set(names))
+        if unknown:
+            raise ValueError(
+                f"{cls.__name__}: unknown setting(s) {', '.join(unknown)} "
+                f"(known: {', '.join(names)})"
+            )
+        return cls(**{k: cls._field_from_dict(k, v) for k, v in data.items()})
+
+    @classmethod
+    def _field_from_dict(cls, name: str, value):
+        """The value of field ``name`` from its JSON form: lists become tuples."""
+        return tuple(value) if isinstance(value, list) else value

@@ -7,7 +7,7 @@ import os
 import time
 
 from .._units import ARCSEC
-from ._calibrate import check_outputs, report, write_outputs
+from ._calibrate import PLOT_FILES, check_outputs
 from ._checks import non_negative_int, positive_int
 from ._common import EXIT_FAILED, EXIT_OK, scanner_args
 
@@ -191,3 +191,26 @@ def _demo(args) -> int:
         f"`tlsjax calibrate {args.out}/observations.csv --scans {args.out}/scans.csv --aps {args.aps}`"
     )
     return EXIT_OK if res.ok else EXIT_FAILED
+
+
+def report(res, *, truth=None):
+    """Print the summary and the AP table with the true values beside the estimates; a failed
+    adjustment prints no estimates (they would look plausible and be wrong)."""
+    from .._report._text import ap_table, summary
+
+    print(summary(res))
+    print()
+    print(ap_table(res, truth=truth))
+
+
+def write_outputs(res, json_path, plots_dir, *, scanner=None):
+    """The result JSON and the plots of the demo's calibration."""
+    from .._report._json import write_json
+    from .._report._plots import plot_ap_correlations, plot_residuals
+
+    write_json(res, json_path)
+    print(f"wrote {json_path}")
+    a, b = (os.path.join(plots_dir, name) for name in PLOT_FILES)
+    plot_residuals(res, a, scanner=scanner)
+    plot_ap_correlations(res, b)
+    print(f"wrote {a} and {b}")

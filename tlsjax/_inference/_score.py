@@ -114,7 +114,7 @@ class ScoreTests:
             )
         return "\n".join(lines)
 
-    def as_json(self) -> dict:
+    def to_dict(self) -> dict:
         """The result JSON's ``score_tests`` section (strict JSON: non-finite values are null)."""
         fin = lambda x: float(x) if np.isfinite(x) else None
         return {

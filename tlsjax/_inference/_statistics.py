@@ -1,5 +1,5 @@
 """Tests, reliability and variance components of an adjustment (SPEC sections 5 and 7): pure
-functions, host side, on the arrays of its results. The pipeline of :func:`tlsjax.calibrate_and_test`
+functions, host side, on the arrays of its results. The pipeline of :func:`tlsjax.self_calibrate`
 (:mod:`._steps`) decides when to call them; nothing here holds state.
 
 * Global test: ``T = v^T P v = s0^2 r ~ chi^2(r)`` when the a priori stochastic model is right

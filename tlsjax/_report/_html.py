@@ -22,8 +22,6 @@ import io
 import math
 import os
 import platform
-import shlex
-import sys
 
 import numpy as np
 
@@ -58,19 +56,17 @@ def sha256_of(path, block: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
-def provenance(files=(), argv=None) -> dict:
-    """tlsjax version, command line, time (UTC), Python and platform, and the SHA-256 and size
-    of each input file."""
-    argv = sys.argv if argv is None else argv
-    inputs = []
-    for f in files:
-        if f and os.path.isfile(f):
-            inputs.append(
-                {"path": os.fspath(f), "bytes": os.path.getsize(f), "sha256": sha256_of(f)}
-            )
+def provenance(files=(), command: str | None = None) -> dict:
+    """tlsjax version, command line (None: not run from one), time (UTC), Python and
+    platform, and the SHA-256 and size of each input file (once each; missing ones left out)."""
+    inputs = [
+        {"path": os.fspath(f), "bytes": os.path.getsize(f), "sha256": sha256_of(f)}
+        for f in dict.fromkeys(f for f in files if f)
+        if os.path.isfile(f)
+    ]
     return {
         "tlsjax_version": __version__,
-        "command": " ".join(shlex.quote(a) for a in argv),
+        "command": command,
         "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "python": platform.python_version(),
         "platform": platform.platform(),
@@ -89,7 +85,7 @@ def _stats(a) -> dict:
 def reliability_summary(result, *, mdb=None, mask=None) -> dict:
     """Internal reliability (MDB [m, rad]) and Baarda's external reliability factor
     ``sqrt((1 - r) / r) delta0`` of the target observations, mean and max per group and per
-    scan. ``mdb``: the MDBs of :class:`~tlsjax.TestedCalibration` (default: from the a priori
+    scan. ``mdb``: the MDBs of :class:`~tlsjax.SelfCalibration` (default: from the a priori
     sigmas and the redundancy numbers); ``mask``: the observations used."""
     net = result.network
     r = np.asarray(result.redundancy, dtype=np.float64)
@@ -435,7 +431,7 @@ def _section_outliers(doc) -> str:
     scr, sn = doc.get("screening") or {}, doc.get("snooping") or {}
     if scr.get("enabled"):
         parts.append(
-            f"screening before VCE (robust w, family-wise &alpha; = {_fmt(scr.get('family_alpha'), 4)}, "
+            f"screening before VCE (robust w, family-wise &alpha; = {_fmt(scr.get('family_level'), 4)}, "
             f"critical value {_fmt(scr.get('critical_value'), 2)}): {scr.get('n_removed', 0)} removal(s)"
         )
     if sn.get("enabled"):

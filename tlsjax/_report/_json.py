@@ -4,10 +4,10 @@ written atomically (:mod:`tlsjax._io._json`)."""
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 
 import numpy as np
 
+from .._adjustment._config import scanner_settings
 from .._inference._statistics import ap_notes, global_test
 from .._io._json import to_json_value, write_json_file
 from .._io._target_lists import ELLIPSOID_95
@@ -25,25 +25,6 @@ def _num(x):
         return None
     x = float(x)
     return x if math.isfinite(x) else None
-
-
-def scanner_settings(scanner) -> dict:
-    """Architecture, unit lengths and AP names of one :class:`~tlsjax.Scanner`, or of each
-    instrument (``{"instruments": {name: settings}}``) for a mapping: what applying the APs
-    needs (``tlsjax correct``, :meth:`tlsjax.Calibration.from_json`)."""
-    if isinstance(scanner, Mapping):
-        per = {str(k): scanner_settings(v) for k, v in scanner.items()}
-        archs = {d["architecture"] for d in per.values()}
-        out = {"instruments": per}
-        if len(archs) == 1:
-            out["architecture"] = archs.pop()
-        return out
-    return {
-        "architecture": scanner.architecture,
-        "unit_length": scanner.unit_length,
-        "unit_length_2": scanner.unit_length_2,
-        "aps": list(scanner.aps),
-    }
 
 
 def principal_axes(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -291,7 +272,7 @@ def _result_dict(res, alpha: float) -> dict:
         "ap_covariance": None if cov is None else [[_num(v) for v in row] for row in cov],
         "eops": eops,
         "redundancy": res.redundancy_summary(),
-        # Filled by calibrate_and_test (data snooping, VCE); a plain calibration has neither.
+        # Filled by self_calibrate (data snooping, VCE); a plain calibration has neither.
         "outliers": [],
         "variance_components": {},
         "not_estimable": [
@@ -382,11 +363,10 @@ def _plane_precision(e: dict, k: int) -> dict:
     return {key: to_json_value(np.asarray(e[src][k]).tolist()) for key, src in _PLANE_PRECISION}
 
 
-def write_json(res, path, *, extra: dict | None = None, **kw) -> dict:
-    """Write :func:`result_to_dict` (updated with ``extra``, e.g. the ``outliers`` and
-    ``variance_components`` of :func:`tlsjax.calibrate_and_test`) as strict JSON (NaN and
-    infinities are null), atomically: the file is complete or not written. A path that cannot
-    be written is a one-line ValueError naming it."""
-    d = result_to_dict(res, **kw)
-    d.update(extra or {})
+def write_json(result, path) -> dict:
+    """Write ``result.to_dict()`` (a :class:`tlsjax.SelfCalibration`, or any result with
+    ``to_dict()``; a :class:`tlsjax.CalibrationResult`: :func:`result_to_dict`) as strict JSON
+    (NaN and infinities are null), atomically: the file is complete or not written. A path
+    that cannot be written is a one-line ValueError naming it. Returns the dict written."""
+    d = result.to_dict() if hasattr(result, "to_dict") else result_to_dict(result)
     return write_json_file(path, d)

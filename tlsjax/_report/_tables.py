@@ -8,7 +8,7 @@ group with its variance factor and redundancy. In the result JSON (SI units) and
 Rows are numbered twice: ``row``, the 1-based position among the observations of the file
 (network order), and ``line``, the 1-based line of the input file that holds the observation
 (header and comment lines counted, as an editor shows it; empty where the rows came from
-arrays). The statistics are those of :func:`tlsjax.calibrate_and_test` when it ran (its
+arrays). The statistics are those of :func:`tlsjax.self_calibrate` when it ran (its
 sigmas, critical value and removals), else of the plain adjustment with its a priori sigmas:
 
 - normalised residual (Baarda's w): ``w_i = v_i / (sigma_i sqrt(r_i))`` (Baarda 1968);
@@ -35,7 +35,7 @@ from .._adjustment._quality import (
 )
 from .._inference._statistics import critical_value, group_variance_test, w_tests
 from .._io._target_lists import ELLIPSOID_95
-from .._stats import DELTA0, confidence_scale, non_centrality
+from .._stats import DELTA0, confidence_scale
 from .._units import ARCSEC, DISPLAY_UNITS
 
 GROUPS = ("range", "hz", "el")
@@ -117,8 +117,7 @@ def _target_columns(res, tested) -> dict:
 
 
 def _delta0(tested) -> float:
-    o = tested.options
-    return float(non_centrality(o.alpha0, o.power))
+    return float(tested.options.tests.delta0)
 
 
 def _columns(v, r, sig, used, crit, delta0, *, extra, removed, observed) -> dict:
@@ -199,7 +198,7 @@ def _pseudo_arrays(res, tested):
     :func:`_columns` as the target observations; None when there are none. ``primitive`` is
     the angle (omega, phi, kappa) or the AP, ``scan`` the scan (empty for an AP prior), ``line``
     that of the scan's row in the scans CSV. Each kind takes its variance group's VCE factor
-    (:func:`tlsjax.calibrate_and_test`: levelling, heading, AP priors)."""
+    (:func:`tlsjax.self_calibrate`: levelling, heading, AP priors)."""
     cons = res.weighted_constraints()
     if not cons:
         return None
@@ -522,8 +521,9 @@ def planes_csv(res) -> str:
     return "\n".join(lines) + "\n"
 
 
-def targets_csv(res, path) -> None:
-    """The adjusted targets with sigmas and 1-sigma ellipsoid semi-axes as CSV
+def write_adjusted_targets(res, path) -> None:
+    """The adjusted targets of ``res`` (a :class:`tlsjax.CalibrationResult`) with sigmas and
+    1-sigma ellipsoid semi-axes as CSV, in the datum of the adjustment
     (:func:`tlsjax._io._target_lists.write_target_csv`; axes empty where the covariance blocks
     were not computed)."""
     from .._io._target_lists import write_target_csv
@@ -565,7 +565,7 @@ def write_tables(res, folder, tested=None) -> list[str]:
         put("observations.csv", observation_csv(res, tested, kind="target"))
     if net.has_targets:
         path = os.path.join(os.fspath(folder), "targets.csv")
-        targets_csv(res, path)
+        write_adjusted_targets(res, path)
         written.append(path)
     if net.has_planes:
         put("plane_points.csv", observation_csv(res, kind="plane"))
