@@ -61,7 +61,7 @@ def test_true_aps_give_noise_level_and_none_give_the_ap_effect(room):
         assert abs(without[k] - expect) < 0.15 * expect, (k, without[k], expect)
     assert chk.improvement()["xyz_mm"] > 80
     assert chk.per_scan.without["range_mm"] > 3 * chk.per_scan.with_correction["range_mm"]
-    assert len(chk.names) == len(noisy.network.targets) and "with calibration" in chk.table()
+    assert len(chk.names) == len(noisy.network.targets) and "with calibration" in chk.summary()
     # A 7-parameter fit reports its scale; leaving out targets leaves them out.
     sim7 = tj.check_targets(
         noisy.network, cal, _reference(noisy, REF_NOISE), transform="7-parameter", exclude=["T001"]
@@ -84,7 +84,7 @@ def test_targets_in_the_json_are_the_dense_covariance_blocks(room):
         tj.CalibrationModel(noisy.scanner),
         tj.SolverOptions(full_covariance=True),
     )
-    doc = tj.result_to_dict(res)
+    doc = res.to_dict()
     names = list(res.parameter_names)
     for t in ("T001", "T050", "T120"):
         idx = [names.index(f"{c}[{t}]") for c in "XYZ"]
@@ -99,7 +99,7 @@ def test_targets_in_the_json_are_the_dense_covariance_blocks(room):
         set(noisy.network.scan_index[noisy.network.target_index == 0].tolist())
     )
     assert "inner constraints" in doc["targets_frame"]
-    failed = tj.result_to_dict(dataclasses.replace(res, result=3, message="rank defect"))
+    failed = dataclasses.replace(res, result=3, message="rank defect").to_dict()
     assert failed["targets"]["T001"]["xyz"] == [None, None, None]
 
 

@@ -236,7 +236,7 @@ def test_demo_writes_report_and_plots(tmp_path):
 
 def test_global_test_against_scipy():
     for dof in (3, 40, 1753):
-        g = tj.global_test(1.0, dof, alpha=0.05)
+        g = tj.global_test(1.0, dof, level=0.05)
         assert np.isclose(g["lower"], scipy.stats.chi2.ppf(0.025, dof), rtol=1e-9)
         assert np.isclose(g["upper"], scipy.stats.chi2.ppf(0.975, dof), rtol=1e-9)
     # s0 = 1.05 with r = 1000: T = 1102.5 beyond the 97.5 % quantile 1089.5, rejected;
@@ -505,6 +505,9 @@ def test_from_json_reruns_the_recorded_calibration(simulated, tmp_path, capsys):
     capsys.readouterr()
     assert main(["calibrate", "--from-json", str(first), "--no-vce"]) == 2
     assert "--vce: not with --from-json" in capsys.readouterr().err
+    # Issue 39 item 7: a simulation's truth where a calibration is expected is named.
     truth = d / "truth.json"
     assert main(["calibrate", "--from-json", str(truth)]) == 2
+    assert "the truth of a simulation" in capsys.readouterr().err
+    assert main(["calibrate", str(obs), "--ap-priors", str(truth)]) == 2
     assert "the truth of a simulation" in capsys.readouterr().err

@@ -107,7 +107,7 @@ def test_constraints_equal_the_dense_gauss_helmert_oracle(plane_case):
     assert np.isnan(res.ap_prior_residuals[[0, 2, 3]]).all()
     # Every redundancy number of the network sums to the dof, the constraints' included.
     np.testing.assert_allclose(ref["r"].sum(), ref["dof"], rtol=1e-9)
-    summary = res.redundancy_summary()
+    summary = res.to_dict()["redundancy"]
     np.testing.assert_allclose(summary["total"]["sum"], res.dof, rtol=1e-9)
     assert summary["heading"]["sum"] == pytest.approx(r[n_t : n_t + n_s].sum(), abs=1e-6)
     # Their tests: w = v / (sigma sqrt(r)).
@@ -136,7 +136,7 @@ def test_target_network_with_constraints_sums_to_its_dof():
     )
     res = tj.calibrate(net, model)
     assert res.result == 0, res.message
-    assert res.redundancy_summary()["total"]["sum"] == pytest.approx(res.dof, rel=1e-9)
+    assert res.to_dict()["redundancy"]["total"]["sum"] == pytest.approx(res.dof, rel=1e-9)
     # Counting: three per target observation, two tilt readings and one heading per scan, one
     # prior; the datum defect is 3 (the heading fixes the rotation about the vertical).
     n_s = len(net.scans)
@@ -327,4 +327,4 @@ def test_each_kind_of_constraint_is_its_own_variance_group():
         r_g = sum(c["redundancy"] for c in rows)
         assert r_g == pytest.approx(vc[group].redundancy, rel=1e-9)
         assert omega / r_g == pytest.approx(1.0, abs=0.05), group
-    assert res.redundancy_summary()["total"]["sum"] == pytest.approx(res.dof, rel=1e-9)
+    assert res.to_dict()["redundancy"]["total"]["sum"] == pytest.approx(res.dof, rel=1e-9)

@@ -387,11 +387,6 @@ def test_wrong_delimiter(tmp_path):
         read_observations(path)
 
 
-def test_repeated_plane_rows_allowed(tmp_path):
-    plane = write(tmp_path, "scan,plane,range_m,hz_deg,el_deg\nS1,P,1,0,0\nS1,P,1,0,0\n", "p.csv")
-    assert len(read_observations(plane)) == 2
-
-
 def test_line_numbers_after_multiline_field(tmp_path):
     path = write(tmp_path, HEAD + 'S1,"T\n1",1,0,0\nS1,T2,1,bad,0\n')
     with pytest.raises(ValueError, match=where(path, 4, "hz_deg")):
@@ -557,3 +552,18 @@ def test_elevation_past_the_zenith_needs_a_panoramic_file(tmp_path):
         tj.read_network(path)
     with pytest.raises(ValueError, match=where(path, 13) + ".*a hybrid scanner observes"):
         tj.read_network(path, architecture="hybrid")
+
+
+def test_a_repeated_plane_point_is_refused_with_both_lines(tmp_path):
+    """Issue 39 item 7: one row of a plane file repeated would count one observation twice,
+    and the thinning of ``tlsjax calibrate`` would hide it: the reader names both lines."""
+    rows = ["scan,plane,range_m,hz_deg,el_deg", "S1,P1,5.0,10.0,-20.0", "S1,P1,5.1,11.0,-20.0"]
+    rows += ["S2,P1,5.0,10.0,-20.0", "S1,P1,5.1,11.0,-20.0"]  # same values in S2: not a repeat
+    path = tmp_path / "planes.csv"
+    path.write_text("\n".join(rows) + "\n")
+    with pytest.raises(
+        ValueError, match=r"line 5: duplicate point of plane 'P1' in scan 'S1' \(lines 3 and 5"
+    ):
+        tj.read_planes(path)
+    path.write_text("\n".join(rows[:4]) + "\n")
+    assert len(tj.read_planes(path)) == 3

@@ -142,12 +142,12 @@ def test_a_failed_adjustment_reports_no_numbers(rank_defect, tmp_path):
     for scan in d["eops"].values():
         assert all(scan[k] is None and scan["sigma"][k] is None for k in ("Xs", "kappa"))
     assert d["rank_deficient"] == list(res.rank_deficient)
-    table = tj.ap_table(res)
+    table = res.summary()
     assert "no estimates" in table and "mm" not in table.splitlines()[-1]
 
 
 def test_undetermined_scan_parameters_are_null_in_a_valid_result(rank_defect):
-    from tlsjax._report._json import _undetermined
+    from tlsjax._adjustment._json import _undetermined
 
     assert _undetermined(rank_defect) == {
         (n.split("[")[1].rstrip("]"), n.split("[")[0]) for n in rank_defect.rank_deficient

@@ -22,7 +22,6 @@ import tlsjax as tj
 from tlsjax._adjustment._families import Params, PlaneFamily, Problem, Spec
 from tlsjax._adjustment._quality import quality
 from tlsjax._adjustment._solver import adjust
-from tlsjax._report._json import result_to_dict
 
 DEG = np.pi / 180
 APS = ("A0", "B6", "B7", "C0")
@@ -213,7 +212,7 @@ def _check_plane_precision(res, order, x, C, names):
         np.testing.assert_allclose(
             res.plane_covariance[order[k]], B[k], rtol=1e-5, atol=1e-6 * np.abs(B[k]).max()
         )
-    doc = result_to_dict(res)
+    doc = res.to_dict()
     for k, name in enumerate(names):
         p, P = doc["planes"][name], x[4 * k : 4 * k + 4]
         n = P[:3] / np.linalg.norm(P[:3])

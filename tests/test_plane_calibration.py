@@ -91,7 +91,7 @@ def noisy():
 def test_gauss_helmert_redundancy_identities(noisy):
     pc, net, res = noisy
     assert res.ok, res.message
-    summary = res.redundancy_summary()
+    summary = res.to_dict()["redundancy"]
     # Sum over plane observations and levelling equals the degrees of freedom.
     assert summary["total"]["sum"] == pytest.approx(res.dof, abs=1e-6)
     r = res.plane_redundancy
@@ -176,7 +176,7 @@ def test_combined_network_is_better_determined_than_either_part():
     alone_p = tj.calibrate(tj.make_plane_network(table, levelling=pc.levelling), model)
     for r in (both, alone_t, alone_p):
         assert r.ok, r.message
-    assert both.redundancy_summary()["total"]["sum"] == pytest.approx(both.dof, abs=1e-6)
+    assert both.to_dict()["redundancy"]["total"]["sum"] == pytest.approx(both.dof, abs=1e-6)
     assert both.n_observations == alone_t.n_observations + alone_p.n_observations - 2 * len(
         pc.levelling
     )

@@ -48,7 +48,7 @@ def test_planted_gross_errors_are_all_found_with_few_false_removals(planted):
     screened = {o.row for o in points if o.reason.startswith("screening")}
     assert screened == set(bad.tolist())
     n_clean = net.plane_observations.shape[0] - len(bad)
-    expected = tested.options.alpha * n_clean
+    expected = tested.options.w_test_level * n_clean
     assert len(found - set(bad.tolist())) <= expected + 3 * np.sqrt(expected) + 1
     # The removed points have weight 0 and no test; the others a finite w below the critical
     # value, an MDB and an external reliability.

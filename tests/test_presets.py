@@ -112,7 +112,7 @@ def test_none_gives_the_without_calibration_pattern(room_2006):
         assert res.ok, res.message
         assert len(res.ap_names) == (0 if aps == "none" else 17)
         rms[aps] = np.sqrt(np.mean(res.residuals**2, axis=0))
-        assert res.redundancy_summary()["total"]["sum"] == pytest.approx(res.dof, rel=1e-9)
+        assert res.to_dict()["redundancy"]["total"]["sum"] == pytest.approx(res.dof, rel=1e-9)
     noise = np.sqrt(np.mean(sim.noise_sigmas**2, axis=0))
     assert np.all(rms["none"] > 2 * rms["lichti2006"]), rms
     # With the model the residuals are the noise (a share, the redundancy, of it).
@@ -168,7 +168,7 @@ def test_none_calibrates_planes_and_selection_starts_from_it():
     net = pc.to_network(max_points=30)
     res = tj.calibrate(net, tj.CalibrationModel(tj.Scanner(aps="none")))
     assert res.ok and res.ap_names == () and res.dof > 0, res.message
-    assert res.redundancy_summary()["total"]["sum"] == pytest.approx(res.dof, rel=1e-9)
+    assert res.to_dict()["redundancy"]["total"]["sum"] == pytest.approx(res.dof, rel=1e-9)
     sim = tj.simulate(tj.Room(n_targets=40), aps="A0 B7", seed=2)
     selection = tj.SelectionOptions(candidates="physical")
     sel = tj.self_calibrate(

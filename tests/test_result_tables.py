@@ -203,7 +203,7 @@ def test_plain_calibration_tables_from_the_api():
 
 
 def test_every_confounding_is_named_once_and_alike_everywhere():
-    from tlsjax._report._text import confoundings, summary
+    from tlsjax._adjustment._text import confoundings, summary
 
     not_est = (("A1", "scale", "scale is undefined; add scale bars or control points"),)
     weak = (("C0", "C3", 0.9993), ("C3", "C0", 0.9993), ("C4", "C2", 0.9977), ("A1", "scale", 1.0))
@@ -218,7 +218,7 @@ def test_every_confounding_is_named_once_and_alike_everywhere():
     sim = tj.simulate(seed=1, aps="A0 B6 B7 C0", tilted=False)
     scanner = tj.Scanner(architecture="hybrid", aps="A0 A1 B6 B7 C0")
     res = tj.calibrate(sim.network, tj.CalibrationModel(scanner))
-    doc = tj.result_to_dict(res)
+    doc = res.to_dict()
     text = summary(res)
     assert doc["confoundings"] and all(f"warning: {c['text']}" in text for c in doc["confoundings"])
     assert text.count("warning:") == len(doc["confoundings"])
@@ -289,7 +289,7 @@ def test_plane_point_tables(tmp_path):
     groups = {g["group"]: g for g in tj.group_records(res)}
     assert set(groups) == {"plane range", "plane hz", "plane el"}
     # planes.csv carries the JSON's plane precision in its display units (mm, arc seconds).
-    doc = tj.result_to_dict(res)
+    doc = res.to_dict()
     for r in _read_csv(tmp_path / "tab" / "planes.csv"):
         p = doc["planes"][r["plane"]]
         tilt = [_num(r[f"tilt_sigma_{i}_arcsec"]) * ARCSEC for i in (1, 2)]

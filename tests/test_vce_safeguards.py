@@ -16,12 +16,9 @@ import scipy.stats
 import tlsjax as tj
 from tlsjax import VCEResult
 from tlsjax._inference import _steps
-from tlsjax._inference._statistics import (
-    group_variance_test,
-    implausible_factor,
-    suspected_units,
-)
+from tlsjax._inference._statistics import implausible_factor, suspected_units
 from tlsjax._io._json import dumps_strict
+from tlsjax._stats import group_variance_test
 
 APS = "A0 B6 B7 C0"
 MODEL = tj.CalibrationModel(tj.Scanner(aps=APS))
@@ -182,7 +179,7 @@ def test_oscillating_factors_are_damped_and_reported(sim, monkeypatch):
 
 
 def test_group_variance_test_against_scipy():
-    t = group_variance_test(omega=350.0, redundancy=300.0, alpha=0.05)
+    t = group_variance_test(omega=350.0, redundancy=300.0, level=0.05)
     assert np.isclose(t["factor"], 350 / 300)
     assert np.isclose(t["upper"], scipy.stats.chi2.ppf(0.975, 300))
     assert np.isclose(t["p_value"], 2 * scipy.stats.chi2.sf(350.0, 300), rtol=1e-8)

@@ -8,7 +8,8 @@ module except the command line.
 1. ``_units``, ``_stats``, ``_jit``, ``_optional``, ``_summary``, ``_version``: units and
    display factors, quantiles and the constants derived from them (scipy.stats), the compiler
    settings, the optional libraries, the ``summary()``/``to_dict()`` convention of the result
-   types, the version. They import nothing of tlsjax.
+   types and the ``to_dict()``/``from_dict()`` one of the settings, the version. They import
+   nothing of tlsjax.
 2. ``_model``: the mathematics of one observation (geometry, the AP registry, the scanner, the
    point and plane models, levelling, the datum).
 3. ``_adjustment``: one adjustment of a network (data and boundary checks, index plan,
@@ -20,7 +21,8 @@ module except the command line.
 6. ``_report``: text, JSON, plots and the HTML report.
 7. ``_workflow``: the one tested entry of a self-calibration (:func:`self_calibrate`) and its
    result, which composes the pipeline of layer 5 with the text and JSON of layer 6.
-8. this module (the public API), then ``_cli`` (the command line), which uses the public API.
+8. this module (the public API), then ``_cli`` (the command line), which may use everything;
+   ``tlsjax calibrate`` uses the public API only. tests/test_layers.py holds the code to this.
 """
 
 import jax as _jax
@@ -29,6 +31,7 @@ import jax as _jax
 # README says so at the top, since it also changes the default dtype of a user's other JAX code.
 _jax.config.update("jax_enable_x64", True)
 
+from ._adjustment._ap_tests import ap_t_tests as ap_t_tests
 from ._adjustment._calibrate import Adjustment as Adjustment
 from ._adjustment._calibrate import analyze as analyze
 from ._adjustment._calibrate import calibrate as calibrate
@@ -85,22 +88,21 @@ from ._inference._robust import PlaneScreening as PlaneScreening
 from ._inference._robust import PlaneScreeningOptions as PlaneScreeningOptions
 from ._inference._score import ScoreTest as ScoreTest
 from ._inference._score import ScoreTests as ScoreTests
-from ._inference._score import score_tests as score_tests
 from ._inference._selection import SelectionOptions as SelectionOptions
 from ._inference._selection import SelectionResult as SelectionResult
 from ._inference._sensitivity import Sensitivity as Sensitivity
 from ._inference._sensitivity import ap_sensitivity as ap_sensitivity
-from ._inference._statistics import ap_t_tests as ap_t_tests
-from ._inference._statistics import global_test as global_test
 from ._inference._tested import Removal as Removal
 from ._inference._tested import VarianceComponent as VarianceComponent
 from ._inference._tested import VCEResult as VCEResult
+from ._inference._testing import score_tests as score_tests
 from ._io._correct import Calibration as Calibration
 from ._io._correct import correct_points as correct_points
 from ._io._correct_files import CorrectedScan as CorrectedScan
 from ._io._correct_files import correct_point_cloud as correct_point_cloud
 from ._io._extracted import ExtractedPlanes as ExtractedPlanes
 from ._io._json import read_result_json as read_result_json
+from ._io._json import write_json as write_json
 from ._io._las import write_las as write_las
 from ._io._outputs import check_outputs as check_outputs
 from ._io._plane_files import load_planes as load_planes
@@ -127,8 +129,6 @@ from ._model._plausibility import PlausibilityWarning as PlausibilityWarning
 from ._model._scanner import Scanner as Scanner
 from ._report._html import report_from_json as report_from_json
 from ._report._html import write_html_report as write_html_report
-from ._report._json import result_to_dict as result_to_dict
-from ._report._json import write_json as write_json
 from ._report._plots import plot_ap_correlations as plot_ap_correlations
 from ._report._plots import plot_monte_carlo as plot_monte_carlo
 from ._report._plots import plot_residuals as plot_residuals
@@ -138,7 +138,6 @@ from ._report._tables import observation_records as observation_records
 from ._report._tables import write_adjusted_targets as write_adjusted_targets
 from ._report._tables import write_tables as write_tables
 from ._report._target_plots import plot_targets as plot_targets
-from ._report._text import ap_table as ap_table
 from ._simulation._design import DesignPlane as DesignPlane
 from ._simulation._design import DesignSimulation as DesignSimulation
 from ._simulation._design import NetworkDesign as NetworkDesign
@@ -158,28 +157,7 @@ from ._simulation._room import Room as Room
 from ._simulation._room import Simulation as Simulation
 from ._simulation._room import simulate as simulate
 from ._simulation._truth import SimulationTruth as SimulationTruth
+from ._stats import global_test as global_test
 from ._version import __version__ as __version__
 from ._workflow._self_calibration import SelfCalibration as SelfCalibration
 from ._workflow._self_calibration import self_calibrate as self_calibrate
-
-# Names of earlier releases, kept one release with a DeprecationWarning (issue 34): notebooks that
-# use them keep working while they move to the one word for settings objects, "Options".
-_DEPRECATED = {
-    "ExtractionConfig": ("ExtractionOptions", ExtractionOptions),
-    "MatchingConfig": ("MatchingOptions", MatchingOptions),
-}
-
-
-def __getattr__(name):
-    if name in _DEPRECATED:
-        import warnings
-
-        new, obj = _DEPRECATED[name]
-        warnings.warn(
-            f"tlsjax.{name} is deprecated and will be removed in the next release; "
-            f"use tlsjax.{new}",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return obj
-    raise AttributeError(f"module 'tlsjax' has no attribute {name!r}")

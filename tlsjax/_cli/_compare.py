@@ -126,7 +126,7 @@ def cli_compare(args) -> int:
     room = Room.parse(args.room)
     options = CompatibilityOptions(
         runs=args.runs,
-        alpha=args.alpha,
+        level=args.alpha,
         n_targets=args.targets,
         n_control=args.control,
         seed=args.seed,
@@ -140,7 +140,7 @@ def cli_compare(args) -> int:
         sigma_range=None if args.sigma_range_mm is None else args.sigma_range_mm * 1e-3,
         sigma_angle=None if args.sigma_angle_arcsec is None else args.sigma_angle_arcsec * ARCSEC,
     )
-    print(res.table())
+    print(res.summary())
     if args.json:
         doc = res.to_dict()
         doc["files"] = [args.set1, args.set2]

@@ -105,7 +105,7 @@ def _write_simulation(
     )
     write_scans(scans_path, levelling_of_network(sim.network))
     if truth_path:
-        from .._report._json import scanner_settings
+        from .._adjustment._config import scanner_settings
 
         net = sim.network
         write_json_file(
@@ -196,7 +196,7 @@ def _demo(args) -> int:
 def report(res, *, truth=None):
     """Print the summary and the AP table with the true values beside the estimates; a failed
     adjustment prints no estimates (they would look plausible and be wrong)."""
-    from .._report._text import ap_table, summary
+    from .._adjustment._text import ap_table, summary
 
     print(summary(res))
     print()
@@ -205,7 +205,7 @@ def report(res, *, truth=None):
 
 def write_outputs(res, json_path, plots_dir, *, scanner=None):
     """The result JSON and the plots of the demo's calibration."""
-    from .._report._json import write_json
+    from .._io._json import write_json
     from .._report._plots import plot_ap_correlations, plot_residuals
 
     write_json(res, json_path)

@@ -44,6 +44,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
 from .._model._targets import checkerboard_white
+from .._stats import MAD_TO_SIGMA
 from ._extract import _refine
 from ._lsq import FIT_POINTS, covariance, fit_batch
 from ._spheres import disc_coverage
@@ -160,7 +161,7 @@ def _effective_weights(y, uv, inten, sigma_pos):
         for dx in (np.array([h, 0.0]), np.array([0.0, h]))
     ]
     res = inten - _checker_model(y, uv, np)
-    s_i = max(1.4826 * np.median(np.abs(res)), 1e-6 * abs(y[4] - y[3]))
+    s_i = max(MAD_TO_SIGMA * np.median(np.abs(res)), 1e-6 * abs(y[4] - y[3]))
     return 1.0 / np.sqrt(s_i**2 + (g[0] ** 2 + g[1] ** 2) * sigma_pos**2), res
 
 
@@ -306,7 +307,7 @@ def fit_circle(uv, inten, area, options, sigma_pos):
     res = np.concatenate(
         [inten[win][rr < 0.7 * r_eff] - bright, inten[win][rr > 1.3 * r_eff] - dark]
     )
-    sig_i = 1.4826 * np.median(np.abs(res)) / (bright - dark) if len(res) else 0.0
+    sig_i = MAD_TO_SIGMA * np.median(np.abs(res)) / (bright - dark) if len(res) else 0.0
     live = (w[win] > 0) & (w[win] < 1)
     g = (area[win] * live)[:, None] * d / W
     C = sig_i**2 * g.T @ g + np.eye(2) * np.sum((wa / W) ** 2 * sigma_pos[win] ** 2)

@@ -25,7 +25,7 @@ from tqdm.auto import tqdm
 
 from .._jit import jit
 from .._simulation._room import Room
-from .._summary import SummaryText, finite_or_none
+from .._summary import to_json_value
 from .._units import DEG
 from ._criteria import DesignCriterion, predicted_cofactor
 
@@ -184,7 +184,7 @@ class DesignOptimisation:
         (s, 3) [m], ``omega_deg``, ``phi_deg``, ``kappa_deg`` (s,) [deg], ``compile_s``,
         ``run_s`` [s]."""
         eops = np.asarray(self.design.eops)
-        return finite_or_none(
+        return to_json_value(
             {
                 "criterion": self.criterion,
                 "value": float(self.value),
@@ -201,8 +201,7 @@ class DesignOptimisation:
 
     def summary(self) -> str:
         """Text: the criterion, its value at the start and at the best design, and the best
-        design's stations [m] and attitudes [deg]. (Indexing it like the dict of earlier
-        releases still works for one release, with a DeprecationWarning: use :meth:`to_dict`.)"""
+        design's stations [m] and attitudes [deg]."""
         eops = np.asarray(self.design.eops)
         lines = [
             f"Design optimisation: {self.criterion}",
@@ -216,7 +215,7 @@ class DesignOptimisation:
                 f"S{j + 1:<4d} {e[0]:8.3f} {e[1]:8.3f} {e[2]:8.3f} "
                 f"{e[3] / DEG:11.2f} {e[4] / DEG:9.2f} {e[5] / DEG:11.2f}"
             )
-        return SummaryText("\n".join(lines), self.to_dict())
+        return "\n".join(lines)
 
 
 def optimize_design(
@@ -229,7 +228,7 @@ def optimize_design(
     learning_rate: float = 0.1,
     seed: int = 0,
     progress: bool = True,
-):
+) -> DesignOptimisation:
     """Minimise ``criterion`` of the predicted AP covariance over ``space`` (module docstring).
 
     ``design_network``: a :class:`~tlsjax.DesignNetwork` (its design is the start and fixes the

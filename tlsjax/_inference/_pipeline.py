@@ -39,6 +39,7 @@ import numpy as np
 from .._adjustment._calibrate import _run, analyze
 from .._adjustment._config import CalibrationModel, SolverOptions
 from .._adjustment._network import Network
+from .._adjustment._quality import condition_w_tests
 from .._adjustment._result import CalibrationResult, assemble
 from .._model._levelling import compensator_reading
 from .._model._planes import observation_residuals
@@ -46,7 +47,7 @@ from .._model._scanner import Scanner
 from .._units import display_group
 from ._options import CalibrationOptions
 from ._score import ScoreTester
-from ._statistics import condition_w_tests, variance_factor
+from ._statistics import variance_factor
 from ._tested import GROUPS, Removal, VCEResult
 
 #: Pseudo-observation sigma [m] that holds a target which lost all its testable observations
@@ -571,7 +572,7 @@ MIN_PAIR_POINTS = 3
 
 def plane_w(ctx: TestingContext, state: TestingState) -> np.ndarray:
     """The w-test of every plane point's condition at the latest adjustment (m,)
-    (:func:`._statistics.condition_w_tests`); NaN where removed or untestable."""
+    (:func:`tlsjax._adjustment._quality.condition_w_tests`); NaN where removed or untestable."""
     res = state.result
     if res.plane_residuals is None:
         return np.zeros(0)

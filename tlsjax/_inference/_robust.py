@@ -30,9 +30,10 @@ import dataclasses
 import numpy as np
 
 from .._adjustment._network import Network
+from .._adjustment._quality import MIN_TESTABLE_REDUNDANCY
 from .._adjustment._result import CalibrationResult, assemble
 from .._stats import normal_critical_value
-from .._summary import Settings, finite_or_none
+from .._summary import Settings, to_json_value
 from ._statistics import robust_scale
 
 
@@ -90,7 +91,7 @@ class PlaneScreening:
         pairs = [
             {"scan": s, "plane": p, **c} for (s, p), c in self.per_pair.items() if c["removed"]
         ]
-        return finite_or_none(
+        return to_json_value(
             {
                 "method": "IGG-III reweighting of the Gauss-Helmert conditions, then a priori weights",
                 "k0": self.k0,
@@ -112,7 +113,7 @@ def igg3(w, k0: float, k1: float):
 
 def _normalised(res: CalibrationResult, q_e, active):
     r = res.plane_redundancy.sum(axis=1)
-    ok = active & (r > 1e-6)
+    ok = active & (r > MIN_TESTABLE_REDUNDANCY)
     w = np.full(len(r), np.nan)
     w[ok] = q_e[ok] / np.sqrt(r[ok])
     return w

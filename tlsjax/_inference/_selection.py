@@ -36,7 +36,7 @@ from .._adjustment._result import CalibrationResult, assemble
 from .._model._aps import resolve_aps
 from .._model._scanner import Scanner
 from .._stats import t_critical_value
-from .._summary import Settings, finite_or_none
+from .._summary import Settings, to_json_value
 from .._units import ARCSEC
 from ._score import tests_in
 
@@ -129,7 +129,7 @@ class SelectionResult:
     def to_dict(self) -> dict:
         """The result JSON's ``selection``: the chosen terms, the number of fits, the steps that
         changed the set (with the score a term entered by) and the removals before it."""
-        return finite_or_none(
+        return to_json_value(
             {
                 "aps": list(self.aps),
                 "n_fits": self.n_fits,

@@ -66,6 +66,8 @@ import dataclasses
 
 import numpy as np
 
+from .._adjustment._quality import w_tests
+from .._stats import global_test, group_variance_test, normal_critical_value
 from ._options import SnoopingOptions
 from ._pipeline import (
     PIN_SIGMA,
@@ -91,13 +93,9 @@ from ._robust import screen_planes
 from ._selection import select_terms
 from ._statistics import (
     bounded_log_step,
-    critical_value,
-    global_test,
-    group_variance_test,
     implausible_factor,
     robust_scale,
     snooping_critical_value,
-    w_tests,
 )
 from ._tested import GROUPS, VCEResult
 
@@ -140,7 +138,7 @@ def robust_start(ctx: TestingContext, state: TestingState) -> TestingState:
         return dataclasses.replace(start, n_adjustments=state.n_adjustments)
     u, scale = _robust_normalised(ctx, state)
     n = int(np.isfinite(u).sum())
-    k1 = critical_value(t.family_level / max(n, 1))
+    k1 = normal_critical_value(t.family_level / max(n, 1))
     # Baarda's alternatives compared (SPEC section 7): where a missing term explains more of
     # the misfit than removing an observation would, that observation stays (the tails of a
     # systematic misfit are not blunders); the term is named by the score tests at the end.
@@ -235,8 +233,8 @@ def _igg3_factor(ctx: TestingContext, z, factor, gross: bool = False):
     from ._robust import igg3
 
     n = max(int(np.isfinite(z).sum()), 1)
-    k0 = critical_value(ctx.options.w_test_level)
-    k1 = max(critical_value(ctx.options.screening.family_level / n), k0 + 0.5)
+    k0 = normal_critical_value(ctx.options.w_test_level)
+    k1 = max(normal_critical_value(ctx.options.screening.family_level / n), k0 + 0.5)
     if gross:
         k0, k1 = k1, GROSS_BAND * k1
     return np.where(np.isfinite(z), np.maximum(igg3(z, k0, k1), ROBUST_FLOOR), factor)
@@ -405,7 +403,7 @@ def _screen(ctx: TestingContext, state: TestingState) -> TestingState:
         n_tested = int(np.isfinite(w).sum()) + (0 if wp is None else int(np.isfinite(wp).sum()))
         if n_tested == 0:
             return state
-        crit = critical_value(t.family_level / n_tested)
+        crit = normal_critical_value(t.family_level / n_tested)
         state = dataclasses.replace(state, screening_critical_value=crit)
         i, g, top = _largest_w(w, wp)
         if top <= crit:

@@ -16,7 +16,7 @@ import numpy as np
 
 from .._adjustment._config import CalibrationModel
 from .._adjustment._result import CalibrationResult
-from .._summary import finite_or_none
+from .._summary import to_json_value
 from .._units import ARCSEC
 from ._options import CalibrationOptions
 
@@ -187,9 +187,9 @@ class TestedCalibration:
         o = self.options
         screening, snooping = o.screening, o.snooping
         out = {
-            "outliers": [finite_or_none(dataclasses.asdict(r)) for r in self.outliers],
+            "outliers": [to_json_value(dataclasses.asdict(r)) for r in self.outliers],
             "variance_components": {
-                vc.group: finite_or_none(dataclasses.asdict(vc)) for vc in self.variance_components
+                vc.group: to_json_value(dataclasses.asdict(vc)) for vc in self.variance_components
             },
             "vce": {
                 "result": int(self.vce_result),
@@ -219,7 +219,7 @@ class TestedCalibration:
                 "n_uncontrolled": len(self.uncontrolled),
                 "n_adjustments": self.n_adjustments,
             },
-            "ap_tests": [finite_or_none(dataclasses.asdict(t)) for t in self.ap_tests],
+            "ap_tests": [to_json_value(dataclasses.asdict(t)) for t in self.ap_tests],
             "warnings": list(self.warnings),
             "testing_message": self.message,
         }
@@ -229,11 +229,11 @@ class TestedCalibration:
         if self.a_priori_tests and self.weights_fitted:
             out["global_test"] = {**self.a_priori_tests[-1]["global"], "stage": "a priori"}
             out["global_test_after_vce"] = {
-                "sigma0": finite_or_none(float(self.calibration.sigma0)),
+                "sigma0": to_json_value(float(self.calibration.sigma0)),
                 "note": "the variance factors were fitted to these residuals (sigma0 is 1 by "
                 "construction once VCE converges): not a test",
             }
-        return finite_or_none(out)
+        return to_json_value(out)
 
     def testing_summary(self) -> str:
         """The text of what the steps found: the selection, the plane screening, the a priori

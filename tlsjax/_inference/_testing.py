@@ -19,11 +19,15 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax.numpy as jnp
 import numpy as np
 
+from .._adjustment._ap_tests import ap_t_tests
 from .._adjustment._config import CalibrationModel
+from .._adjustment._families import Params
 from .._adjustment._network import Network
-from .._adjustment._quality import minimal_detectable_bias
+from .._adjustment._plan import initial_params
+from .._adjustment._quality import external_reliability, minimal_detectable_bias, w_tests
 from ._options import CalibrationOptions, SnoopingOptions
 from ._pipeline import (
     TestingContext,
@@ -35,12 +39,10 @@ from ._pipeline import (
     run_pipeline,
     sigmas,
 )
+from ._score import ScoreTester, ScoreTests
 from ._statistics import (
-    ap_t_tests,
-    external_reliability,
     implausible_factor,
     snooping_critical_value,
-    w_tests,
 )
 from ._steps import PIPELINE
 from ._tested import GROUPS, TestedCalibration, VarianceComponent, VCEResult
@@ -202,3 +204,27 @@ def _factor_warnings(state: TestingState, vcs, vce_result: VCEResult) -> tuple:
         if text and vce_result != VCEResult.NOISE_FREE:
             out.append(text)
     return tuple(out)
+
+
+def score_tests(
+    network: Network,
+    model: CalibrationModel | None,
+    result,
+    options: CalibrationOptions | None = None,
+) -> ScoreTests:
+    """Score tests of the terms missing from ``model`` at ``result`` (a
+    :class:`tlsjax.CalibrationResult` of ``network`` with the network's weights): the
+    missing-terms step of :func:`tlsjax.self_calibrate` on a result of one's own. From
+    ``options``: the candidates and the family-wise level (``options.tests``: default every
+    registered term of the model's naming at 5 %) and the solver. See :mod:`._score`."""
+    if network.has_planes:
+        raise ValueError(
+            f"{network.source}: score tests of missing terms are for target networks (the plane "
+            "conditions are not tested yet)"
+        )
+    model = model or CalibrationModel()
+    options = options or CalibrationOptions()
+    tester = ScoreTester(network, model, options.tests.candidates, options.solver)
+    p = initial_params(network, tester.adjustment.plan, result.target_xyz, result.eops)
+    narrow = Params(p.prims, p.eops, jnp.asarray(result.ap_values))
+    return tester(narrow, alpha=options.tests.score_test_level)

@@ -25,13 +25,13 @@ import platform
 
 import numpy as np
 
+from .._adjustment._config import scanner_settings as scanner_settings
 from .._adjustment._quality import external_reliability_factor, minimal_detectable_bias
+from .._adjustment._text import confoundings
 from .._io._json import read_result_json
 from .._stats import DELTA0
 from .._units import ARCSEC, DISPLAY_UNITS
 from .._version import __version__
-from ._json import scanner_settings as scanner_settings
-from ._text import confoundings
 
 _GROUPS = ("range", "hz", "el")
 _GROUP_UNIT = {
@@ -242,9 +242,9 @@ def _section_global(doc) -> str:
         stage = "final adjustment" + (" (after the removals)" if doc.get("outliers") else "")
         rows.append(_test_row("global (T = s0&sup2; r)", stage, g))
     head = ("test", "stage", "T or factor", "dof / r_g", "two-sided bounds", "p-value", "decision")
-    alpha = g.get("alpha", 0.05)
+    level = g.get("level", 0.05)
     out = (
-        f"<h2>Tests (&chi;&sup2;, two-sided, &alpha; = {alpha})</h2>"
+        f"<h2>Tests (&chi;&sup2;, two-sided, level &alpha; = {level})</h2>"
         "<p>In the order they ran. A group's factor is &Omega;<sub>g</sub> / r<sub>g</sub>, its "
         "statistic &Omega;<sub>g</sub> = v<sub>g</sub><sup>T</sup> P<sub>g</sub> v<sub>g</sub> "
         "against &chi;&sup2;(r<sub>g</sub>).</p>" + _table(head, rows, "tests")
@@ -300,7 +300,7 @@ def _section_aps(doc) -> str:
 
 def _section_variance(doc) -> str:
     vc = doc.get("variance_components") or {}
-    if not vc:
+    if not vc or (doc.get("vce") or {}).get("status") == "off":  # a priori factors only
         return (
             "<h2>Variance components</h2>"
             + _na("variance components", "run calibrate with --vce (target networks)")

@@ -310,7 +310,7 @@ def plot_monte_carlo(result, path=None):
         ax.bar(range(na), [np.nan if p is None else p for p in power], color="0.5")
         ax.set_xticks(range(na))
         ax.set_xticklabels(result.ap_names, rotation=90, fontsize=7)
-        ax.set_ylabel(f"power (|t| > t_crit, alpha {result.alpha:g}) [-]")
+        ax.set_ylabel(f"power (|t| > t_crit, level {result.t_test_level:g}) [-]")
     for k in range(2, cols):
         axes[-1][k].axis("off")
     fig.tight_layout()

@@ -32,10 +32,15 @@ from .._adjustment._quality import (
     MIN_TESTABLE_REDUNDANCY,
     external_reliability_factor,
     minimal_detectable_bias,
+    w_tests,
 )
-from .._inference._statistics import critical_value, group_variance_test, w_tests
-from .._io._target_lists import ELLIPSOID_95
-from .._stats import DELTA0, confidence_scale
+from .._stats import (
+    DELTA0,
+    ELLIPSOID_95,
+    confidence_scale,
+    group_variance_test,
+    normal_critical_value,
+)
 from .._units import ARCSEC, DISPLAY_UNITS
 
 GROUPS = ("range", "hz", "el")
@@ -93,15 +98,17 @@ def _target_columns(res, tested) -> dict:
     """Per-(n, 3) arrays of the target observations, before flattening."""
     net = res.network
     n = net.observations.shape[0]
+    tests = {}
     if tested is not None:
         used, sig = np.asarray(tested.mask, bool), np.asarray(tested.sigmas)
         crit = float(tested.critical_value)
         delta0 = _delta0(tested)
         ext_ap_sig = np.where(used, tested.external, np.nan)
         ext_ap = np.asarray(tested.external_ap, dtype=object)
+        tests = {"w": tested.w, "mdb": tested.mdb}  # read from the result, not recomputed
     else:
         used = np.ones((n, 3), bool) if res.used is None else np.asarray(res.used, bool)
-        sig, crit, delta0 = np.asarray(net.sigmas), critical_value(PLAIN_ALPHA), DELTA0
+        sig, crit, delta0 = np.asarray(net.sigmas), normal_critical_value(PLAIN_ALPHA), DELTA0
         ext_ap_sig, ext_ap = np.full((n, 3), np.nan), np.full((n, 3), "", dtype=object)
     return _columns(
         res.residuals,
@@ -113,6 +120,7 @@ def _target_columns(res, tested) -> dict:
         extra={"external_ap_sigmas": ext_ap_sig, "external_ap": ext_ap},
         removed=_removal_reasons(tested),
         observed=net.observations,
+        **tests,
     )
 
 
@@ -120,10 +128,14 @@ def _delta0(tested) -> float:
     return float(tested.options.tests.delta0)
 
 
-def _columns(v, r, sig, used, crit, delta0, *, extra, removed, observed) -> dict:
+def _columns(v, r, sig, used, crit, delta0, *, extra, removed, observed, w=None, mdb=None) -> dict:
+    """The columns of the tables; ``w`` and ``mdb``: those of a tested calibration (else the
+    w-tests and MDBs of the a priori sigmas, :mod:`tlsjax._adjustment._quality`)."""
     v, r, sig = (np.asarray(a, dtype=np.float64) for a in (v, r, sig))
-    w = np.where(used, w_tests(v, sig, r), np.nan)
-    mdb = np.where(used, minimal_detectable_bias(sig, r, delta0), np.nan)
+    if w is None:
+        w = np.where(used, w_tests(v, sig, r), np.nan)
+    if mdb is None:
+        mdb = np.where(used, minimal_detectable_bias(sig, r, delta0), np.nan)
     ext = np.where(used, external_reliability_factor(r, delta0), np.nan)
     return {
         "observed": np.asarray(observed, dtype=np.float64),
@@ -149,7 +161,7 @@ def _plane_columns(res) -> dict:
         res.plane_redundancy,
         net.plane_sigmas,
         used,
-        critical_value(PLAIN_ALPHA),
+        normal_critical_value(PLAIN_ALPHA),
         DELTA0,
         extra={
             "external_ap_sigmas": np.full((m, 3), np.nan),
@@ -217,7 +229,7 @@ def _pseudo_arrays(res, tested):
     crit, delta0 = (
         (float(tested.critical_value), _delta0(tested))
         if tested is not None
-        else (critical_value(PLAIN_ALPHA), DELTA0)
+        else (normal_critical_value(PLAIN_ALPHA), DELTA0)
     )
     p = len(cons)
     cols = _columns(
@@ -490,8 +502,8 @@ def group_csv(res, tested=None) -> str:
 def planes_csv(res) -> str:
     """Adjusted planes: normal, d [m] and their sigmas [mm for d, 1 for the normal], the tilt
     sigmas of the normal ["] and the foot point ``d n`` [m] with its 1-sigma ellipsoid
-    semi-axes [mm] (:func:`tlsjax._report._json.plane_ellipsoids`)."""
-    from ._json import plane_ellipsoids
+    semi-axes [mm] (:func:`tlsjax._adjustment._json.plane_ellipsoids`)."""
+    from .._adjustment._json import plane_ellipsoids
 
     lines = [
         "# tlsjax adjusted planes (n . X = d in the datum of the adjustment); sigmas a "
@@ -526,8 +538,8 @@ def write_adjusted_targets(res, path) -> None:
     1-sigma ellipsoid semi-axes as CSV, in the datum of the adjustment
     (:func:`tlsjax._io._target_lists.write_target_csv`; axes empty where the covariance blocks
     were not computed)."""
+    from .._adjustment._json import datum_text, target_ellipsoids, target_scan_counts
     from .._io._target_lists import write_target_csv
-    from ._json import datum_text, target_ellipsoids, target_scan_counts
 
     cov = res.target_covariance
     axes, _ = target_ellipsoids(np.full((len(res.targets), 3, 3), np.nan) if cov is None else cov)

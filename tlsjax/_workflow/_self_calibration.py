@@ -17,16 +17,16 @@ from __future__ import annotations
 import dataclasses
 
 from .._adjustment._config import CalibrationModel, scanner_settings
+from .._adjustment._json import withhold_estimates
 from .._adjustment._network import Network, check_calibration_arguments, network_design_warnings
+from .._adjustment._text import ap_table, summary
 from .._inference._options import CalibrationOptions
 from .._inference._tested import TestedCalibration
 from .._inference._testing import run_tests
 from .._model._scanner import Scanner
 from .._report._html import provenance, reliability_summary
-from .._report._json import result_to_dict, withhold_estimates
 from .._report._tables import table_json, with_lines
-from .._report._text import ap_table, summary
-from .._summary import finite_or_none
+from .._summary import to_json_value
 from .._version import __version__
 
 
@@ -99,7 +99,7 @@ class SelfCalibration(TestedCalibration):
         (none for a run that is no calibration), reliability, the scanner settings that
         applying the APs needs, and the settings, inputs and provenance that re-run it."""
         res = self.calibration
-        doc = result_to_dict(res)
+        doc = res.to_dict()
         doc.update(self.testing_fields())
         doc["scanner"] = scanner_settings(self.model.scanner)
         doc["provenance"] = {**self.provenance, "command": self.inputs.get("command")}
@@ -114,7 +114,7 @@ class SelfCalibration(TestedCalibration):
         doc["settings"] = {**self.settings, "inputs": dict(self.inputs)}
         if self.withheld:
             withhold_estimates(doc, self.withheld)
-        return finite_or_none(doc)
+        return to_json_value(doc)
 
 
 def self_calibrate(

@@ -1,5 +1,5 @@
-"""The result JSON of SPEC section 11: SI units, strict JSON (undefined values are null),
-written atomically (:mod:`tlsjax._io._json`)."""
+"""The JSON of a calibration (:meth:`tlsjax.CalibrationResult.to_dict`, SPEC section 11): SI
+units, strict JSON (undefined values are null)."""
 
 from __future__ import annotations
 
@@ -7,12 +7,12 @@ import math
 
 import numpy as np
 
-from .._adjustment._config import scanner_settings
-from .._inference._statistics import ap_notes, global_test
-from .._io._json import to_json_value, write_json_file
-from .._io._target_lists import ELLIPSOID_95
 from .._model._aps import get_ap
-from .._stats import confidence_scale
+from .._stats import ELLIPSOID_95, confidence_scale, global_test
+from .._summary import to_json_value
+from ._ap_tests import ap_notes
+from ._config import scanner_settings
+from ._redundancy import redundancy_summary
 from ._text import EOP_NAMES, confoundings
 
 #: Result codes whose estimates are numbers (converged, possibly with non-estimable APs held).
@@ -271,7 +271,7 @@ def _result_dict(res, alpha: float) -> dict:
         "ap_covariance_names": list(res.ap_names),
         "ap_covariance": None if cov is None else [[_num(v) for v in row] for row in cov],
         "eops": eops,
-        "redundancy": res.redundancy_summary(),
+        "redundancy": redundancy_summary(res),
         # Filled by self_calibrate (data snooping, VCE); a plain calibration has neither.
         "outliers": [],
         "variance_components": {},
@@ -361,12 +361,3 @@ _PLANE_PRECISION = (
 def _plane_precision(e: dict, k: int) -> dict:
     """The JSON fields of plane ``k`` from :func:`plane_ellipsoids` (null where undefined)."""
     return {key: to_json_value(np.asarray(e[src][k]).tolist()) for key, src in _PLANE_PRECISION}
-
-
-def write_json(result, path) -> dict:
-    """Write ``result.to_dict()`` (a :class:`tlsjax.SelfCalibration`, or any result with
-    ``to_dict()``; a :class:`tlsjax.CalibrationResult`: :func:`result_to_dict`) as strict JSON
-    (NaN and infinities are null), atomically: the file is complete or not written. A path
-    that cannot be written is a one-line ValueError naming it. Returns the dict written."""
-    d = result.to_dict() if hasattr(result, "to_dict") else result_to_dict(result)
-    return write_json_file(path, d)
