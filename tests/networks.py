@@ -189,7 +189,7 @@ def _near(dr, stations, room, n):
 def _crossing_plane(dr, stations, room):
     """An infinite plane of any orientation crossing the room, 0.3 to 2 m from a station."""
     n = _direction(dr)
-    return tj.DesignPlane(tuple(n), tuple(_near(dr, stations, room, n)))
+    return tj.RoomPlane(tuple(n), tuple(_near(dr, stations, room, n)))
 
 
 def _board(dr, stations, room):
@@ -236,7 +236,7 @@ def _oblique_plane(dr, stations, room, k):
     tilt = dr.uniform(20.0, 70.0) * DEG
     az = dr.uniform(0.0, 2 * np.pi / 3) + k * 2 * np.pi / 3
     n = np.array([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), np.cos(tilt)])
-    return tj.DesignPlane(tuple(n), tuple(_near(dr, stations, room, n)))
+    return tj.RoomPlane(tuple(n), tuple(_near(dr, stations, room, n)))
 
 
 def oblique_case(dr):

@@ -119,7 +119,7 @@ def test_design_derivatives_match_calibrate(setup):
     simulated network with fixed noise draws, against calibrate of re-simulated networks."""
     sim = setup[0]
     design = tj.TargetDesign.from_simulation(sim)
-    dn = tj.DesignNetwork.targets(design, sim.scanner)
+    dn = tj.DesignProblem.targets(design, sim.scanner)
     rng = np.random.default_rng(5)
     n, s = dn.scan_index.shape[0], design.eops.shape[0]
     z, zl = jnp.asarray(rng.standard_normal((n, 3))), jnp.asarray(rng.standard_normal((s, 2)))
@@ -153,7 +153,7 @@ def test_design_derivatives_match_calibrate(setup):
 
 def _network_with_noise(dn, design, z, zl):
     """A network of ``design`` with the given standard-normal draws (the host path of
-    DesignNetwork.network, with the draws fixed across the perturbed designs)."""
+    DesignProblem.network, with the draws fixed across the perturbed designs)."""
     th = dn.inputs(design, z, zl)
     net = dn.template.network
     return dataclasses.replace(

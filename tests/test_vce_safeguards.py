@@ -16,7 +16,7 @@ import scipy.stats
 import tlsjax as tj
 from tlsjax import VCEResult
 from tlsjax._inference import _steps
-from tlsjax._inference._statistics import implausible_factor, suspected_units
+from tlsjax._inference._variance_factors import implausible_factor, suspected_units
 from tlsjax._io._json import dumps_strict
 from tlsjax._stats import group_variance_test
 

@@ -112,6 +112,26 @@ def group_variance_test(omega: float, redundancy: float, level: float = 0.05) ->
     return {**out, "factor": float(omega / redundancy)}
 
 
+def snooping_critical_value(
+    alpha: float, n_tested: int, *, bonferroni: bool = False, given: float | None = None
+) -> float:
+    """Critical value of data snooping: ``given`` if set, else ``N^-1(1 - alpha'/2)`` with
+    ``alpha' = alpha / n_tested`` (Bonferroni: the family-wise level over the tested
+    observations) or ``alpha`` per test."""
+    if given is not None:
+        return float(given)
+    return normal_critical_value(alpha / max(n_tested, 1) if bonferroni else alpha)
+
+
+def robust_scale(u: np.ndarray, keep: np.ndarray, min_count: int) -> float:
+    """Robust scale of standardised residuals: ``median |u| / 0.6745`` over ``keep``
+    (:data:`MAD_TO_SIGMA`; a few blunders do not move a median), NaN with fewer
+    than ``min_count`` of them."""
+    if keep.sum() < min_count:
+        return float("nan")
+    return MAD_TO_SIGMA * float(np.median(np.abs(u[keep])))
+
+
 def weighted_chi2_sf(x: float, weights, noncentrality=None) -> float:
     """``P(sum_k w_k chi2_1(delta_k^2) > x)`` for weights ``w_k >= 0`` and noncentralities
     ``delta_k^2`` (default 0): Imhof's formula (Imhof 1961, Biometrika 48, eq. 3.2),

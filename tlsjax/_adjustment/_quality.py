@@ -10,7 +10,7 @@
   is formed unless the dense matrix is asked for (``full_covariance``).
 * Redundancy numbers ``r_i = (Q_vv P)_ii = 1 - (J Q J^T)_ii`` in whitened form, datum
   invariant; their sum equals the degrees of freedom.
-* An observation with weight 0 is removed (data snooping masks, :mod:`._statistics`): it is not
+* An observation with weight 0 is removed (data snooping masks, :mod:`tlsjax._inference._steps`): it is not
   counted in the degrees of freedom, its redundancy number is 0, and its residual is still
   computed (the misclosure at the solution), so that a removed blunder can be reported.
 * AP influence (external reliability, Baarda 1968): the change of the APs caused by an error of

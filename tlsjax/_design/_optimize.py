@@ -231,7 +231,7 @@ def optimize_design(
 ) -> DesignOptimisation:
     """Minimise ``criterion`` of the predicted AP covariance over ``space`` (module docstring).
 
-    ``design_network``: a :class:`~tlsjax.DesignNetwork` (its design is the start and fixes the
+    ``design_network``: a :class:`~tlsjax.DesignProblem` (its design is the start and fixes the
     number of scans and targets; build it with ``smooth_visibility=True`` to honour a field of
     view and an incidence limit). ``starts`` random starts (the first is the start design),
     ``steps`` Adam steps each, all starts in one vmapped compiled step; ``progress`` shows a bar

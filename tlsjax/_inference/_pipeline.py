@@ -46,9 +46,9 @@ from .._model._planes import observation_residuals
 from .._model._scanner import Scanner
 from .._units import display_group
 from ._options import CalibrationOptions
+from ._outcome import GROUPS, Removal, VCEResult
 from ._score import ScoreTester
-from ._statistics import variance_factor
-from ._tested import GROUPS, Removal, VCEResult
+from ._variance_factors import variance_factor
 
 #: Pseudo-observation sigma [m] that holds a target which lost all its testable observations
 #: at its last estimate; it carries no information about anything else (see :func:`remove`).
@@ -447,7 +447,7 @@ def add_history(state: TestingState, entry: dict) -> TestingState:
 def group_statistics(ctx: TestingContext, state: TestingState):
     """Per group (:data:`GROUPS`: range, hz, el, levelling, heading, AP priors) at the latest
     adjustment and the weights in use: the variance factor estimate
-    ``s_g^2 = v_g^T P_g v_g / r_g`` (Förstner 1979; :func:`._statistics.variance_factor`), the
+    ``s_g^2 = v_g^T P_g v_g / r_g`` (Förstner 1979; :func:`._variance_factors.variance_factor`), the
     group redundancy ``r_g`` and the number of observations used ``n_g``."""
     res, mask, ng = state.result, state.mask, len(GROUPS)
     e2 = np.where(mask, (res.residuals / sigmas(ctx, state)) ** 2, 0.0)

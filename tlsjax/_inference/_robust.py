@@ -9,7 +9,7 @@ conditions, one condition per point:
 * the normalised residual of point i is the w-test of its condition,
   ``w_i = e_i / (s sqrt(r_i))``, with ``e_i = g_i / sqrt(m_i)`` the whitened condition,
   ``r_i = 1 - (a Q a^T)_i`` its redundancy number (the sum of its three observations' shares)
-  and ``s`` a robust scale of the w's (``median |w| / 0.6745``, :func:`._statistics.robust_scale`), so that a
+  and ``s`` a robust scale of the w's (``median |w| / 0.6745``, :func:`tlsjax._stats.robust_scale`), so that a
   priori sigmas that are too large or too small by any factor neither hide nor invent outliers;
 * the point's weight is multiplied by the IGG-III factor ``1`` for ``|w| <= k0``,
   ``(k0 / |w|) ((k1 - |w|) / (k1 - k0))^2`` for ``k0 < |w| <= k1`` and ``0`` beyond ``k1``,
@@ -32,9 +32,8 @@ import numpy as np
 from .._adjustment._network import Network
 from .._adjustment._quality import MIN_TESTABLE_REDUNDANCY
 from .._adjustment._result import CalibrationResult, assemble
-from .._stats import normal_critical_value
+from .._stats import normal_critical_value, robust_scale
 from .._summary import Settings, to_json_value
-from ._statistics import robust_scale
 
 
 @dataclasses.dataclass(frozen=True)

@@ -1,7 +1,8 @@
 """The named steps of :func:`tlsjax.self_calibrate`, and their order (:data:`PIPELINE`).
 
 Each step is ``step(ctx, state) -> state`` over the explicit :class:`._pipeline.TestingState`
-(see :mod:`._pipeline`); the statistics they call are pure functions in :mod:`._statistics`.
+(see :mod:`._pipeline`); the statistics they call are pure functions (:mod:`tlsjax._stats`,
+:mod:`tlsjax._adjustment._quality`, :mod:`._variance_factors`).
 
 0. **Plane screening** (:func:`plane_screening`, with ``plane_screening``, plane points and no
    snooping): IGG-III reweighting of the plane points' conditions (:mod:`._robust`); the points
@@ -67,8 +68,15 @@ import dataclasses
 import numpy as np
 
 from .._adjustment._quality import w_tests
-from .._stats import global_test, group_variance_test, normal_critical_value
+from .._stats import (
+    global_test,
+    group_variance_test,
+    normal_critical_value,
+    robust_scale,
+    snooping_critical_value,
+)
 from ._options import SnoopingOptions
+from ._outcome import GROUPS, VCEResult
 from ._pipeline import (
     PIN_SIGMA,
     ROUNDING_SIGMA,
@@ -91,13 +99,7 @@ from ._pipeline import (
 )
 from ._robust import screen_planes
 from ._selection import select_terms
-from ._statistics import (
-    bounded_log_step,
-    implausible_factor,
-    robust_scale,
-    snooping_critical_value,
-)
-from ._tested import GROUPS, VCEResult
+from ._variance_factors import bounded_log_step, implausible_factor
 
 #: Largest change of a variance factor in one VCE iteration (a factor 100 in sigma).
 VCE_MAX_STEP = np.log(1e4)

@@ -21,8 +21,8 @@ from .._adjustment._json import withhold_estimates
 from .._adjustment._network import Network, check_calibration_arguments, network_design_warnings
 from .._adjustment._text import ap_table, summary
 from .._inference._options import CalibrationOptions
-from .._inference._tested import TestedCalibration
-from .._inference._testing import run_tests
+from .._inference._outcome import TestedCalibration
+from .._inference._run import run_tests
 from .._model._scanner import Scanner
 from .._report._html import provenance, reliability_summary
 from .._report._tables import table_json, with_lines
@@ -36,7 +36,7 @@ class SelfCalibration(TestedCalibration):
     :class:`tlsjax.CalibrationResult`), its model and what every step found (the fields of
     the pipeline's outcome: removals, variance components, w-tests, MDB, external reliability,
     a priori tests, AP t-tests, selection, plane screening, score tests; see
-    :class:`tlsjax._inference._tested.TestedCalibration`), and what made it:
+    :class:`tlsjax._inference._outcome.TestedCalibration`), and what made it:
 
     ``settings``: the model given (before any selection) and the options, as the dicts that
     :meth:`tlsjax.CalibrationModel.from_dict` and :meth:`tlsjax.CalibrationOptions.from_dict`

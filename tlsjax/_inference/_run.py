@@ -4,10 +4,11 @@ outcome it assembles from the pipeline's final state.
 The parts live in their own modules:
 
 * :mod:`._options`: the settings, one object per concern (:class:`._options.CalibrationOptions`);
-* :mod:`._tested`: what the run finds (:class:`._tested.TestedCalibration`,
-  :class:`._tested.VCEResult`, :class:`._tested.Removal`, :class:`._tested.VarianceComponent`);
-* :mod:`._statistics`: the statistics, pure functions (global and group tests, w-tests and their
-  critical values, robust scales, variance factors, reliability, AP t-tests);
+* :mod:`._outcome`: what the run finds (:class:`._outcome.TestedCalibration`,
+  :class:`._outcome.VCEResult`, :class:`._outcome.Removal`, :class:`._outcome.VarianceComponent`);
+* the statistics, pure functions: :mod:`tlsjax._stats` (distributions, critical values, global
+  and group tests, robust scales), :mod:`tlsjax._adjustment._quality` (w-tests, MDB, external
+  reliability), :mod:`tlsjax._adjustment._ap_tests`, :mod:`._variance_factors`;
 * :mod:`._pipeline`: the explicit state of a run (:class:`._pipeline.TestingState`), what stays
   fixed (:class:`._pipeline.TestingContext`) and the transitions the steps share;
 * :mod:`._steps`: the named steps and their order, :data:`._steps.PIPELINE`.
@@ -28,7 +29,9 @@ from .._adjustment._families import Params
 from .._adjustment._network import Network
 from .._adjustment._plan import initial_params
 from .._adjustment._quality import external_reliability, minimal_detectable_bias, w_tests
+from .._stats import snooping_critical_value
 from ._options import CalibrationOptions, SnoopingOptions
+from ._outcome import GROUPS, TestedCalibration, VarianceComponent, VCEResult
 from ._pipeline import (
     TestingContext,
     TestingState,
@@ -40,12 +43,8 @@ from ._pipeline import (
     sigmas,
 )
 from ._score import ScoreTester, ScoreTests
-from ._statistics import (
-    implausible_factor,
-    snooping_critical_value,
-)
 from ._steps import PIPELINE
-from ._tested import GROUPS, TestedCalibration, VarianceComponent, VCEResult
+from ._variance_factors import implausible_factor
 
 
 def run_tests(

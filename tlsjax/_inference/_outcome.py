@@ -3,7 +3,8 @@
 :class:`Removal`, :class:`VarianceComponent` and :class:`TestedCalibration`, the outcome that
 the public :class:`tlsjax.SelfCalibration` extends with its text and JSON.
 
-The settings are in :mod:`._options`, the statistics in :mod:`._statistics`, the steps that
+The settings are in :mod:`._options`, the statistics in :mod:`tlsjax._stats` and
+:mod:`tlsjax._adjustment._quality`, the steps that
 produce these in :mod:`._steps`.
 """
 

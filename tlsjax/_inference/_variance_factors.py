@@ -1,35 +1,18 @@
-"""Tests, reliability and variance components of an adjustment (SPEC sections 5 and 7): pure
-functions, host side, on the arrays of its results. The pipeline of :func:`tlsjax.self_calibrate`
-(:mod:`._steps`) decides when to call them; nothing here holds state.
+"""Variance factors of observation groups (SPEC sections 5 and 7): pure functions, host side.
 
-* Global and group tests: in :mod:`tlsjax._stats` (:func:`tlsjax._stats.global_test`).
-* The critical value of data snooping; the robust scale of a group's w's, ``median |w| /
-  0.6745`` (Koch 1999, sec. 3.8), for screening. The w-test itself and the reliability
-  measures (MDB, external reliability) have their home in :mod:`tlsjax._adjustment._quality`.
-* Variance components (Förstner 1979; Koch 1999, sec. 3.6): ``s_g^2 = v_g^T P_g v_g / r_g``,
+* Their estimate (Förstner 1979; Koch 1999, sec. 3.6): ``s_g^2 = v_g^T P_g v_g / r_g``,
   ``r_g`` the sum of the group's redundancy numbers, and the bounded step in log space that VCE
-  takes towards it.
-* t-tests of the APs: :mod:`tlsjax._adjustment._ap_tests`.
-* Implausible variance factors named with the unit mix-up they suggest.
+  (and the robust balancing of screening) takes towards it.
+* An implausible factor named, with the unit mix-up it suggests.
+
+The other statistics have one home each: distributions, critical values, the global and group
+tests and robust scales in :mod:`tlsjax._stats`; the w-test and reliability (MDB, external) in
+:mod:`tlsjax._adjustment._quality`; the AP t-tests in :mod:`tlsjax._adjustment._ap_tests`.
 """
 
 from __future__ import annotations
 
 import numpy as np
-
-from .._stats import MAD_TO_SIGMA, normal_critical_value
-
-
-def snooping_critical_value(
-    alpha: float, n_tested: int, *, bonferroni: bool = False, given: float | None = None
-) -> float:
-    """Critical value of data snooping: ``given`` if set, else ``N^-1(1 - alpha'/2)`` with
-    ``alpha' = alpha / n_tested`` (Bonferroni: the family-wise level over the tested
-    observations) or ``alpha`` per test."""
-    if given is not None:
-        return float(given)
-    return normal_critical_value(alpha / max(n_tested, 1) if bonferroni else alpha)
-
 
 #: Sigma ratios that a unit mix-up produces, the dimension they apply to, and what each
 #: suggests (the units of SPEC section 11).
@@ -98,12 +81,3 @@ def bounded_log_step(value: np.ndarray, ok: np.ndarray, max_step: float, power: 
     groups), bounded so that one far-off group cannot move its factor by more than
     ``exp(max_step)`` at once."""
     return np.where(ok, np.clip(power * np.log(np.where(ok, value, 1.0)), -max_step, max_step), 0.0)
-
-
-def robust_scale(u: np.ndarray, keep: np.ndarray, min_count: int) -> float:
-    """Robust scale of standardised residuals: ``median |u| / 0.6745`` over ``keep``
-    (:data:`tlsjax._stats.MAD_TO_SIGMA`; a few blunders do not move a median), NaN with fewer
-    than ``min_count`` of them."""
-    if keep.sum() < min_count:
-        return float("nan")
-    return MAD_TO_SIGMA * float(np.median(np.abs(u[keep])))

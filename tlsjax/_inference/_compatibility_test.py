@@ -85,7 +85,7 @@ from .._stats import chi2_quantile, chi2_sf, weighted_chi2_sf
 from .._summary import Settings, to_json_value
 from .._units import display_unit
 from ._apset import APSet, basis_text, same_basis
-from ._compat_sim import compiled_chunk, room_vector, run_tests, statistic_function
+from ._compatibility_simulation import compiled_chunk, room_vector, run_tests, statistic_function
 
 #: A difference direction whose post-fit effect keeps less than this share of its pre-fit sum of
 #: squares is one object space cannot see (the rigid fit absorbs it).

@@ -1,0 +1,109 @@
+"""The layer rule of ``tlsjax/__init__.py``'s docstring, read from the code (issue 39 item 4):
+every import of a tlsjax module goes down the list of layers, never up or sideways; the modules
+of one subpackage import each other without circles; ``tlsjax calibrate`` uses the public API
+only.
+
+The imports are read with :mod:`ast` (module level and inside functions alike), so a lazy
+import does not hide an upward one.
+"""
+
+import ast
+import pathlib
+
+import tlsjax
+
+ROOT = pathlib.Path(tlsjax.__file__).parent
+#: The layers of the package docstring, lowest first.
+LAYERS = (
+    ("_units", "_stats", "_jit", "_optional", "_summary", "_version"),
+    ("_model",),
+    ("_adjustment",),
+    ("_simulation", "_io"),
+    ("_inference", "_design", "_clouds"),
+    ("_report",),
+    ("_workflow",),
+    ("__init__",),
+    ("_cli",),
+)
+LAYER = {unit: k for k, units in enumerate(LAYERS) for unit in units}
+
+
+def _modules():
+    """Dotted name -> (path, is a package's __init__) of every module of tlsjax."""
+    out = {}
+    for path in ROOT.rglob("*.py"):
+        parts = path.relative_to(ROOT.parent).with_suffix("").parts
+        package = parts[-1] == "__init__"
+        out[".".join(parts[:-1] if package else parts)] = (path, package)
+    return out
+
+
+def _imports(name, path, package):
+    """(target module, at module level) of every tlsjax import in one module."""
+    tree = ast.parse(path.read_text(), str(path))
+    top = {id(n) for n in tree.body}
+    here = name.split(".") if package else name.split(".")[:-1]
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            base = here[: len(here) - node.level + 1] if node.level else []
+            target = ".".join(base + ([node.module] if node.module else []))
+            if not node.module:  # from . import _x
+                out += [(f"{target}.{a.name}", id(node) in top) for a in node.names]
+            else:
+                out.append((target, id(node) in top))
+        elif isinstance(node, ast.Import):
+            out += [(a.name, id(node) in top) for a in node.names]
+    return [(t, level) for t, level in out if t == "tlsjax" or t.startswith("tlsjax.")]
+
+
+def _unit(module):
+    parts = module.split(".")
+    return "__init__" if len(parts) == 1 else parts[1]
+
+
+def test_imports_go_down_the_layers_of_the_package_docstring():
+    modules = _modules()
+    assert set(LAYER) >= {_unit(m) for m in modules}, "a module outside the layer list"
+    upward = []
+    for name, (path, package) in modules.items():
+        for target, _ in _imports(name, path, package):
+            a, b = _unit(name), _unit(target)
+            if a == b or (a == "_cli" and b == "__init__"):
+                continue
+            if not LAYER[b] < LAYER[a]:
+                upward.append(f"{name} -> {target}")
+    assert not upward, upward
+
+
+def test_no_import_circles_within_a_subpackage():
+    modules = _modules()
+    graph = {m: set() for m in modules}
+    for name, (path, package) in modules.items():
+        for target, at_top in _imports(name, path, package):
+            if at_top and target in modules and _unit(target) == _unit(name) and target != name:
+                graph[name].add(target)
+    done, stack, cycles = set(), [], []
+
+    def visit(m):
+        if m in stack:
+            cycles.append(stack[stack.index(m) :] + [m])
+            return
+        if m in done:
+            return
+        stack.append(m)
+        for t in sorted(graph[m]):
+            visit(t)
+        stack.pop()
+        done.add(m)
+
+    for m in sorted(graph):
+        visit(m)
+    assert not cycles, cycles
+
+
+def test_calibrate_command_uses_the_public_api_only():
+    name = "tlsjax._cli._calibrate"
+    path, package = _modules()[name]
+    private = [t for t, _ in _imports(name, path, package) if t != "tlsjax" and _unit(t) != "_cli"]
+    assert not private, private
