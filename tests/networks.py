@@ -26,7 +26,7 @@ from hypothesis import strategies as st
 from scipy import stats
 
 import tlsjax as tj
-from tlsjax._model._geometry import angles_from_matrix
+from tlsjax import angles_from_matrix
 
 DEG = np.pi / 180
 APS = ("A0", "B6", "B7", "C0")

@@ -18,11 +18,12 @@ import pytest
 from networks import SIX_SCANS, ST1, ST2
 
 import tlsjax as tj
+from tlsjax import ObservationTable, rotation_matrix
 from tlsjax._adjustment._approx import ApproxConfig, approximate, approximate_network
 from tlsjax._adjustment._approx._local import Prims
 from tlsjax._adjustment._approx._register import register
-from tlsjax._adjustment._network import ObservationTable
-from tlsjax._model._geometry import rotation_matrix
+
+pytestmark = pytest.mark.internal
 
 DEG = np.pi / 180
 ROOM = (14.0, 11.0, 3.0)

@@ -10,8 +10,8 @@ import pytest
 from strict_json import load_strict
 
 import tlsjax as tj
+from tlsjax import rotation_matrix
 from tlsjax._cli import main
-from tlsjax._model._geometry import rotation_matrix
 
 APS = "A0 B6 B7 C0"
 REF_NOISE = 3e-4  # reference survey, per coordinate [m]

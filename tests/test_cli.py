@@ -1,8 +1,7 @@
 """The command line and the result JSON contract (SPEC section 11).
 
-Private imports: ``tlsjax._cli.main`` is the ``tlsjax`` console script's entry point
-(pyproject), called in process; the writers of a drawn network's observation and scans files
-(what ``tlsjax simulate`` writes).
+Private import: ``tlsjax._cli.main`` is the ``tlsjax`` console script's entry point
+(pyproject), called in process.
 """
 
 import json
@@ -17,7 +16,6 @@ from strict_json import load_strict
 
 import tlsjax as tj
 from tlsjax._cli import main
-from tlsjax._io._tables import levelling_of_network, table_from_network, write_scans
 
 ROOM = ["--room", "14x11x3", "--targets", "36"]
 CONTRACT = {
@@ -474,8 +472,7 @@ def test_cli_prints_and_writes_the_self_calibration_of_a_drawn_network(tmp_path,
     case = point_case(NumpyDrawer(7))
     sim = tj.simulate_design(case.design, seed=case.seed)
     obs, scans = tmp_path / "obs.csv", tmp_path / "scans.csv"
-    tj.write_observations(obs, table_from_network(sim.network, sim.scanner.architecture))
-    write_scans(scans, levelling_of_network(sim.network))
+    tj.write_network(obs, sim.network, scans_path=scans, architecture=sim.scanner.architecture)
     model = tj.CalibrationModel(tj.Scanner(architecture=sim.scanner.architecture))
     code, printed, doc, result = _cli_and_api(
         obs, scans, tmp_path / "r.json", capsys, [], model, tj.CalibrationOptions()

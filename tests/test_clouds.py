@@ -21,6 +21,8 @@ from tlsjax import (
     write_observations,
 )
 
+pytestmark = pytest.mark.internal
+
 DEG = np.pi / 180
 ARCSEC = DEG / 3600
 

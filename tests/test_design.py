@@ -19,6 +19,8 @@ import tlsjax as tj
 from tlsjax._cli import main
 from tlsjax._design._criteria import criterion_of_result
 
+pytestmark = pytest.mark.internal
+
 ROOM = tj.Room(n_targets=16)
 
 

@@ -25,6 +25,8 @@ from tlsjax._adjustment._calibrate import _replace
 from tlsjax._adjustment._quality import pose_ap_cofactor
 from tlsjax._model._planes import condition_variance, projection_step
 
+pytestmark = pytest.mark.internal
+
 
 @pytest.mark.parametrize("architecture", ["hybrid", "panoramic"])
 def test_structured_point_jacobian_equals_autodiff_of_the_model(architecture):

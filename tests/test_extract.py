@@ -32,6 +32,8 @@ from tlsjax._cli._extract import add_extract_parser
 from tlsjax._io._plane_files import read_poses
 from tlsjax._io._point_clouds import write_ptx
 
+pytestmark = pytest.mark.internal
+
 DEG = np.pi / 180
 DATA = pathlib.Path(__file__).parent / "data"
 MIN_FOUND = 0.95  # fraction of a plane's points in a scan that extraction must find
@@ -256,7 +258,7 @@ def test_read_poses(tmp_path):
 
 def test_cli_extract_planes(tmp_path, room):
     # Two scans of different stations as one PTX file with their poses; CSV and npz out.
-    from tlsjax._model._geometry import cartesian_from_spherical
+    from tlsjax import cartesian_from_spherical
 
     scans = [(cartesian_from_spherical(room.observations[j], xp=np), room.eops[j]) for j in (0, 3)]
     write_ptx(tmp_path / "room.ptx", scans)
@@ -291,8 +293,8 @@ def test_cli_extract_planes(tmp_path, room):
 
 
 def test_cli_with_poses_file(tmp_path, room, capsys):
+    from tlsjax import cartesian_from_spherical
     from tlsjax._io._point_clouds import write_xyz
-    from tlsjax._model._geometry import cartesian_from_spherical
 
     rows = ["scan,x_m,y_m,z_m,omega_rad,phi_rad,kappa_rad"]
     files = []
@@ -399,7 +401,7 @@ def test_clutter_gives_no_false_planes(room):
         len(extract_planes([observe(u * rng.uniform(2, 10, 20000)[:, None])], seed=0).patch_scan)
         == 0
     )
-    from tlsjax._model._geometry import rotation_matrix
+    from tlsjax import rotation_matrix
 
     j = 3
     X = rng.uniform([0.5, 0.5, 0.2], [13.5, 10.5, 2.8], size=(20000, 3))

@@ -16,6 +16,8 @@ import pytest
 
 import tlsjax as tj
 
+pytestmark = pytest.mark.internal
+
 ROOM = tj.Room(n_targets=16)
 
 

@@ -5,6 +5,11 @@ modified input.
 
 Each CLI case runs in a fresh folder holding copies of the fixture files; every file there is
 hashed before and after, and only the outputs the case names may change.
+
+Private imports: the console script's entry ``tlsjax._cli.main``, the cost estimate of
+``state_cost`` and the atomic writer ``atomic_output`` (mechanisms of the command line and the
+file writers), the pipeline's steps and the table reader's internals for the cases that patch
+them.
 """
 
 import csv
@@ -24,6 +29,8 @@ import tlsjax as tj
 from tlsjax._cli import main
 from tlsjax._cli._checks import state_cost
 from tlsjax._io._outputs import atomic_output
+
+pytestmark = pytest.mark.internal
 
 N_TARGETS = 24
 

@@ -6,6 +6,9 @@ valid result, a clear one-line error (ValueError naming the file; exit code 2) o
 The profile is the fixed, derandomised one of ``conftest.py``; each test draws a modest number
 of examples so that CI stays fast (mutations keep the network's shape where they can, so the
 adjustments that do run reuse one compiled program).
+
+Private imports: ``tlsjax._cli.main`` (the console script) and the PTX/XYZ writers that
+build the point-cloud files the readers are given.
 """
 
 import contextlib
@@ -24,6 +27,8 @@ from hypothesis import strategies as st
 import tlsjax as tj
 from tlsjax._cli import main
 from tlsjax._io._point_clouds import write_ptx, write_xyz
+
+pytestmark = pytest.mark.internal
 
 N_TARGETS = 24
 

@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
-from tlsjax import read_observations, read_scans, write_observations
-from tlsjax._adjustment._network import ObservationTable
+from tlsjax import ObservationTable, read_observations, read_scans, write_observations
 from tlsjax._io._csv import parse_unit_column
+
+pytestmark = pytest.mark.internal
 
 DEG = math.pi / 180.0
 GON = math.pi / 200.0

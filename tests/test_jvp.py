@@ -17,6 +17,8 @@ from helpers import DELTA0
 import tlsjax as tj
 from tlsjax._adjustment._normal import null_space
 
+pytestmark = pytest.mark.internal
+
 ROOM = tj.Room(n_targets=16)
 RTOL = 1e-4
 

@@ -1,7 +1,10 @@
 """The layer rule of ``tlsjax/__init__.py``'s docstring, read from the code (issue 39 item 4):
 every import of a tlsjax module goes down the list of layers, never up or sideways; the modules
 of one subpackage import each other without circles; ``tlsjax calibrate`` uses the public API
-only.
+only. And the rule of the tests (item 5): a test module imports private modules only where it
+checks an internal mechanism, and then says so (``pytest.mark.internal``, its docstring naming
+them); the console script's entry point ``tlsjax._cli.main`` is the command line's public
+door.
 
 The imports are read with :mod:`ast` (module level and inside functions alike), so a lazy
 import does not hide an upward one.
@@ -107,3 +110,40 @@ def test_calibrate_command_uses_the_public_api_only():
     path, package = _modules()[name]
     private = [t for t, _ in _imports(name, path, package) if t != "tlsjax" and _unit(t) != "_cli"]
     assert not private, private
+
+
+TESTS = ROOT.parent / "tests"
+
+
+def _private_imports(path):
+    """The private tlsjax modules a test module imports (the console script's entry aside)."""
+    tree = ast.parse(path.read_text(), str(path))
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("tlsjax._"):
+            if node.module != "tlsjax._cli" or {a.name for a in node.names} - {"main"}:
+                out.add(node.module)
+        elif isinstance(node, ast.Import):
+            out |= {a.name for a in node.names if a.name.startswith("tlsjax._")}
+    return out
+
+
+def test_private_imports_only_in_tests_marked_internal():
+    """Private imports stand only in test modules marked ``internal`` whose docstring names
+    them; a module marked ``internal`` has some (no stale mark)."""
+    wrong = []
+    for path in sorted(TESTS.glob("*.py")):
+        tree = ast.parse(path.read_text())
+        private = _private_imports(path)
+        marked = any(
+            isinstance(n, ast.Assign)
+            and [getattr(t, "id", None) for t in n.targets] == ["pytestmark"]
+            and ast.unparse(n.value) == "pytest.mark.internal"
+            for n in tree.body
+        )
+        doc = ast.get_docstring(tree) or ""
+        if path.name.startswith("test_") and private and not (marked and "Private" in doc):
+            wrong.append(f"{path.name}: {sorted(private)} without the mark and the docstring")
+        if marked and not private:
+            wrong.append(f"{path.name}: marked internal, imports nothing private")
+    assert not wrong, wrong

@@ -10,6 +10,8 @@ import pytest
 import tlsjax as tj
 from tlsjax._model._aps import ap_corrections
 
+pytestmark = pytest.mark.internal
+
 NAMES = ("x1n", "x1z", "x2", "x3", "x4", "x5n", "x5z", "x6", "x7", "x8x", "x8y", "x9n", "x9z",
          "x10", "x11a", "x11b", "x12a", "x12b")  # fmt: skip
 

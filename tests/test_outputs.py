@@ -15,6 +15,7 @@ import pytest
 from strict_json import load_strict
 
 import tlsjax as tj
+from tlsjax import rotation_matrix, spherical_from_cartesian
 from tlsjax._io._json import (
     check_output_dir,
     check_output_file,
@@ -22,7 +23,8 @@ from tlsjax._io._json import (
     to_json_value,
     write_json_file,
 )
-from tlsjax._model._geometry import rotation_matrix, spherical_from_cartesian
+
+pytestmark = pytest.mark.internal
 
 
 def test_to_json_value_nulls_what_is_undefined():

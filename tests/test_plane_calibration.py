@@ -17,10 +17,11 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
-from tlsjax import write_observations
+from tlsjax import rotation_matrix, write_observations
 from tlsjax._adjustment._approx import approximate_network
 from tlsjax._cli import main
-from tlsjax._model._geometry import rotation_matrix
+
+pytestmark = pytest.mark.internal
 
 DEG = np.pi / 180
 APS = ("A0", "B6", "B7", "C0")

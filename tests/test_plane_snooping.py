@@ -16,6 +16,8 @@ import pytest
 import tlsjax as tj
 from tlsjax._report._plots import _rows
 
+pytestmark = pytest.mark.internal
+
 SIGMA_FACTOR = 20.0  # size of the planted gross errors, in sigmas of the range
 
 

@@ -8,9 +8,16 @@ import numpy as np
 import pytest
 
 import tlsjax  # noqa: F401  (x64)
-from tlsjax import CloudDesign, PointCloudWarning, read_point_clouds, simulate_point_clouds
+from tlsjax import (
+    CloudDesign,
+    PointCloudWarning,
+    cartesian_from_spherical,
+    read_point_clouds,
+    simulate_point_clouds,
+)
 from tlsjax._io._point_clouds import observations_from_points, write_ptx, write_xyz
-from tlsjax._model._geometry import cartesian_from_spherical
+
+pytestmark = pytest.mark.internal
 
 DEG = np.pi / 180
 
@@ -88,7 +95,7 @@ def test_ptx_several_scans_and_zero_points(tmp_path, clouds):
     np.testing.assert_allclose(b.observations, clouds.observations[5], rtol=0, atol=1e-9)
     np.testing.assert_allclose(b.pose, clouds.eops[5], rtol=0, atol=1e-12)
     # The pose maps the scanner-space points onto the simulation's object-space points.
-    from tlsjax._model._geometry import rotation_matrix
+    from tlsjax import rotation_matrix
 
     R = rotation_matrix(*b.pose[3:], xp=np)
     X = b.points @ R + b.pose[:3]
@@ -102,7 +109,7 @@ def test_e57_round_trip(tmp_path, clouds):
     import pye57
     from pyquaternion import Quaternion
 
-    from tlsjax._model._geometry import rotation_matrix
+    from tlsjax import rotation_matrix
 
     j = 3
     x = cartesian_from_spherical(clouds.observations[j], xp=np)
@@ -190,7 +197,7 @@ def test_ptx_transform_convention_by_hand(tmp_path):
     (tmp_path / "hand.ptx").write_text(text)
     (scan,) = read_point_clouds(tmp_path / "hand.ptx")
     np.testing.assert_allclose(scan.pose, [10, 20, 30, 0, 0, np.pi / 2], atol=1e-15)
-    from tlsjax._model._geometry import rotation_matrix
+    from tlsjax import rotation_matrix
 
     X = scan.points @ rotation_matrix(*scan.pose[3:], xp=np) + scan.pose[:3]
     np.testing.assert_allclose(X, [[10, 21, 30], [10, 20, 32]], atol=1e-14)

@@ -9,6 +9,9 @@ without APs (issue 30, item 3).
   "scale" instead of diverging; so is a copy of A1 in other units (the test is unit-free).
 * ``none`` (the papers' "without self-calibration") calibrates targets and planes, and its
   residuals show the systematic errors the calibrated model removes.
+
+Private import: the registry's term lookup ``get_ap`` (its basis functions build the
+reference corrections; there is no public accessor).
 """
 
 import jax.numpy as jnp
@@ -17,6 +20,8 @@ import pytest
 
 import tlsjax as tj
 from tlsjax._model._aps import get_ap  # the registry's term lookup (no public accessor)
+
+pytestmark = pytest.mark.internal
 
 DEG = np.pi / 180
 #: Lichti & Licht 2006, section 3, Tables 1 and 2, in tlsjax's names (the mapping of

@@ -16,6 +16,8 @@ import tlsjax as tj
 from tlsjax._adjustment._quality import minimal_detectable_bias, w_tests
 from tlsjax._inference._pipeline import Reweighter
 
+pytestmark = pytest.mark.internal
+
 APS = ("A0", "B6", "B7", "C0")
 ROW, COL = 11, 1  # the masked observation
 

@@ -17,6 +17,7 @@ import tlsjax  # noqa: F401  (x64)
 from tlsjax import (
     CloudDesign,
     PointCloudWarning,
+    cartesian_from_spherical,
     read_point_clouds,
     simulate_point_clouds,
     write_las,
@@ -24,8 +25,9 @@ from tlsjax import (
 )
 from tlsjax._cli import main
 from tlsjax._io._point_clouds import to_object
-from tlsjax._model._geometry import cartesian_from_spherical
 from tlsjax._optional import missing_library_message, require
+
+pytestmark = pytest.mark.internal
 
 DATA = pathlib.Path(__file__).parent / "data"
 DEG = np.pi / 180
@@ -82,7 +84,7 @@ def test_public_files_counts_and_poses(name, expected):
             lines = (DATA / name).read_text().splitlines()
             M = np.array([[float(v) for v in ln.split()] for ln in lines[6:10]])
             R_file = M[:3, :3]  # rows: the scanner's axes in object space, R = M[:3, :3]
-            from tlsjax._model._geometry import rotation_matrix
+            from tlsjax import rotation_matrix
 
             R = rotation_matrix(*scan.pose[3:], xp=np)
             np.testing.assert_allclose(R, R_file, atol=2e-5)  # the file's matrix has 6 digits

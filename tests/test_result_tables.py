@@ -18,6 +18,8 @@ import tlsjax as tj
 from tlsjax._cli import main
 from tlsjax._units import ARCSEC
 
+pytestmark = pytest.mark.internal
+
 
 def _read_csv(path):
     with open(path, newline="") as fh:

@@ -15,6 +15,8 @@ from helpers import printed_is_summary, same_run
 import tlsjax as tj
 from tlsjax._inference._robust import igg3
 
+pytestmark = pytest.mark.internal
+
 
 @pytest.fixture(scope="module")
 def clouds():
@@ -67,8 +69,7 @@ def test_clean_planes_lose_almost_nothing(clouds):
 def test_cli_screens_plane_points_by_default(clouds, tmp_path, capsys):
     import json
 
-    from tlsjax import write_observations
-    from tlsjax._adjustment._network import ObservationTable
+    from tlsjax import ObservationTable, write_observations
     from tlsjax._cli import main
 
     pc, _, net, bad = clouds

@@ -16,6 +16,8 @@ from tlsjax._adjustment._calibrate import _run
 from tlsjax._inference._pipeline import Reweighter, _undetermined_targets
 from tlsjax._stats import non_centrality, normal_critical_value
 
+pytestmark = pytest.mark.internal
+
 APS = ("A0", "B6", "B7", "C0")
 MODEL = tj.CalibrationModel(tj.Scanner(aps=APS))
 

@@ -1,5 +1,10 @@
 """Vendor target lists in (issue 27 item 4): layouts, units, the panoramic fold, exact round
-trips, sigmas, refusals, and the file path ``import-targets`` -> ``calibrate``."""
+trips, sigmas, refusals, and the file path ``import-targets`` -> ``calibrate``.
+
+Private imports: ``tlsjax._cli.main`` (the console script), the polar sigma propagation
+``polar_sigmas`` checked against its closed form, and the scans-file writers that build the
+inputs.
+"""
 
 import pathlib
 
@@ -8,6 +13,8 @@ import pytest
 
 import tlsjax as tj
 from tlsjax._cli import main
+
+pytestmark = pytest.mark.internal
 
 DATA = pathlib.Path(__file__).parent / "data" / "target_lists"
 

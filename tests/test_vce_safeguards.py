@@ -20,6 +20,8 @@ from tlsjax._inference._variance_factors import implausible_factor, suspected_un
 from tlsjax._io._json import dumps_strict
 from tlsjax._stats import group_variance_test
 
+pytestmark = pytest.mark.internal
+
 APS = "A0 B6 B7 C0"
 MODEL = tj.CalibrationModel(tj.Scanner(aps=APS))
 NO_SNOOP = tj.CalibrationOptions()

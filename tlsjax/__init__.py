@@ -42,6 +42,7 @@ from ._adjustment._implicit import NetworkInputs as NetworkInputs
 from ._adjustment._implicit import differentiable_adjustment as differentiable_adjustment
 from ._adjustment._implicit import network_inputs as network_inputs
 from ._adjustment._network import Network as Network
+from ._adjustment._network import ObservationTable as ObservationTable
 from ._adjustment._network import make_network as make_network
 from ._adjustment._network import make_plane_network as make_plane_network
 from ._adjustment._result import RESULT_MESSAGES as RESULT_MESSAGES
@@ -117,7 +118,9 @@ from ._io._tables import read_network as read_network
 from ._io._tables import read_observations as read_observations
 from ._io._tables import read_planes as read_planes
 from ._io._tables import read_scans as read_scans
+from ._io._tables import write_network as write_network
 from ._io._tables import write_observations as write_observations
+from ._io._tables import write_scans as write_scans
 from ._io._target_files import write_target_table as write_target_table
 from ._io._target_lists import read_reference as read_reference
 from ._io._target_lists import read_target_list as read_target_list
@@ -125,6 +128,10 @@ from ._model._aps import PRESETS as PRESETS
 from ._model._aps import register_ap as register_ap
 from ._model._aps import registered_aps as registered_aps
 from ._model._aps import resolve_aps as resolve_aps
+from ._model._geometry import angles_from_matrix as angles_from_matrix
+from ._model._geometry import cartesian_from_spherical as cartesian_from_spherical
+from ._model._geometry import rotation_matrix as rotation_matrix
+from ._model._geometry import spherical_from_cartesian as spherical_from_cartesian
 from ._model._plausibility import PlausibilityWarning as PlausibilityWarning
 from ._model._scanner import Scanner as Scanner
 from ._report._html import report_from_json as report_from_json

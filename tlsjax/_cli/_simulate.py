@@ -90,20 +90,16 @@ def _write_simulation(
     sim, obs_path, scans_path, truth_path=None, length_unit="m", angle_unit="deg"
 ):
     from .._io._json import write_json_file
-    from .._io._tables import (
-        levelling_of_network,
-        table_from_network,
-        write_observations,
-        write_scans,
-    )
+    from .._io._tables import write_network
 
-    write_observations(
+    write_network(
         obs_path,
-        table_from_network(sim.network, sim.scanner.architecture),
+        sim.network,
+        scans_path=scans_path,
+        architecture=sim.scanner.architecture,
         length_unit=length_unit,
         angle_unit=angle_unit,
     )
-    write_scans(scans_path, levelling_of_network(sim.network))
     if truth_path:
         from .._adjustment._config import scanner_settings
 

@@ -455,6 +455,19 @@ def levelling_of_network(net) -> dict:
     return out
 
 
+def write_network(
+    path, network, *, scans_path=None, architecture=None, length_unit="m", angle_unit="deg"
+) -> None:
+    """Write the target observations of ``network`` as the CSV ``tlsjax calibrate`` reads
+    (:func:`write_observations`; sigmas as used, ``architecture`` recorded in the file), and
+    with ``scans_path`` its tilt readings and headings as the scans CSV (:func:`write_scans`):
+    what ``tlsjax simulate`` writes of a simulated network."""
+    table = table_from_network(network, architecture)
+    write_observations(path, table, length_unit=length_unit, angle_unit=angle_unit)
+    if scans_path is not None:
+        write_scans(scans_path, levelling_of_network(network))
+
+
 def _check_path(value, name: str) -> None:
     if not isinstance(value, (str, os.PathLike)):
         raise TypeError(
