@@ -126,7 +126,9 @@ def test_every_result_json_keeps_the_architecture(tmp_path):
     for path in (out, truth):
         c = tj.Calibration.from_json(path)
         assert c.scanner.architecture == "panoramic" and c.scanner.aps == ("A0", "B6", "B7", "C0")
-        assert not c.notes, c.notes
+        # A simulation's truth is applied, and named as such (issue 39 item 7).
+        assert [n for n in c.notes if "true APs of a simulation" not in n] == [], c.notes
+        assert (path == truth) == bool(c.notes)
     true = load_strict(truth)["aps"]
     np.testing.assert_allclose(tj.Calibration.from_json(truth).values, list(true.values()))
     # `tlsjax compare` takes the architecture from the JSONs it compares (APSet.from_json).
@@ -188,6 +190,7 @@ def test_check_targets_cli_calibrate_targets_out_and_held_out_scans(tmp_path, ca
     plain.write_text((tmp_path / "survey.csv").read_text().replace(" [mm]", ""))
     bad = ["check-targets", str(truth), str(obs), "--reference", str(plain)]
     assert main(bad + ["--length-unit", "m"]) == 2
-    err = capsys.readouterr().err
-    assert "unit mix-up" in err and err.count("\n") == 1
+    err = capsys.readouterr().err.splitlines()
+    assert "true APs of a simulation" in err[0]  # the truth given as the calibration, named
+    assert "unit mix-up" in err[-1] and len(err) == 2
     assert json.loads(cal.read_text())["scanner"]["architecture"] == "hybrid"

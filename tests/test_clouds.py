@@ -21,8 +21,6 @@ from tlsjax import (
     write_observations,
 )
 
-pytestmark = pytest.mark.internal
-
 DEG = np.pi / 180
 ARCSEC = DEG / 3600
 
@@ -205,6 +203,7 @@ def test_design_errors():
         CloudDesign(aps="A0 Z9")
 
 
+@pytest.mark.internal
 def test_fixed_point_matches_point_simulation():
     # The looped, chunked fixed point reproduces the target simulation's construction.
     import jax.numpy as jnp

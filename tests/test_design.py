@@ -17,9 +17,6 @@ import pytest
 
 import tlsjax as tj
 from tlsjax._cli import main
-from tlsjax._design._criteria import criterion_of_result
-
-pytestmark = pytest.mark.internal
 
 ROOM = tj.Room(n_targets=16)
 
@@ -31,7 +28,10 @@ def room():
     return sim, design, tj.DesignProblem.targets(design, sim.scanner)
 
 
+@pytest.mark.internal
 def test_predicted_covariance_equals_calibrate(room):
+    from tlsjax._design._criteria import criterion_of_result
+
     sim, design, dn = room
     Q = np.asarray(jax.jit(lambda d: tj.predicted_cofactor(dn, d))(design))
     res = tj.calibrate(dn.network(design, seed=2), dn.model, tj.SolverOptions(full_covariance=True))
@@ -68,7 +68,10 @@ def test_criterion_gradient_matches_finite_differences(room):
     assert an == pytest.approx(float(fd), rel=1e-6)
 
 
+@pytest.mark.internal
 def test_optimiser_beats_its_start_verified_by_calibrate(room):
+    from tlsjax._design._criteria import criterion_of_result
+
     sim, design, dn = room
     levelled = tj.simulate(ROOM, tilted=False, aps="A0 B6 B7 C0", noise=False, seed=1)
     start = tj.TargetDesign.from_simulation(levelled)

@@ -16,8 +16,6 @@ import pytest
 
 import tlsjax as tj
 
-pytestmark = pytest.mark.internal
-
 ROOM = tj.Room(n_targets=16)
 
 
@@ -111,6 +109,7 @@ def test_sensitivity_matches_calibrate_and_external_reliability(setup):
     assert "d AP / d l" in s.summary(5) and set(s.largest()) == set(s.ap_names)
 
 
+@pytest.mark.internal
 def test_no_recompilation_for_new_values(setup):
     """Other observation values, sigmas or a new wrapper of the same adjustment reuse the
     compiled function (the spec and shapes are the only static parts)."""

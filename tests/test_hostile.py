@@ -27,10 +27,6 @@ from strict_json import load_strict
 
 import tlsjax as tj
 from tlsjax._cli import main
-from tlsjax._cli._checks import state_cost
-from tlsjax._io._outputs import atomic_output
-
-pytestmark = pytest.mark.internal
 
 N_TARGETS = 24
 
@@ -113,7 +109,7 @@ def base(tmp_path_factory):
     (d / "compare.json").write_text(json.dumps({"p_value": 0.3, "compatible": True, "runs": 10}))
     (d / "garbage.json").write_text("{not json")
     # Plane files: one cut short, one whose arrays disagree.
-    tj.save_planes(d / "planes.npz", tiny_planes(rng, 40))
+    tj.write_extracted_planes(d / "planes.npz", tiny_planes(rng, 40))
     raw = (d / "planes.npz").read_bytes()
     (d / "planes_truncated.npz").write_bytes(raw[: len(raw) // 2])
     with np.load(d / "planes.npz") as z:
@@ -344,6 +340,7 @@ def test_weakly_determined_aps_get_no_verdict(work, capsys):
     assert "for 23 APs" in err or "for 23 APs" in out  # the likely cause is named
 
 
+@pytest.mark.internal
 def test_a_run_whose_vce_failed_writes_no_estimates(work, capsys, monkeypatch):
     """VCE that oscillates (forced): exit 1, and the text, the JSON and the exit code agree
     that there is no calibration (issue 28: it used to say "valid" and hold B6). Private:
@@ -524,7 +521,10 @@ def test_t_tests_give_no_verdict_where_none_is_defined(sim):
 # --- cost, Ctrl-C and atomic writes -------------------------------------------------------------
 
 
+@pytest.mark.internal
 def test_a_long_run_states_its_cost_first(capsys):
+    from tlsjax._cli._checks import state_cost
+
     seconds = state_cost(
         "the Monte Carlo run", "--runs", 10**6, rows=2168, parameters=10, devices=2,
         result_bytes=224, usual="1,000 is usual",
@@ -536,7 +536,10 @@ def test_a_long_run_states_its_cost_first(capsys):
     assert capsys.readouterr().out == ""  # a short run says nothing
 
 
+@pytest.mark.internal
 def test_ctrl_c_leaves_no_half_written_file(tmp_path):
+    from tlsjax._io._outputs import atomic_output
+
     target = tmp_path / "out.csv"
     target.write_text("previous\n")
     with pytest.raises(KeyboardInterrupt):
@@ -548,6 +551,7 @@ def test_ctrl_c_leaves_no_half_written_file(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["out.csv"]
 
 
+@pytest.mark.internal
 def test_ctrl_c_exits_130(work, capsys, monkeypatch):
     from tlsjax._io import _tables
 

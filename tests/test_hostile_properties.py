@@ -57,7 +57,7 @@ def files(tmp_path_factory):
     write_ptx(d / "c.ptx", [(x, None)])
     tj.write_ply(d / "c.ply", x)
     tj.write_las(d / "c.las", x, np.zeros(6))
-    tj.save_planes(d / "p.npz", tiny_planes(rng, 20))
+    tj.write_extracted_planes(d / "p.npz", tiny_planes(rng, 20))
     return d
 
 

@@ -12,9 +12,6 @@ import pytest
 
 import tlsjax as tj
 from tlsjax import ObservationTable, read_observations, read_scans, write_observations
-from tlsjax._io._csv import parse_unit_column
-
-pytestmark = pytest.mark.internal
 
 DEG = math.pi / 180.0
 GON = math.pi / 200.0
@@ -45,6 +42,7 @@ S2,T1,11.0,180.0,100.0
 # --------------------------------------------------------------------------------------------
 
 
+@pytest.mark.internal
 @pytest.mark.parametrize(
     "header, expected",
     [
@@ -59,18 +57,24 @@ S2,T1,11.0,180.0,100.0
     ],
 )
 def test_parse_unit_column(header, expected):
+    from tlsjax._io._csv import parse_unit_column
+
     q, u, f = parse_unit_column(header)
     assert (q, u) == expected[:2]
     assert f == pytest.approx(expected[2], rel=1e-15)
 
 
+@pytest.mark.internal
 def test_unit_factors_against_hand_values():
+    from tlsjax._io._csv import parse_unit_column
+
     assert 200.0 * parse_unit_column("hz_gon")[2] == pytest.approx(math.pi, rel=1e-15)
     assert 3600.0 * parse_unit_column("hz_arcsec")[2] == pytest.approx(DEG, rel=1e-15)
     assert 1500.0 * parse_unit_column("range_mm")[2] == pytest.approx(1.5, rel=1e-15)
     assert 180.0 * parse_unit_column("el_deg")[2] == pytest.approx(math.pi, rel=1e-15)
 
 
+@pytest.mark.internal
 @pytest.mark.parametrize(
     "header, message",
     [
@@ -81,6 +85,8 @@ def test_unit_factors_against_hand_values():
     ],
 )
 def test_parse_unit_column_errors(header, message):
+    from tlsjax._io._csv import parse_unit_column
+
     with pytest.raises(ValueError, match=message):
         parse_unit_column(header)
 

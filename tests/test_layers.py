@@ -115,35 +115,50 @@ def test_calibrate_command_uses_the_public_api_only():
 TESTS = ROOT.parent / "tests"
 
 
-def _private_imports(path):
-    """The private tlsjax modules a test module imports (the console script's entry aside)."""
-    tree = ast.parse(path.read_text(), str(path))
-    out = set()
-    for node in ast.walk(tree):
-        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("tlsjax._"):
-            if node.module != "tlsjax._cli" or {a.name for a in node.names} - {"main"}:
-                out.add(node.module)
-        elif isinstance(node, ast.Import):
-            out |= {a.name for a in node.names if a.name.startswith("tlsjax._")}
-    return out
+def _private(node) -> set:
+    """The private tlsjax modules an import statement imports (the console script's entry
+    ``tlsjax._cli.main`` aside)."""
+    if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("tlsjax._"):
+        if node.module != "tlsjax._cli" or {a.name for a in node.names} - {"main"}:
+            return {node.module}
+    elif isinstance(node, ast.Import):
+        return {a.name for a in node.names if a.name.startswith("tlsjax._")}
+    return set()
+
+
+def _internal(node) -> bool:
+    """``pytestmark = pytest.mark.internal`` at module level, or ``@pytest.mark.internal``."""
+    if isinstance(node, ast.Assign):
+        names = [getattr(t, "id", None) for t in node.targets]
+        return names == ["pytestmark"] and ast.unparse(node.value) == "pytest.mark.internal"
+    decorators = getattr(node, "decorator_list", ())
+    return any(ast.unparse(d) == "pytest.mark.internal" for d in decorators)
 
 
 def test_private_imports_only_in_tests_marked_internal():
-    """Private imports stand only in test modules marked ``internal`` whose docstring names
-    them; a module marked ``internal`` has some (no stale mark)."""
+    """A private import stands only in a test module marked ``internal`` or in a test marked
+    ``internal``, and the module's docstring says why; a mark without a private import under
+    it is stale."""
     wrong = []
-    for path in sorted(TESTS.glob("*.py")):
+    for path in sorted(TESTS.glob("test_*.py")):
         tree = ast.parse(path.read_text())
-        private = _private_imports(path)
-        marked = any(
-            isinstance(n, ast.Assign)
-            and [getattr(t, "id", None) for t in n.targets] == ["pytestmark"]
-            and ast.unparse(n.value) == "pytest.mark.internal"
-            for n in tree.body
-        )
+        module_mark = any(_internal(n) for n in tree.body)
+        top = set().union(*(_private(n) for n in tree.body))
         doc = ast.get_docstring(tree) or ""
-        if path.name.startswith("test_") and private and not (marked and "Private" in doc):
-            wrong.append(f"{path.name}: {sorted(private)} without the mark and the docstring")
-        if marked and not private:
+        inner = set()
+        for f in tree.body:
+            found = set().union(*(_private(n) for n in ast.walk(f)))
+            if isinstance(f, (ast.Import, ast.ImportFrom)) or not found:
+                if _internal(f) and not isinstance(f, ast.Assign):
+                    wrong.append(f"{path.name}: {f.name} marked internal, imports nothing private")
+                continue
+            inner |= found
+            if not (module_mark or _internal(f)):
+                wrong.append(f"{path.name}: {getattr(f, 'name', '?')} imports {sorted(found)}")
+        if top and not module_mark:
+            wrong.append(f"{path.name}: {sorted(top)} at module level without the module's mark")
+        if module_mark and not top | inner:
             wrong.append(f"{path.name}: marked internal, imports nothing private")
+        if (top | inner) and "Private" not in doc:
+            wrong.append(f"{path.name}: the docstring does not say what is imported privately")
     assert not wrong, wrong

@@ -14,9 +14,6 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
-from tlsjax._report._plots import _rows
-
-pytestmark = pytest.mark.internal
 
 SIGMA_FACTOR = 20.0  # size of the planted gross errors, in sigmas of the range
 
@@ -71,7 +68,10 @@ def test_planted_gross_errors_are_all_found_with_few_false_removals(planted):
     assert np.all(np.abs(res.ap_values - truth) < 4 * res.ap_sigmas)
 
 
+@pytest.mark.internal
 def test_removed_points_keep_their_misfit_in_the_residuals_and_the_plot(planted, tmp_path):
+    from tlsjax._report._plots import _rows
+
     _, _, _, bad, _, tested = planted
     res = tested.calibration
     v = res.plane_residuals[bad]

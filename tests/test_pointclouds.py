@@ -15,9 +15,6 @@ from tlsjax import (
     read_point_clouds,
     simulate_point_clouds,
 )
-from tlsjax._io._point_clouds import observations_from_points, write_ptx, write_xyz
-
-pytestmark = pytest.mark.internal
 
 DEG = np.pi / 180
 
@@ -40,8 +37,11 @@ def _write_pcd_double(path, x):
         np.savetxt(fh, x, fmt="%.17g")
 
 
+@pytest.mark.internal
 @pytest.mark.parametrize("fmt", ["xyz", "ptx", "ply", "pcd"])
 def test_round_trip_equals_simulated_observations(tmp_path, clouds, fmt):
+    from tlsjax._io._point_clouds import write_ptx, write_xyz
+
     arch = clouds.scanner.architecture
     j = 4  # a tilted scan
     l = clouds.observations[j]
@@ -80,7 +80,10 @@ def test_open3d_pcd_is_single_precision(tmp_path, clouds):
     assert 1e-12 < err < 2e-6
 
 
+@pytest.mark.internal
 def test_ptx_several_scans_and_zero_points(tmp_path, clouds):
+    from tlsjax._io._point_clouds import write_ptx
+
     arch = clouds.scanner.architecture
     scans = [
         (cartesian_from_spherical(clouds.observations[j], xp=np), clouds.eops[j]) for j in (0, 5)
@@ -127,7 +130,10 @@ def test_e57_round_trip(tmp_path, clouds):
     np.testing.assert_allclose(scan.observations, clouds.observations[j], rtol=0, atol=2e-6)
 
 
+@pytest.mark.internal
 def test_panoramic_convention_by_hand():
+    from tlsjax._io._point_clouds import observations_from_points
+
     x = np.array([[1.0, 1.0, 0.0], [-1.0, -1.0, 0.0], [0.0, -2.0, 2.0]])
     hyb = observations_from_points(x, "hybrid")
     pan = observations_from_points(x, "panoramic")
@@ -138,7 +144,10 @@ def test_panoramic_convention_by_hand():
     np.testing.assert_allclose(cartesian_from_spherical(pan, xp=np), x, atol=1e-15)
 
 
+@pytest.mark.internal
 def test_bad_input_names_file_and_line(tmp_path):
+    from tlsjax._io._point_clouds import write_ptx
+
     p = tmp_path / "bad.xyz"
     p.write_text("# comment\n1 2 3\n\n4 five 6\n")
     with pytest.raises(ValueError, match=r"bad\.xyz, line 4: not a number"):

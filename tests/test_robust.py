@@ -13,9 +13,6 @@ import pytest
 from helpers import printed_is_summary, same_run
 
 import tlsjax as tj
-from tlsjax._inference._robust import igg3
-
-pytestmark = pytest.mark.internal
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +26,10 @@ def clouds():
     return pc, net, dataclasses.replace(net, plane_observations=obs), bad
 
 
+@pytest.mark.internal
 def test_igg3_weights():
+    from tlsjax._inference._robust import igg3
+
     w = np.array([0.0, 1.0, 3.29, 3.8, 4.32, 9.0])
     f = igg3(w, 3.29, 4.32)
     assert np.all(f[:3] == 1.0) and f[4] == 0.0 and f[5] == 0.0

@@ -12,11 +12,6 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
-from tlsjax._adjustment._calibrate import _run
-from tlsjax._inference._pipeline import Reweighter, _undetermined_targets
-from tlsjax._stats import non_centrality, normal_critical_value
-
-pytestmark = pytest.mark.internal
 
 APS = ("A0", "B6", "B7", "C0")
 MODEL = tj.CalibrationModel(tj.Scanner(aps=APS))
@@ -27,7 +22,10 @@ def sim():
     return tj.simulate(tj.Room(n_targets=36), seed=11, aps=" ".join(APS))
 
 
+@pytest.mark.internal
 def test_constants():
+    from tlsjax._stats import non_centrality, normal_critical_value
+
     assert np.isclose(normal_critical_value(0.001), 3.2905, atol=1e-4)
     assert np.isclose(non_centrality(0.001, 0.8), 4.1321, atol=1e-3)
     with pytest.raises(ValueError, match="w_test_level"):
@@ -36,9 +34,12 @@ def test_constants():
         tj.SnoopingOptions(removal="scan")
 
 
+@pytest.mark.internal
 def test_mdb_and_external_reliability_by_direct_readjustment(sim):
     """An error of one MDB in observation i shifts its w-test by delta0 and the APs by the
     reported external reliability (linear model: exact up to linearisation)."""
+    from tlsjax._stats import non_centrality
+
     net = sim.network
     base = tj.self_calibrate(net, MODEL, tj.CalibrationOptions(screening=None, vce=None))
     delta0 = non_centrality()
@@ -74,7 +75,10 @@ def test_vce_fixed_point_and_recovery(sim):
     assert np.isclose(res.sigma0, 1.0, atol=2e-3)
 
 
+@pytest.mark.internal
 def test_reweighting_and_masking_do_not_recompile(sim):
+    from tlsjax._adjustment._calibrate import _run
+
     net = sim.network
     obs = net.observations.copy()
     obs[10, 0] += 30 * net.sigmas[10, 0]
@@ -127,7 +131,10 @@ def test_snooping_finds_blunders_without_false_removals(seed):
     assert r.calibration.ok
 
 
+@pytest.mark.internal
 def test_target_removal_and_undetermined_target(sim):
+    from tlsjax._inference._pipeline import Reweighter, _undetermined_targets
+
     net = sim.network
     rw = Reweighter(net, MODEL, tj.SolverOptions(full_covariance=False))
     w = 1.0 / net.sigmas
@@ -218,6 +225,7 @@ def test_stepwise_selection_adds_the_true_term_and_rejects_a_spurious_one():
     assert sel.steps[1].sigma0 < sel.steps[0].sigma0
 
 
+@pytest.mark.internal
 def test_residual_plot_ap_curves(sim, tmp_path):
     from tlsjax import plot_residuals
     from tlsjax._report._plots import _ap_curves

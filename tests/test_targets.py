@@ -15,9 +15,6 @@ import pytest
 import tlsjax as tj
 from tlsjax import cartesian_from_spherical, rotation_matrix
 from tlsjax._cli import main
-from tlsjax._io._scan_chunks import open_scans
-
-pytestmark = pytest.mark.internal
 
 DEG = np.pi / 180
 DATA = pathlib.Path(__file__).parent / "data"
@@ -283,7 +280,10 @@ def test_real_scan_without_targets_accepts_none(tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.internal
 def test_streamed_readers_carry_intensity():
+    from tlsjax._io._scan_chunks import open_scans
+
     (scan,) = open_scans(DATA / "pump_every7th.e57")
     parts = list(scan.chunks(5000))
     pts = np.concatenate([p for p, _, _ in parts])

@@ -15,12 +15,6 @@ import scipy.stats
 
 import tlsjax as tj
 from tlsjax import VCEResult
-from tlsjax._inference import _steps
-from tlsjax._inference._variance_factors import implausible_factor, suspected_units
-from tlsjax._io._json import dumps_strict
-from tlsjax._stats import group_variance_test
-
-pytestmark = pytest.mark.internal
 
 APS = "A0 B6 B7 C0"
 MODEL = tj.CalibrationModel(tj.Scanner(aps=APS))
@@ -140,7 +134,10 @@ def test_sigmas_far_too_small_are_named_not_nan(sim):
         assert d["vce"]["result"] == int(VCEResult.ADJUSTMENT_FAILED)
 
 
+@pytest.mark.internal
 def test_safeguards_stop_with_their_codes(sim, monkeypatch):
+    from tlsjax._inference import _steps
+
     net = sim.network
     r = tj.self_calibrate(net, MODEL, tj.CalibrationOptions(vce=tj.VCEOptions(min_redundancy=1e6)))
     assert r.vce_result == VCEResult.NO_REDUNDANCY and r.ok
@@ -156,9 +153,12 @@ def test_safeguards_stop_with_their_codes(sim, monkeypatch):
     _strict(r)
 
 
+@pytest.mark.internal
 def test_oscillating_factors_are_damped_and_reported(sim, monkeypatch):
     """A fake VCE step that alternates between s^2 = 4 and 1/4: the damping halves every
     change of direction, so the factors stay between 1/4 and 4 and the stop says why."""
+    from tlsjax._inference import _steps
+
     calls = {"n": 0}
     real = _steps.group_statistics
 
@@ -180,7 +180,11 @@ def test_oscillating_factors_are_damped_and_reported(sim, monkeypatch):
     assert steps[-1] < steps[0] / 16  # each change of direction halves the step
 
 
+@pytest.mark.internal
 def test_group_variance_test_against_scipy():
+    from tlsjax._io._json import dumps_strict
+    from tlsjax._stats import group_variance_test
+
     t = group_variance_test(omega=350.0, redundancy=300.0, level=0.05)
     assert np.isclose(t["factor"], 350 / 300)
     assert np.isclose(t["upper"], scipy.stats.chi2.ppf(0.975, 300))
@@ -192,7 +196,10 @@ def test_group_variance_test_against_scipy():
     dumps_strict(empty)
 
 
+@pytest.mark.internal
 def test_unit_suspicion_table():
+    from tlsjax._inference._variance_factors import implausible_factor, suspected_units
+
     assert suspected_units(57.3) == ("degrees vs radians", "gon vs radians")
     assert suspected_units(1 / 1000.0, "length") == ("millimetres vs metres",)
     assert suspected_units(1000.0, "angle") == ()

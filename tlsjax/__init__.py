@@ -106,8 +106,8 @@ from ._io._json import read_result_json as read_result_json
 from ._io._json import write_json as write_json
 from ._io._las import write_las as write_las
 from ._io._outputs import check_outputs as check_outputs
-from ._io._plane_files import load_planes as load_planes
-from ._io._plane_files import save_planes as save_planes
+from ._io._plane_files import read_extracted_planes as read_extracted_planes
+from ._io._plane_files import write_extracted_planes as write_extracted_planes
 from ._io._ply import write_ply as write_ply
 from ._io._point_clouds import PointCloudScan as PointCloudScan
 from ._io._point_clouds import PointCloudWarning as PointCloudWarning

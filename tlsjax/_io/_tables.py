@@ -484,9 +484,9 @@ def read_planes(path) -> ObservationTable:
     if os.path.isdir(source):
         raise ValueError(f"{source}: is a directory, not a plane file (.csv or .npz)")
     if source.lower().endswith(".npz"):
-        from ._plane_files import load_planes
+        from ._plane_files import read_extracted_planes
 
-        planes = load_planes(source)
+        planes = read_extracted_planes(source)
         if planes.planes is None:
             raise ValueError(
                 f"{source}: the planes are not matched across scans (no scan poses at extraction); "
