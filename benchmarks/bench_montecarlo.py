@@ -177,7 +177,7 @@ def level_study(tests, sims, shifts=(0.0, 3.0, 5.0, 8.0), seed=5):
     C0): both drawn from one truth. B6 of the second set is then shifted by ``shift`` sigma of
     the B6 difference. Each test uses ``sims`` simulations (the compiled test is reused).
     """
-    from tlsjax._inference._compatibility_test import (
+    from tlsjax._inference._compatibility import (
         APSet,
         CompatibilityOptions,
         compatibility_test,

@@ -238,7 +238,7 @@ def test_zero_noise_power_close_to_the_naive_test_where_visible(set4):
 
 @pytest.mark.parametrize("case", ["4 APs", "23 APs", "different basis"])
 def test_zero_noise_eigenvalues_in_unit_interval_sum_to_three(case, set4, set23):
-    """L^T G L is a mean of orthogonal projectors of rank 3 (module docstring of _compatibility_test)."""
+    """L^T G L is a mean of orthogonal projectors of rank 3 (module docstring of _compatibility)."""
     s1, s2, _ = _design(case, set4, set23)
     r = tj.compatibility_test(s1, s2, options=options(runs=20), sigma_range=0, sigma_angle=0)
     lam = r.null_eigenvalues

@@ -75,11 +75,11 @@ from ._inference._checkpoints import CheckpointReport as CheckpointReport
 from ._inference._checkpoints import TargetCheck as TargetCheck
 from ._inference._checkpoints import assess_checkpoints as assess_checkpoints
 from ._inference._checkpoints import check_targets as check_targets
-from ._inference._compatibility_test import CompatibilityOptions as CompatibilityOptions
-from ._inference._compatibility_test import CompatibilityResult as CompatibilityResult
-from ._inference._compatibility_test import compatibility_batch as compatibility_batch
-from ._inference._compatibility_test import compatibility_statistic as compatibility_statistic
-from ._inference._compatibility_test import compatibility_test as compatibility_test
+from ._inference._compatibility import CompatibilityOptions as CompatibilityOptions
+from ._inference._compatibility import CompatibilityResult as CompatibilityResult
+from ._inference._compatibility import compatibility_batch as compatibility_batch
+from ._inference._compatibility import compatibility_statistic as compatibility_statistic
+from ._inference._compatibility import compatibility_test as compatibility_test
 from ._inference._options import CalibrationOptions as CalibrationOptions
 from ._inference._options import ScreeningOptions as ScreeningOptions
 from ._inference._options import SnoopingOptions as SnoopingOptions

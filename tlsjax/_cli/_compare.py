@@ -8,7 +8,7 @@ compatible, 2: bad input.
 from __future__ import annotations
 
 from .._inference._apset import APSet
-from .._inference._compatibility_test import CompatibilityOptions, compatibility_test
+from .._inference._compatibility import CompatibilityOptions, compatibility_test
 from .._model._scanner import Scanner
 from .._simulation._room import Room
 from .._units import ARCSEC
