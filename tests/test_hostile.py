@@ -551,13 +551,10 @@ def test_ctrl_c_leaves_no_half_written_file(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["out.csv"]
 
 
-@pytest.mark.internal
 def test_ctrl_c_exits_130(work, capsys, monkeypatch):
-    from tlsjax._io import _tables
-
     def interrupted(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(_tables, "read_network", interrupted)
+    monkeypatch.setattr(tj, "read_network", interrupted)  # what tlsjax calibrate calls
     code, out, err = run(["calibrate", work / "obs.csv", "--json", work / "c.json"], capsys)
     assert code == 130 and "interrupted" in err and not (work / "c.json").exists()

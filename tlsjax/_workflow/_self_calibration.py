@@ -43,7 +43,7 @@ class SelfCalibration(TestedCalibration):
     read back; ``provenance``: tlsjax version, time, Python, platform and the network's input
     files with their SHA-256; ``inputs``: how the network was read (files, reading settings,
     the command line), recorded by whoever read it (:meth:`with_inputs`; ``tlsjax calibrate``
-    does); ``design_warnings``: what the design cannot determine well, named before the run.
+    does); ``design_warnings``: what the design (scans, primitives, APs) cannot determine well.
 
     ``summary()`` is the text ``tlsjax calibrate`` prints, ``to_dict()`` the JSON it writes.
     """
