@@ -105,11 +105,17 @@ def test_no_import_circles_within_a_subpackage():
     assert not cycles, cycles
 
 
-def test_calibrate_command_uses_the_public_api_only():
-    name = "tlsjax._cli._calibrate"
-    path, package = _modules()[name]
-    private = [t for t, _ in _imports(name, path, package) if t != "tlsjax" and _unit(t) != "_cli"]
-    assert not private, private
+#: The commands that use the public API only (the others still import private modules).
+PUBLIC_COMMANDS = ("_calibrate", "_compare", "_montecarlo", "_report")
+
+
+def test_commands_use_the_public_api_only():
+    modules = _modules()
+    for command in PUBLIC_COMMANDS:
+        name = f"tlsjax._cli.{command}"
+        imported = _imports(name, *modules[name])
+        private = [t for t, _ in imported if _unit(t) not in ("__init__", "_cli")]
+        assert not private, (name, private)
 
 
 TESTS = ROOT.parent / "tests"

@@ -18,11 +18,12 @@ module except the command line.
    layers 1-3.
 5. ``_inference`` (tests, VCE, snooping, selection, compatibility), ``_design`` (network
    design) and ``_clouds`` (planes and targets from point clouds): on layers 1-4.
-6. ``_report``: text, JSON, plots and the HTML report.
+6. ``_report``: the per-observation tables (CSV), the plots and the HTML report.
 7. ``_workflow``: the one tested entry of a self-calibration (:func:`self_calibrate`) and its
    result, which composes the pipeline of layer 5 with the text and JSON of layer 6.
 8. this module (the public API), then ``_cli`` (the command line), which may use everything;
-   ``tlsjax calibrate`` uses the public API only. tests/test_layers.py holds the code to this.
+   ``calibrate``, ``compare``, ``montecarlo`` and ``report`` use the public API only.
+   tests/test_layers.py holds the code to this.
 """
 
 import jax as _jax

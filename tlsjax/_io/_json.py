@@ -148,7 +148,7 @@ def read_result_json(source, *, accept=()) -> dict:
 
 def write_json(result, path) -> dict:
     """Write ``result.to_dict()`` (any tlsjax result: a :class:`tlsjax.SelfCalibration`, a
-    :class:`tlsjax.CalibrationResult`, ...) as strict JSON (NaN and infinities are null),
-    atomically: the file is complete or not written. A path that cannot be written is a
-    one-line ValueError naming it. Returns the dict written."""
-    return write_json_file(path, result.to_dict())
+    :class:`tlsjax.CalibrationResult`, ...; or a dict as it is) as strict JSON (NaN and
+    infinities are null), atomically: the file is complete or not written. A path that cannot
+    be written is a one-line ValueError naming it. Returns the dict written."""
+    return write_json_file(path, result if isinstance(result, dict) else result.to_dict())
