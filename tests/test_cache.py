@@ -64,3 +64,28 @@ def test_a_key_without_a_stable_description_is_never_stored(tmp_path, monkeypatc
     out = f(jnp.ones(2), jnp.ones(2))
     assert len(traced) == 1 and list(tmp_path.iterdir()) == []
     np.testing.assert_array_equal(out["sum"], 2.0 * np.ones(2))
+
+
+def test_a_process_killed_mid_store_does_not_stop_later_stores(tmp_path):
+    """JAX writes an entry, then its access-time file; a process killed between the two left an
+    entry without one, and every later store in the folder failed (a warning per program,
+    nothing cached). A new process repairs the folder at import and stores again."""
+    import subprocess
+    import sys
+
+    folder = tmp_path / f"tlsjax-{tj.__version__}"
+    folder.mkdir()
+    (folder / "jit_orphan-0123456789abcdef-cache").write_bytes(b"x" * 64)  # no -atime
+    program = (
+        "import warnings, jax.numpy as jnp, tlsjax\n"
+        "warnings.simplefilter('error')\n"  # a failed store warns: fail the run instead
+        "print(float(jnp.sin(jnp.arange(3.0)).sum()))\n"
+    )
+    env = dict(os.environ, TLSJAX_CACHE_DIR=str(tmp_path), JAX_PLATFORMS="cpu")
+    run = subprocess.run([sys.executable, "-c", program], env=env, capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert "Error writing persistent compilation cache" not in run.stderr
+    entries = {p.name for p in folder.iterdir()}
+    stored = {n for n in entries if n.endswith("-cache")} - {"jit_orphan-0123456789abcdef-cache"}
+    assert stored, entries  # the new program was stored
+    assert all(n[: -len("cache")] + "atime" in entries for n in entries if n.endswith("-cache"))

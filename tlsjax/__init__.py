@@ -39,6 +39,7 @@ from ._adjustment._calibrate import analyze as analyze
 from ._adjustment._calibrate import calibrate as calibrate
 from ._adjustment._config import CalibrationModel as CalibrationModel
 from ._adjustment._config import SolverOptions as SolverOptions
+from ._adjustment._config import scanner_settings as scanner_settings
 from ._adjustment._implicit import Estimates as Estimates
 from ._adjustment._implicit import NetworkInputs as NetworkInputs
 from ._adjustment._implicit import differentiable_adjustment as differentiable_adjustment
@@ -68,6 +69,7 @@ from ._clouds._targets import extract_targets_from_files as extract_targets_from
 from ._clouds._thin import DEFAULT_PLANE_SPACING as DEFAULT_PLANE_SPACING
 from ._clouds._thin import thin_planes as thin_planes
 from ._design._criteria import DesignCriterion as DesignCriterion
+from ._design._criteria import criterion_of_result as criterion_of_result
 from ._design._criteria import design_criterion as design_criterion
 from ._design._criteria import predicted_cofactor as predicted_cofactor
 from ._design._design import DesignProblem as DesignProblem
@@ -113,10 +115,12 @@ from ._io._json import write_json as write_json
 from ._io._las import write_las as write_las
 from ._io._outputs import check_outputs as check_outputs
 from ._io._plane_files import read_extracted_planes as read_extracted_planes
+from ._io._plane_files import read_poses as read_poses
 from ._io._plane_files import write_extracted_planes as write_extracted_planes
 from ._io._ply import write_ply as write_ply
 from ._io._point_clouds import PointCloudScan as PointCloudScan
 from ._io._point_clouds import PointCloudWarning as PointCloudWarning
+from ._io._point_clouds import point_cloud_format as point_cloud_format
 from ._io._point_clouds import read_point_clouds as read_point_clouds
 from ._io._priors import parse_ap_prior as parse_ap_prior
 from ._io._priors import read_ap_priors as read_ap_priors
@@ -131,6 +135,7 @@ from ._io._target_files import write_target_table as write_target_table
 from ._io._target_lists import read_reference as read_reference
 from ._io._target_lists import read_target_list as read_target_list
 from ._model._aps import PRESETS as PRESETS
+from ._model._aps import get_ap as get_ap
 from ._model._aps import register_ap as register_ap
 from ._model._aps import registered_aps as registered_aps
 from ._model._aps import resolve_aps as resolve_aps
@@ -150,7 +155,9 @@ from ._report._tables import group_records as group_records
 from ._report._tables import observation_records as observation_records
 from ._report._tables import write_adjusted_targets as write_adjusted_targets
 from ._report._tables import write_tables as write_tables
+from ._report._target_plots import plot_all_targets as plot_all_targets
 from ._report._target_plots import plot_targets as plot_targets
+from ._report._target_plots import target_picture_names as target_picture_names
 from ._simulation._design import DesignSimulation as DesignSimulation
 from ._simulation._design import NetworkDesign as NetworkDesign
 from ._simulation._design import RoomPlane as RoomPlane
@@ -171,6 +178,8 @@ from ._simulation._room import Simulation as Simulation
 from ._simulation._room import simulate as simulate
 from ._simulation._truth import SimulationTruth as SimulationTruth
 from ._stats import global_test as global_test
+from ._units import ARCSEC as ARCSEC
+from ._units import DEG as DEG
 from ._version import __version__ as __version__
 from ._workflow._self_calibration import SelfCalibration as SelfCalibration
 from ._workflow._self_calibration import self_calibrate as self_calibrate

@@ -131,17 +131,41 @@ def use_persistent_cache() -> str | None:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
     try:
-        import filelock  # noqa: F401  JAX locks the folder with it when the size is bounded
+        import filelock  # JAX locks the folder with it when the size is bounded
     except ImportError:  # unbounded and unlocked: still correct (a torn read recompiles)
         pass
     else:
         jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
+        _repair_cache(path, filelock)
     # JAX decides at its first compile whether this process uses the cache; a program compiled
     # before this call (the user's own) made it decide without one: let it decide again.
     from jax.experimental.compilation_cache import compilation_cache
 
     compilation_cache.reset_cache()
     return path
+
+
+def _repair_cache(path: str, filelock) -> None:
+    """Give every entry of JAX's size-bounded cache its access-time file.
+
+    JAX writes an entry, then its ``<key>-atime`` file; a process killed between the two (Ctrl-C
+    during a compile) leaves an entry without one, and from then on every store in the folder
+    fails in JAX's eviction scan (a warning per program, nothing cached). Written here, under
+    JAX's own lock, with the oldest possible time, so the orphan is the first evicted."""
+    try:
+        names = set(os.listdir(path))
+        orphans = [n[: -len("-cache")] for n in names if n.endswith("-cache")]
+        orphans = [k for k in orphans if k + "-atime" not in names]
+        if not orphans:
+            return
+        with filelock.FileLock(os.path.join(path, ".lockfile"), timeout=10):
+            for key in orphans:
+                atime = os.path.join(path, key + "-atime")
+                if os.path.exists(os.path.join(path, key + "-cache")) and not os.path.exists(atime):
+                    with open(atime, "wb") as f:
+                        f.write((0).to_bytes(8, "little"))
+    except (OSError, filelock.Timeout):  # a cache that cannot be repaired only costs compiles
+        pass
 
 
 # --- Programs stored traced (jax.export) ----------------------------------------------------

@@ -171,12 +171,13 @@ class CalibrationResult:
             c = self.covariance / np.outer(s, s)
         return np.where(np.outer(s, s) > 0, c, 0.0)
 
-    def summary(self) -> str:
+    def summary(self, truth: dict | None = None) -> str:
         """The result as text: result code, degrees of freedom, sigma0 and the global test,
         mean redundancy numbers, weighted constraints, confoundings and implausible estimates,
         then the papers' AP table (Chow et al. 2013, tables 3-6; no numbers for a failed
-        adjustment)."""
-        return summary(self) + "\n\n" + ap_table(self)
+        adjustment), with a column of true values where ``truth`` (AP name -> SI value, e.g.
+        a simulation's ``true_aps``) is given."""
+        return summary(self) + "\n\n" + ap_table(self, truth=truth)
 
     def to_dict(self) -> dict:
         """The result JSON of SPEC section 11 (SI units, strict JSON): estimates, sigmas,

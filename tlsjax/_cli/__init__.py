@@ -18,7 +18,8 @@ import os
 import sys
 import warnings
 
-from .._version import __version__
+import tlsjax as tj
+
 from ._calibrate import add_calibrate_parser
 from ._checks import reset_warnings, warn
 from ._common import EXIT_BAD_INPUT, EXIT_INTERNAL, use_host_devices
@@ -47,7 +48,7 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> argparse.ArgumentParser:
     ap = _Parser(prog="tlsjax", description="Terrestrial laser scanner self-calibration in JAX.")
-    ap.add_argument("--version", action="version", version=f"tlsjax {__version__}")
+    ap.add_argument("--version", action="version", version=f"tlsjax {tj.__version__}")
     sub = ap.add_subparsers(dest="command", required=True, parser_class=_Parser)
     for add in (
         add_demo_parser,
@@ -76,10 +77,7 @@ def _one_line(text) -> str:
 def _show_warning(message, category, filename, lineno, file=None, line=None):
     # Warnings of tlsjax (implausible magnitudes, point-cloud notes) are one "warning:" line
     # each, as the commands print their own; others keep Python's format.
-    from .._io._point_clouds import PointCloudWarning
-    from .._model._plausibility import PlausibilityWarning
-
-    if issubclass(category, (PlausibilityWarning, PointCloudWarning)):
+    if issubclass(category, (tj.PlausibilityWarning, tj.PointCloudWarning)):
         warn(str(message))
     else:
         sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))

@@ -44,36 +44,32 @@ def add_correct_parser(sub):
 
 
 def cli_correct(args) -> int:
-    from .._io._correct import Calibration
-    from .._io._correct_files import correct_point_cloud
-    from .._io._outputs import check_outputs
-    from .._io._plane_files import read_poses
-    from .._io._point_clouds import point_cloud_format
+    import tlsjax as tj
 
     names = [os.path.basename(p) for p in args.scans]
     if len(set(names)) != len(names):
         raise ValueError(f"scan files with the same name would overwrite each other in {args.out}")
     written = names + [n + ".sigma_mm.txt" for n in names] if args.precision else names
-    check_outputs(  # before any work: never over an input, every file writable
+    tj.check_outputs(  # before any work: never over an input, every file writable
         [("--out", args.out, written)],
         [("calibration", args.calibration), ("--poses", args.poses)]
         + [("scan", p) for p in args.scans],
     )
     for path in args.scans:  # refuse unknown formats and missing files before writing anything
-        point_cloud_format(path)
+        tj.point_cloud_format(path)
         if not os.path.isfile(path):
             raise FileNotFoundError(2, "No such file or directory", path)
-    cal = Calibration.from_json(
+    cal = tj.Calibration.from_json(
         args.calibration, architecture=args.architecture, instrument=args.instrument
     )
-    poses = read_poses(args.poses) if args.poses else None
+    poses = tj.read_poses(args.poses) if args.poses else None
     print(f"{args.calibration}: {cal.scanner.architecture} scanner; applying {cal.describe()}")
     for note in cal.notes:
         warn(note)
     for path in args.scans:
         out = os.path.join(args.out, os.path.basename(path))
         try:
-            scans = correct_point_cloud(
+            scans = tj.correct_point_cloud(
                 path,
                 cal,
                 out,

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+import tlsjax as tj
+
 from ._checks import non_negative_int, positive_float, positive_int, state_cost
 from ._common import EXIT_FAILED, EXIT_OK, scanner_args
 
@@ -69,24 +71,17 @@ def add_design_parser(sub):
 
 
 def _tolerances(items, aps):
-    from .._model._aps import get_ap
-    from .._units import ARCSEC
-
     out = {}
     for item in items:
         name, _, value = item.partition("=")
         if name not in aps or not value:
             raise ValueError(f"--tolerance {item!r}: expected AP=VALUE with an AP of the model")
-        unit = get_ap(name).unit
-        out[name] = float(value) * (1e-3 if unit == "m" else ARCSEC if unit == "rad" else 1e-6)
+        unit = tj.get_ap(name).unit
+        out[name] = float(value) * (1e-3 if unit == "m" else tj.ARCSEC if unit == "rad" else 1e-6)
     return out
 
 
 def _build(args):
-    import tlsjax as tj
-
-    from .._units import DEG
-
     room = tj.Room.parse(args.room, n_targets=args.targets)
     sim = tj.simulate(
         room,
@@ -105,9 +100,9 @@ def _build(args):
     levelled[tilted] = False
     fov = None
     if args.fov_deg:
-        lo, hi = (float(v) * DEG for v in args.fov_deg.split(","))
+        lo, hi = (float(v) * tj.DEG for v in args.fov_deg.split(","))
         fov = (lo, hi)
-    inc = None if args.max_incidence_deg is None else args.max_incidence_deg * DEG
+    inc = None if args.max_incidence_deg is None else args.max_incidence_deg * tj.DEG
     design = tj.TargetDesign.from_simulation(sim)
     dn = tj.DesignProblem.targets(
         design,
@@ -124,7 +119,7 @@ def _build(args):
         headings=args.headings,
         targets=args.move_targets,
         clearance=args.clearance,
-        tilt_limit=args.tilt_limit_deg * DEG,
+        tilt_limit=args.tilt_limit_deg * tj.DEG,
     )
     crit = tj.DesignCriterion(
         args.criterion,
@@ -137,27 +132,17 @@ def _build(args):
 
 def _verify(dn, design, crit, seed):
     """Independent calibrate of a noisy network of ``design``: a priori AP sigmas, criterion."""
-    import tlsjax as tj
-
     res = tj.calibrate(
         dn.network(design, seed=seed), dn.model, tj.SolverOptions(full_covariance=True)
     )
-    from .._design._criteria import criterion_of_result
-
     if not res.ok:
         return res, None, float("nan")
-    return res, res.ap_sigmas / res.sigma0, criterion_of_result(crit, res)
+    return res, res.ap_sigmas / res.sigma0, tj.criterion_of_result(crit, res)
 
 
 def cli_design(args) -> int:
     """CLI handler: optimise, print the design and the independent check, write JSON."""
-    import tlsjax as tj
-
-    from .._io._json import write_json_file
-    from .._io._outputs import check_outputs
-    from .._units import ARCSEC, DEG
-
-    check_outputs([("--json", args.json)])  # before the optimisation runs
+    tj.check_outputs([("--json", args.json)])  # before the optimisation runs
     dn, space, crit = _build(args)
     state_cost(  # the optimiser's steps cost about two adjustments' worth each
         "the design optimisation",
@@ -191,14 +176,14 @@ def cli_design(args) -> int:
     for j, e in enumerate(eops):
         print(
             f"S{j + 1:<4d} {e[0]:7.2f} {e[1]:7.2f} {e[2]:7.2f} "
-            f"{e[3] / DEG:8.2f} {e[4] / DEG:8.2f} {e[5] / DEG:8.2f}"
+            f"{e[3] / tj.DEG:8.2f} {e[4] / tj.DEG:8.2f} {e[5] / tj.DEG:8.2f}"
         )
     summary = out.to_dict()
     ok = True
     for label, design in (("start", dn.design), ("optimised", out.design)):
         res, sig, value = _verify(dn, design, crit, args.verify_seed)
         ok &= res.ok
-        units = [1e3 if u == "m" else 1 / ARCSEC if u == "rad" else 1e6 for u in res.ap_units]
+        units = [1e3 if u == "m" else 1 / tj.ARCSEC if u == "rad" else 1e6 for u in res.ap_units]
         shown = (
             ""
             if sig is None
@@ -215,5 +200,5 @@ def cli_design(args) -> int:
             else {n: (float(s) if np.isfinite(s) else None) for n, s in zip(res.ap_names, sig)},
         }
     if args.json:
-        write_json_file(args.json, summary, "--json ")  # strict, atomic
+        tj.write_json(summary, args.json)  # strict, atomic
     return EXIT_OK if ok else EXIT_FAILED

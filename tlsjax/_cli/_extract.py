@@ -7,7 +7,8 @@ import dataclasses
 
 import numpy as np
 
-from .._clouds._extract import ExtractionOptions
+import tlsjax as tj
+
 from ._checks import non_negative_int, positive_float, positive_int
 from ._common import EXIT_FAILED
 from ._progress import Phases
@@ -39,10 +40,10 @@ def add_extract_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--distance-threshold",
         type=positive_float,
-        default=ExtractionOptions.distance_threshold,
+        default=tj.ExtractionOptions.distance_threshold,
         help="RANSAC inlier distance [m]",
     )
-    p.add_argument("--min-points", type=positive_int, default=ExtractionOptions.min_points)
+    p.add_argument("--min-points", type=positive_int, default=tj.ExtractionOptions.min_points)
     p.add_argument("--csv", help="also write the plane observations CSV (SPEC section 11)")
     p.add_argument(
         "--no-progress",
@@ -59,16 +60,13 @@ def read_scan_files(paths, architecture, poses_path=None, *, out=None):
     import sys
     import warnings
 
-    from .._io._plane_files import read_poses
-    from .._io._point_clouds import PointCloudWarning, read_point_clouds
-
     out = out or sys.stdout
-    poses = read_poses(poses_path) if poses_path else None
+    poses = tj.read_poses(poses_path) if poses_path else None
     clouds = []
     for path in paths:
         with warnings.catch_warnings():
-            warnings.simplefilter("ignore", PointCloudWarning)  # printed below, once
-            scans = read_point_clouds(path, architecture=architecture, poses=poses)
+            warnings.simplefilter("ignore", tj.PointCloudWarning)  # printed below, once
+            scans = tj.read_point_clouds(path, architecture=architecture, poses=poses)
         for c in scans:
             pose = "no pose" if c.pose is None else "pose " + " ".join(f"{v:.6g}" for v in c.pose)
             print(
@@ -96,13 +94,7 @@ def cli_extract(args) -> int:
     """
     import sys
 
-    from .._clouds._extract import ExtractionOptions, extract_planes
-    from .._clouds._match import match_planes
-    from .._io._outputs import check_outputs
-    from .._io._plane_files import write_extracted_planes
-    from .._io._tables import write_observations
-
-    check_outputs(  # before the extraction runs
+    tj.check_outputs(  # before the extraction runs
         [("--out", args.out), ("--csv", args.csv)],
         [("scan", p) for p in args.scans] + [("--poses", args.poses)],
     )
@@ -127,13 +119,13 @@ def cli_extract(args) -> int:
         poses = None
     if poses is None and args.csv:
         raise ValueError("matching planes across scans needs scan poses: give --poses poses.csv")
-    config = ExtractionOptions(
+    config = tj.ExtractionOptions(
         distance_threshold=args.distance_threshold, min_points=args.min_points, budget=args.budget
     )
     phases.release()
     bar = not args.no_progress and sys.stderr.isatty()
     phases.start("extracting planes (RANSAC, DBSCAN, least-squares refit per scan)")
-    planes = extract_planes(
+    planes = tj.extract_planes(
         [c.observations for c in clouds],
         config,
         names=names,
@@ -154,12 +146,12 @@ def cli_extract(args) -> int:
         return EXIT_FAILED
     if poses is not None:
         phases.start("matching the patches across scans")
-        planes = match_planes(planes, poses)
+        planes = tj.match_planes(planes, poses)
         phases.done(f"matched {len(planes.planes)} planes")
-    write_extracted_planes(args.out, planes)
+    tj.write_extracted_planes(args.out, planes)
     if args.csv:
         table = dataclasses.replace(planes.to_table(), architecture=args.architecture)
-        write_observations(args.csv, table)
+        tj.write_observations(args.csv, table)
     matched = (
         "not matched (no scan poses: give --poses)"
         if planes.planes is None

@@ -6,7 +6,8 @@ import argparse
 import os
 import time
 
-from .._units import ARCSEC
+import tlsjax as tj
+
 from ._calibrate import PLOT_FILES, check_outputs
 from ._checks import non_negative_int, positive_int
 from ._common import EXIT_FAILED, EXIT_OK, scanner_args
@@ -89,10 +90,7 @@ def add_simulate_parser(sub):
 def _write_simulation(
     sim, obs_path, scans_path, truth_path=None, length_unit="m", angle_unit="deg"
 ):
-    from .._io._json import write_json_file
-    from .._io._tables import write_network
-
-    write_network(
+    tj.write_network(
         obs_path,
         sim.network,
         scans_path=scans_path,
@@ -101,35 +99,29 @@ def _write_simulation(
         angle_unit=angle_unit,
     )
     if truth_path:
-        from .._adjustment._config import scanner_settings
-
         net = sim.network
-        write_json_file(
-            truth_path,
+        tj.write_json(
             {
                 "units": "SI: metres, radians",
                 "architecture": sim.scanner.architecture,
-                "scanner": scanner_settings(sim.scanner),
+                "scanner": tj.scanner_settings(sim.scanner),
                 "aps": {k: float(v) for k, v in sim.true_aps.items()},
                 "targets": {t: sim.true_targets[i].tolist() for i, t in enumerate(net.targets)},
                 "eops": {s: sim.true_eops[j].tolist() for j, s in enumerate(net.scans)},
             },
-            "--truth ",
+            truth_path,
         )
 
 
 def _simulate(args) -> int:
-    from .._io._outputs import check_outputs
-    from .._simulation._room import Room, simulate
-
     if args.scale_bars:
         raise ValueError(
             "--scale-bars: the target CSV contract has no scale-bar columns yet; use the Python API"
         )
     scans_path = args.scans_out or os.path.splitext(args.out)[0] + "_scans.csv"
-    check_outputs([("--out", args.out), ("--scans-out", scans_path), ("--truth", args.truth)])
-    room = Room.parse(args.room, n_targets=args.targets)
-    sim = simulate(
+    tj.check_outputs([("--out", args.out), ("--scans-out", scans_path), ("--truth", args.truth)])
+    room = tj.Room.parse(args.room, n_targets=args.targets)
+    sim = tj.simulate(
         room,
         architecture=args.architecture,
         tilted=not args.levelled,
@@ -137,9 +129,9 @@ def _simulate(args) -> int:
         seed=args.seed,
         noise=not args.no_noise,
         unit_length=args.unit_length,
-        sigma_tilt=None if args.sigma_tilt_arcsec is None else args.sigma_tilt_arcsec * ARCSEC,
+        sigma_tilt=None if args.sigma_tilt_arcsec is None else args.sigma_tilt_arcsec * tj.ARCSEC,
         sigma_heading=(
-            None if args.sigma_heading_arcsec is None else args.sigma_heading_arcsec * ARCSEC
+            None if args.sigma_heading_arcsec is None else args.sigma_heading_arcsec * tj.ARCSEC
         ),
     )
     _write_simulation(sim, args.out, scans_path, args.truth, args.length_unit, args.angle_unit)
@@ -153,13 +145,9 @@ def _simulate(args) -> int:
 
 
 def _demo(args) -> int:
-    from .._adjustment._calibrate import calibrate
-    from .._adjustment._config import CalibrationModel
-    from .._simulation._room import simulate
-
     check_outputs(more=[("--out", args.out, _DEMO_FILES)])
     t0 = time.perf_counter()
-    sim = simulate(
+    sim = tj.simulate(
         architecture=args.architecture,
         tilted=not args.levelled,
         aps=args.aps,
@@ -172,7 +160,7 @@ def _demo(args) -> int:
         f"Simulated Chow et al. (2013) room 14 x 11 x 3 m: {len(net.targets)} targets, {len(net.scans)} scans, "
         f'{args.architecture} scanner, {design}, seed {args.seed}; noise 0.5 mm range, 20" angles.'
     )
-    res = calibrate(net, CalibrationModel(sim.scanner))
+    res = tj.calibrate(net, tj.CalibrationModel(sim.scanner))
     print(f"self-calibration: {time.perf_counter() - t0:.1f} s including compilation")
     report(res, truth=sim.true_aps)
     _write_simulation(
@@ -192,21 +180,14 @@ def _demo(args) -> int:
 def report(res, *, truth=None):
     """Print the summary and the AP table with the true values beside the estimates; a failed
     adjustment prints no estimates (they would look plausible and be wrong)."""
-    from .._adjustment._text import ap_table, summary
-
-    print(summary(res))
-    print()
-    print(ap_table(res, truth=truth))
+    print(res.summary(truth=truth))
 
 
 def write_outputs(res, json_path, plots_dir, *, scanner=None):
     """The result JSON and the plots of the demo's calibration."""
-    from .._io._json import write_json
-    from .._report._plots import plot_ap_correlations, plot_residuals
-
-    write_json(res, json_path)
+    tj.write_json(res, json_path)
     print(f"wrote {json_path}")
     a, b = (os.path.join(plots_dir, name) for name in PLOT_FILES)
-    plot_residuals(res, a, scanner=scanner)
-    plot_ap_correlations(res, b)
+    tj.plot_residuals(res, a, scanner=scanner)
+    tj.plot_ap_correlations(res, b)
     print(f"wrote {a} and {b}")

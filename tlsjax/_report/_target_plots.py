@@ -58,12 +58,19 @@ def picture_name(scan: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]", "_", scan) + ".png"
 
 
+def target_picture_names(targets) -> list[str]:
+    """The file names :func:`plot_all_targets` writes, one per scan of ``targets`` (a
+    :class:`tlsjax.TargetMatching` or :class:`tlsjax.ExtractedTargets`), so that a caller can
+    check the folder before any picture is drawn."""
+    return [picture_name(name) for name in targets.scans]
+
+
 def plot_all_targets(targets, folder) -> list[str]:
     """:func:`plot_targets` for every scan into ``folder/<scan>.png``; returns the paths."""
     os.makedirs(folder, exist_ok=True)
     paths = []
-    for j, name in enumerate(targets.scans):
-        path = os.path.join(folder, picture_name(name))
+    for j, name in enumerate(target_picture_names(targets)):
+        path = os.path.join(folder, name)
         plot_targets(targets, j, path)
         paths.append(path)
     return paths
