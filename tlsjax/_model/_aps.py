@@ -200,6 +200,8 @@ def get_ap(name: str) -> APTerm:
 
 
 def registered_aps() -> tuple[str, ...]:
+    """Names of every registered AP term, built-in and user-registered (:func:`register_ap`),
+    in table order (A0, A1, ..., B1, ..., C0, ...)."""
     return tuple(sorted(_REGISTRY, key=_sort_key))
 
 

@@ -1,0 +1,97 @@
+"""The documentation site builds, and what it says runs.
+
+``docs/build.py`` (what ``./scripts/docs`` runs) builds the Sphinx site and then runs every
+example of the pages and docstrings (``sphinx.ext.doctest``, command lines included), with
+warnings as errors: a broken link or reference, a public name of ``tlsjax`` without a docstring
+or on no API page, a help text that is not valid reST, a benchmark figure whose JSON key is gone
+and an example whose output changed all fail this test. The cheap tests below check the
+extension's own rules against independent sources.
+"""
+
+import json
+import os
+import pathlib
+import subprocess
+import sys
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "docs" / "_ext"))
+
+import tlsjax_docs  # noqa: E402
+
+
+def test_docs_build_and_examples(tmp_path):
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "docs" / "build.py"), str(tmp_path)],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+    )
+    assert proc.returncode == 0, proc.stdout[-6000:] + proc.stderr[-6000:]
+    html = tmp_path / "html"
+    for page in ("index", "getting-started/demo", "howto/choose-model", "cli", "api/calibrate"):
+        assert (html / f"{page}.html").is_file(), page
+    api = (html / "api" / "calibrate.html").read_text()
+    assert 'id="tlsjax.calibrate"' in api
+    cli = (html / "cli.html").read_text()
+    assert "check-targets" in cli and "--aps" in cli
+    speed = (html / "concepts" / "speed.html").read_text()
+    point = json.loads((ROOT / "benchmarks/results/point.json").read_text())
+    run_ms = point["cases"]["physical"]["run_s"]["median"] * 1000
+    assert f"{run_ms:.1f} ms" in speed
+
+
+def test_public_names_are_those_of_the_package():
+    import tlsjax
+
+    names = set(tlsjax_docs.public_names())
+    assert names == {n for n in dir(tlsjax) if not n.startswith("_")}
+
+
+def test_every_public_name_is_on_one_api_page():
+    placed = []
+    for page in (ROOT / "docs" / "api").glob("*.rst"):
+        for line in page.read_text().splitlines():
+            if line.startswith(".. tlsjax-api::"):
+                placed += line.split("::", 1)[1].split()
+    assert sorted(placed) == sorted(tlsjax_docs.public_names())
+
+
+def test_bench_figure_reads_the_json():
+    point = json.loads((ROOT / "benchmarks/results/point.json").read_text())
+    value = point["cases"]["physical"]["compile_s"]
+    spec = "point.json:cases.physical.compile_s:.2f s"
+    assert tlsjax_docs.bench_value(spec) == f"{value:.2f} s"
+    spec = "point.json:cases.physical.run_s.median*1000:.1f ms"
+    assert (
+        tlsjax_docs.bench_value(spec)
+        == f"{point['cases']['physical']['run_s']['median'] * 1e3:.1f} ms"
+    )
+    with pytest.raises(KeyError):
+        tlsjax_docs.bench_value("point.json:cases.nothing")
+
+
+def test_provenance_says_what_was_not_measured(tmp_path, monkeypatch):
+    monkeypatch.setattr(tlsjax_docs, "RESULTS", tmp_path)
+    (tmp_path / "bare.json").write_text(json.dumps({"run_s": 1.0}))
+    text = tlsjax_docs.provenance("bare.json")
+    assert "date not measured" in text and "machine not measured" in text
+    assert "load average not measured" in text
+    (tmp_path / "full.json").write_text(
+        json.dumps(
+            {"date": "2026-11-27", "machine": {"cpu_model": "X", "cpu_count": 2}, "loadavg": [1.5]}
+        )
+    )
+    text = tlsjax_docs.provenance("full.json")
+    assert "measured 2026-11-27" in text and "X, 2 CPU cores" in text and "load average 1.5" in text
+
+
+def test_absolute_values_escaped_outside_literals():
+    line = "largest |correlation| and ``|t|`` beside |x|"
+    out = tlsjax_docs._escape_bars(line)
+    assert out == r"largest \|correlation\| and ``|t|`` beside \|x\|"
+
