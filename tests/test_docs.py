@@ -95,3 +95,39 @@ def test_absolute_values_escaped_outside_literals():
     out = tlsjax_docs._escape_bars(line)
     assert out == r"largest \|correlation\| and ``|t|`` beside \|x\|"
 
+
+def _readme_section(title):
+    text = (ROOT / "README.md").read_text()
+    start = text.index(f"\n## {title}\n")
+    end = text.find("\n## ", start + 1)
+    return text[start : end if end > 0 else None]
+
+
+def _code_blocks(section, language):
+    return [b.split("\n", 1)[1] for b in section.split("```")[1::2] if b.startswith(language)]
+
+
+def test_readme_is_a_front_page():
+    assert len((ROOT / "README.md").read_text().splitlines()) < 150
+    image = ROOT / "docs" / "img" / "demo_residuals.png"
+    assert image.is_file() and "docs/img/demo_residuals.png" in (ROOT / "README.md").read_text()
+
+
+def test_readme_test_command_is_what_ci_runs():
+    commands = [
+        line.split("#")[0].strip()
+        for block in _code_blocks(_readme_section("Two commands"), "bash")
+        for line in block.splitlines()
+    ]
+    ci = [x.strip() for x in (ROOT / ".ci" / "run").read_text().splitlines()]
+    assert "./scripts/test" in commands and "./scripts/test" in ci
+    assert "./scripts/demo" in commands
+
+
+def test_readme_python_example_runs(capsys):
+    (block,) = _code_blocks(_readme_section("Python in five lines"), "python")
+    assert len([x for x in block.splitlines() if x.strip()]) <= 5
+    exec(compile(block, "README.md", "exec"), {})
+    out = capsys.readouterr().out
+    assert out.splitlines()[0].split()[:3] == ["AP", "estimate", "sigma"]
+    assert [line.split()[0] for line in out.splitlines()[2:6]] == ["A0", "B6", "B7", "C0"]
