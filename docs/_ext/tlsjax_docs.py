@@ -225,13 +225,13 @@ def bench_value(spec: str) -> str:
 
 
 def _find(data, pred, depth=0):
-    """First (key, value) in ``data`` (breadth first, two levels) whose key satisfies ``pred``."""
+    """First (key, value) in ``data`` (three levels, the top first) whose key satisfies ``pred``."""
     if not isinstance(data, dict):
         return None
     for k, v in data.items():
         if pred(k):
             return k, v
-    if depth < 1:
+    if depth < 2:
         for v in data.values():
             hit = _find(v, pred, depth + 1)
             if hit:
@@ -261,12 +261,29 @@ def provenance(name: str) -> str:
         load_text = ", ".join(f"{x:.2g}" for x in v) if isinstance(v, list) else str(v)
     command = data.get("command")
     parts = [
-        f"measured {date[1]}" if date else "date not measured",
+        f"measured {date[1]}" if date else "date not measured" + _committed(name),
         f"on {machine}" if machine else "machine not measured",
         f"load average {load_text}" if load_text else "load average not measured",
     ]
     text = "; ".join(parts) + f" (benchmarks/results/{name}"
     return text + (f", {command})" if command else ")")
+
+
+def _committed(name: str) -> str:
+    """`` (file committed YYYY-MM-DD)`` from git, when the file is tracked; else nothing."""
+    import subprocess
+
+    try:
+        out = subprocess.run(
+            ["git", "log", "-1", "--format=%cs", "--", f"benchmarks/results/{name}"],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        ).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return ""
+    return f" (file committed {out})" if out else ""
 
 
 def bench_role(name, rawtext, text, lineno, inliner, options=None, content=None):
