@@ -33,6 +33,7 @@ extensions = [
     "sphinx.ext.autodoc",
     "sphinx.ext.doctest",
     "sphinx.ext.mathjax",
+    "sphinx-mathjax-offline",  # MathJax copied into the site: the equations render offline
     "sphinxarg.ext",
     "tlsjax_docs",  # API pages from tlsjax/__init__.py, benchmark figures, SPEC links
 ]
