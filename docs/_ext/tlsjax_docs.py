@@ -338,7 +338,7 @@ class CliDirective(SphinxDirective):
         return [node]
 
     @staticmethod
-    def _wrap(cmd: str, width: int = 96) -> list[str]:
+    def _wrap(cmd: str, width: int = 78) -> list[str]:
         lines, cur = [], ""
         for word in cmd.split(" "):
             if cur and len(cur) + 1 + len(word) > width:
