@@ -20,7 +20,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._jit import compiler_options, jit
+from .._jit import StoredProgram, jit
+from .._model._aps import get_ap
 from .._model._plausibility import PlausibilityWarning
 from ._config import CalibrationModel, SolverOptions
 from ._families import Params, grid_layout, on_grid
@@ -49,7 +50,16 @@ def _flat_run(spec, treedef, full_covariance: bool):
         problem, params0, options = jax.tree.unflatten(treedef, leaves)
         return _run(spec, problem, params0, options, full_covariance)
 
-    return jax.jit(run, compiler_options=compiler_options())
+    # Stored traced (a re-run in a new process neither traces nor compiles it), keyed on what
+    # it closes over: the spec with its AP terms, the arguments' structure, full_covariance.
+    return StoredProgram(run, ("adjustment", spec_key(spec), treedef, full_covariance))
+
+
+def spec_key(spec) -> tuple:
+    """What a program specialised on ``spec`` closes over besides tlsjax's code: the spec and
+    its AP terms (a user's own term has no stable description: such a program is not stored,
+    :class:`tlsjax._jit.StoredProgram`)."""
+    return spec, tuple(get_ap(n) for names in spec.ap_names for n in names)
 
 
 def estimate(spec, problem, params0, options):
@@ -73,6 +83,12 @@ def result_code(spec, problem, state, s):
         converged=state.converged,
         not_estimable=jnp.any(free_dep[n6:]),
     )
+
+
+def _to_device(a: np.ndarray):
+    """A host array on the device by a transfer (``jnp.asarray`` of a numpy array runs a small
+    program of its own: an operation dispatched eagerly)."""
+    return jax.device_put(a)
 
 
 def _replace(module, **changes):
@@ -136,7 +152,7 @@ class Adjustment:
         for fi, rows in enumerate(plan.family_rows):
             w = plane_weights if fi == plan.plane_family else weights
             if w is not None:
-                fams[fi] = _replace(fams[fi], weight=jnp.asarray(np.asarray(w, dtype=float)[rows]))
+                fams[fi] = _replace(fams[fi], weight=_to_device(np.asarray(w, dtype=float)[rows]))
         if control:
             fams = self._with_control(fams, control)
         changes = {"families": tuple(fams)}
@@ -146,7 +162,7 @@ class Adjustment:
             ("ap_prior_weight", ap_prior_weights),
         ):
             if w is not None:
-                changes[key] = jnp.asarray(w, dtype=jnp.float64)
+                changes[key] = _to_device(np.asarray(w, dtype=np.float64))
         if fixed_aps is not None:
             changes["fixed"] = build_plan(
                 self.network, self.model, fixed_aps=fixed_aps
@@ -166,7 +182,7 @@ class Adjustment:
                 f, pi, k = where[int(t)]
                 if f == fi:
                     cx[pi, k], cw[pi, k] = xyz, 1.0 / np.asarray(sigma, dtype=float)
-            fams[fi] = _replace(fams[fi], ctrl_xyz=jnp.asarray(cx), ctrl_weight=jnp.asarray(cw))
+            fams[fi] = _replace(fams[fi], ctrl_xyz=_to_device(cx), ctrl_weight=_to_device(cw))
         return fams
 
     def with_data(
@@ -208,14 +224,16 @@ class Adjustment:
             changes["levelling"] = jnp.asarray(levelling)
         return _replace(problem, **changes)
 
-    def run(self, problem=None, params0=None):
-        """The compiled call: (solver state, quality) as arrays."""
+    def run(self, problem=None, params0=None, options=None):
+        """The compiled call: (solver state, quality) as arrays. ``options``: other numerical
+        settings (:meth:`SolverOptions.arrays`, e.g. another ``max_iterations``): the same
+        compiled program, they are data."""
         args = (
             self.plan.problem if problem is None else problem,
             self.initial if params0 is None else params0,
-            self.options.arrays(),
+            self.options.arrays() if options is None else options,
         )
-        if problem is None and params0 is None:
+        if problem is None and params0 is None and options is None:
             if self._leaves is None:  # the plan's own arguments, flattened once
                 self._leaves = jax.tree.flatten(args)
             leaves, treedef = self._leaves

@@ -31,15 +31,16 @@ from __future__ import annotations
 import dataclasses
 import functools
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._adjustment._calibrate import analyze
+from .._adjustment._calibrate import analyze, spec_key
 from .._adjustment._config import CalibrationModel, SolverOptions
 from .._adjustment._families import Params, on_grid
 from .._adjustment._network import Network
 from .._adjustment._normal import linearise_rows, linearised_cost, null_space, reduce, reduced_rhs
-from .._jit import jit
+from .._jit import StoredProgram
 from .._model._aps import PRESETS, get_ap, registered_aps
 from .._model._scanner import Scanner
 from .._stats import chi2_quantile, chi2_sf
@@ -79,12 +80,12 @@ class ScoreTest:
 @dataclasses.dataclass(frozen=True)
 class ScoreTests:
     """Score tests of every candidate (:class:`ScoreTest`, largest statistic first), with the
-    misfit ``vtpv`` they share, the family-wise ``alpha`` and ``critical`` value (chi^2(1)
-    quantile at ``1 - alpha / k``, k testable candidates)."""
+    misfit ``vtpv`` they share, the ``family_level`` of the tests and their ``critical`` value
+    (chi^2(1) quantile at ``1 - family_level / k``, k testable candidates)."""
 
     tests: tuple
     vtpv: float
-    alpha: float
+    family_level: float
     critical: float
 
     @property
@@ -98,7 +99,7 @@ class ScoreTests:
     def summary(self) -> str:
         n = sum(t.testable for t in self.tests)
         head = (
-            f"missing terms (score tests of {n} candidate(s), family-wise alpha = {self.alpha:g}, "
+            f"missing terms (score tests of {n} candidate(s), family-wise alpha = {self.family_level:g}, "
             f"chi^2(1) > {self.critical:.2f}):"
         )
         sig = self.significant
@@ -114,13 +115,13 @@ class ScoreTests:
             )
         return "\n".join(lines)
 
-    def as_json(self) -> dict:
+    def to_dict(self) -> dict:
         """The result JSON's ``score_tests`` section (strict JSON: non-finite values are null)."""
         fin = lambda x: float(x) if np.isfinite(x) else None
         return {
             "method": "score (Lagrange-multiplier) test of each candidate term not in the model: "
             "T = (c^T P v)^2 / (c^T P Q_vv P c) ~ chi2(1); share = T / vTPv",
-            "alpha": self.alpha,
+            "family_level": self.family_level,
             "critical_value": fin(self.critical),
             "vtpv": fin(self.vtpv),
             "significant": [t.name for t in self.significant],
@@ -143,7 +144,16 @@ def default_candidates(scanner: Scanner) -> tuple:
     return tuple(a for a in (_NIST if nist else _CHOW) + own if a not in scanner.aps)
 
 
-@functools.partial(jit, static_argnums=(0,))
+@functools.cache
+def _score_program(spec, treedef):
+    """:func:`_score_system` compiled for one spec and argument structure, stored traced."""
+
+    def system(*leaves):
+        return _score_system(spec, *jax.tree.unflatten(treedef, leaves))
+
+    return StoredProgram(system, ("score tests", spec_key(spec), treedef))
+
+
 def _score_system(spec, problem, params, rank_tolerance):
     """The reduced normal matrix K (poses + APs), the reduced right-hand side ``-J^T e`` and
     ``v^T P v`` at ``params``, and the diagonal of the unreduced matrix (the scale of the
@@ -191,7 +201,7 @@ class ScoreTester:
         adj = self.adjustment
         aps = np.zeros(adj.plan.spec.n_aps)
         aps[self.model_index] = np.asarray(params.aps)
-        wide = Params(params.prims, params.eops, jnp.asarray(aps))
+        wide = Params(params.prims, params.eops, jax.device_put(aps))
         problem = adj.problem(
             weights=weights,
             levelling_weights=levelling_weights,
@@ -208,7 +218,8 @@ def tests_in(adjustment, problem, params, names, alpha: float) -> ScoreTests:
     stepwise selection asks of its one wide adjustment, and :class:`ScoreTester` of its own."""
     spec, tol = adjustment.plan.spec, float(adjustment.options.rank_tolerance)
     labels = adjustment.plan.ap_labels
-    K, rhs, vtpv, nzz = _score_system(spec, problem, params, jnp.asarray(tol, dtype=jnp.float64))
+    leaves, treedef = jax.tree.flatten((problem, params, np.float64(tol)))
+    K, rhs, vtpv, nzz = _score_program(spec, treedef)(*leaves)
     free = ~np.asarray(problem.fixed)
     idx = np.array([labels.index(n) for n in names], dtype=int)
     return _tests(
@@ -251,29 +262,3 @@ def _tests(K, rhs, vtpv, nzz, free, names, cand_index, n_pose, alpha, tol) -> Sc
     out = [dataclasses.replace(t, significant=t.testable and t.statistic > crit) for t in out]
     out.sort(key=lambda t: -t.statistic if t.testable else np.inf)
     return ScoreTests(tuple(out), vtpv, alpha, float(crit))
-
-
-def score_tests(
-    network: Network,
-    model: CalibrationModel | None,
-    result,
-    *,
-    candidates=None,
-    alpha: float = 0.05,
-    solver: SolverOptions | None = None,
-) -> ScoreTests:
-    """Score tests of the terms missing from ``model`` at ``result`` (a
-    :class:`tlsjax.CalibrationResult` of ``network`` with the network's weights). ``candidates``:
-    names (default :func:`default_candidates`). See the module docstring."""
-    from .._adjustment._plan import initial_params
-
-    if network.has_planes:
-        raise ValueError(
-            f"{network.source}: score tests of missing terms are for target networks (the plane "
-            "conditions are not tested yet)"
-        )
-    model = model or CalibrationModel()
-    tester = ScoreTester(network, model, candidates, solver)
-    p = initial_params(network, tester.adjustment.plan, result.target_xyz, result.eops)
-    narrow = Params(p.prims, p.eops, jnp.asarray(result.ap_values))
-    return tester(narrow, alpha=alpha)
