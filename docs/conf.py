@@ -69,7 +69,6 @@ python_display_short_literal_types = True
 doctest_global_setup = f"""
 import os, tempfile
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
-os.environ["TLSJAX_CACHE_DIR"] = "off"
 os.chdir(tempfile.mkdtemp(prefix="tlsjax-docs-"))
 REPO = {str(ROOT)!r}
 import numpy as np

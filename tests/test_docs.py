@@ -33,10 +33,13 @@ def test_docs_build_and_examples(tmp_path):
     )
     assert proc.returncode == 0, proc.stdout[-6000:] + proc.stderr[-6000:]
     html = tmp_path / "html"
-    for page in ("index", "getting-started/demo", "howto/choose-model", "cli", "api/calibrate"):
+    pages = ("index", "getting-started/demo", "howto/choose-model", "howto/field-check", "cli")
+    for page in (*pages, "howto/speed", "api/calibrate"):
         assert (html / f"{page}.html").is_file(), page
     api = (html / "api" / "calibrate.html").read_text()
-    assert 'id="tlsjax.calibrate"' in api
+    assert 'id="tlsjax.calibrate"' in api and 'id="tlsjax.self_calibrate"' in api
+    # settings classes show their inherited to_dict/from_dict
+    assert 'id="tlsjax.CalibrationOptions.from_dict"' in api
     cli = (html / "cli.html").read_text()
     assert "check-targets" in cli and "--aps" in cli
     speed = (html / "concepts" / "speed.html").read_text()
@@ -73,6 +76,17 @@ def test_bench_figure_reads_the_json():
     )
     with pytest.raises(KeyError):
         tlsjax_docs.bench_value("point.json:cases.nothing")
+    # "?": a field that an older version of a benchmark did not write reads "not measured"
+    assert tlsjax_docs.bench_value("point.json:?cases.nothing:.1f s") == "not measured"
+    spec = "point.json:?cases.physical.compile_s:.2f s"
+    assert tlsjax_docs.bench_value(spec) == f"{value:.2f} s"
+
+
+def test_bench_median_of_a_list(tmp_path, monkeypatch):
+    monkeypatch.setattr(tlsjax_docs, "RESULTS", tmp_path)
+    (tmp_path / "cli.json").write_text(json.dumps({"cli": {"rerun_s": [3.0, 1.0, 2.0, 10.0]}}))
+    assert tlsjax_docs.bench_value("cli.json:cli.rerun_s.median:.2f s") == "2.50 s"
+    assert tlsjax_docs.bench_value("cli.json:cli.rerun_s.1") == "1.0"
 
 
 def test_provenance_says_what_was_not_measured(tmp_path, monkeypatch):
@@ -88,6 +102,23 @@ def test_provenance_says_what_was_not_measured(tmp_path, monkeypatch):
     )
     text = tlsjax_docs.provenance("full.json")
     assert "measured 2026-11-27" in text and "X, 2 CPU cores" in text and "load average 1.5" in text
+    # bench_ceres.py: date_utc, versions, and the load each round started at under a limit
+    rounds = [{"loadavg_before": 0.8}, {"loadavg_before": 2.1}, {"wall_s": 1.0}]
+    (tmp_path / "ceres.json").write_text(
+        json.dumps(
+            {
+                "date_utc": "2026-11-28T10:00:00+00:00",
+                "tlsjax_version": "0.1.0",
+                "max_load": 2.5,
+                "machine": {"cpu_model": "X", "cpu_count": 2},
+                "loadavg_start": [9.0],
+                "rounds": rounds,
+            }
+        )
+    )
+    text = tlsjax_docs.provenance("ceres.json")
+    assert "measured 2026-11-28T10:00:00+00:00" in text and "tlsjax 0.1.0" in text
+    assert "load average 0.8-2.1 at the start of its 2 rounds (at most 2.5 allowed)" in text
 
 
 def test_absolute_values_escaped_outside_literals():
@@ -128,6 +159,7 @@ def test_readme_python_example_runs(capsys):
     (block,) = _code_blocks(_readme_section("Python in five lines"), "python")
     assert len([x for x in block.splitlines() if x.strip()]) <= 5
     exec(compile(block, "README.md", "exec"), {})
-    out = capsys.readouterr().out
-    assert out.splitlines()[0].split()[:3] == ["AP", "estimate", "sigma"]
-    assert [line.split()[0] for line in out.splitlines()[2:6]] == ["A0", "B6", "B7", "C0"]
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == "testing: converged; variance components converged"
+    head = next(i for i, line in enumerate(out) if line.split()[:3] == ["AP", "estimate", "sigma"])
+    assert [line.split()[0] for line in out[head + 2 : head + 6]] == ["A0", "B6", "B7", "C0"]

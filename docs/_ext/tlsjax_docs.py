@@ -4,7 +4,8 @@
   fails (a warning under ``-W``) when a public name of ``tlsjax/__init__.py`` is documented on no
   page, twice, or has no docstring; data names take the ``#:`` comment of their defining module.
 - ``{bench}`FILE:KEY.PATH[*FACTOR][:FORMAT][ UNIT]``` inserts one figure from
-  ``benchmarks/results/FILE`` at build time, and ``{bench-source}`FILE``` says when, where and
+  ``benchmarks/results/FILE`` at build time (``FILE:?KEY.PATH...``: "not measured" where the
+  file lacks the key: fields that a later version of a benchmark writes), and ``{bench-source}`FILE``` says when, where and
   under what load it was measured (what the file does not record is said as "not measured"):
   no figure of speed or accuracy is typed into a page, so none goes stale.
 - "SPEC section N" in a docstring becomes a link to that section of the concepts pages, and
@@ -95,7 +96,13 @@ class ApiDirective(SphinxDirective):
             seen.setdefault(name, []).append(where)
             obj = getattr(tlsjax, name)
             if inspect.isclass(obj):
-                lines += [f".. autoclass:: tlsjax.{name}", ""]
+                lines += [f".. autoclass:: tlsjax.{name}"]
+                # Members inherited from tlsjax's own bases (the settings' to_dict/from_dict,
+                # a result's fields of the pipeline) are part of the class's API.
+                bases = [b for b in obj.__mro__[1:] if b is not object]
+                if bases and all(b.__module__.startswith("tlsjax.") for b in bases):
+                    lines += ["   :inherited-members:"]
+                lines += [""]
             elif callable(obj):
                 lines += [f".. autofunction:: tlsjax.{name}", ""]
             else:
@@ -189,7 +196,7 @@ def cli_parser():
 # --- benchmark figures ----------------------------------------------------------------------------
 
 _BENCH = re.compile(
-    r"^(?P<file>[\w.-]+\.json):(?P<path>[^*:\s]+)(\*(?P<factor>[0-9.eE+-]+))?"
+    r"^(?P<file>[\w.-]+\.json):(?P<optional>\?)?(?P<path>[^*:\s?]+)(\*(?P<factor>[0-9.eE+-]+))?"
     r"(:(?P<fmt>[^\s]+))?(\s+(?P<unit>.+))?$"
 )
 
@@ -202,11 +209,18 @@ def load_result(name: str):
 
 
 def lookup(data, dotted: str):
-    """``a.b.0.c`` in nested dicts and lists; keys may contain spaces written as ``~``."""
+    """``a.b.0.c`` in nested dicts and lists; keys may contain spaces written as ``~``; a list of
+    numbers followed by ``median`` gives its median (as the benchmarks' dicts of times do)."""
     cur = data
     for part in dotted.split("."):
         part = part.replace("~", " ")
-        if isinstance(cur, list):
+        if isinstance(cur, list) and part == "median":
+            values = sorted(float(x) for x in cur)
+            if not values:
+                raise KeyError(dotted)
+            mid = len(values) // 2
+            cur = values[mid] if len(values) % 2 else (values[mid - 1] + values[mid]) / 2
+        elif isinstance(cur, list):
             cur = cur[int(part)]
         else:
             cur = cur[part]
@@ -217,7 +231,12 @@ def bench_value(spec: str) -> str:
     m = _BENCH.match(spec.strip())
     if not m:
         raise ValueError(f"bench: cannot read {spec!r} (FILE:KEY.PATH[*FACTOR][:FORMAT][ UNIT])")
-    value = lookup(load_result(m["file"]), m["path"])
+    try:
+        value = lookup(load_result(m["file"]), m["path"])
+    except (KeyError, IndexError):
+        if m["optional"]:
+            return "not measured"
+        raise
     if m["factor"]:
         value = float(value) * float(m["factor"])
     text = format(value, m["fmt"]) if m["fmt"] else str(value)
@@ -242,24 +261,38 @@ def _find(data, pred, depth=0):
 def provenance(name: str) -> str:
     """When, where and under what load ``benchmarks/results/NAME`` was measured."""
     data = load_result(name)
-    date = _find(data, lambda k: k in ("date", "measured", "timestamp", "datetime"))
+    date = _find(data, lambda k: k in ("date", "date_utc", "measured", "timestamp", "datetime"))
     machine = data.get("machine")
     if isinstance(machine, dict):
         bits = [
             machine.get("cpu_model"),
             f"{machine['cpu_count']} CPU cores" if machine.get("cpu_count") else None,
+            f"{machine['cpus']} CPUs"
+            if machine.get("cpus") and not machine.get("cpu_count")
+            else None,
             machine.get("jax_backend")
             and f"JAX {machine.get('jax_version', '')} on {machine['jax_backend']}",
         ]
         machine = ", ".join(b for b in bits if b) or machine.get("platform")
     if not machine and data.get("cpus"):
         machine = f"{data['cpus']} CPUs"
-    load = _find(data, lambda k: k.startswith("loadavg") or k == "load_average")
+    load = _find(data, lambda k: k.startswith(("loadavg", "load_average")))
+    rounds = [r.get("loadavg_before") for r in data.get("rounds") or [] if isinstance(r, dict)]
+    rounds = [x for x in rounds if isinstance(x, (int, float))]
     load_text = None
-    if load:
+    if rounds:  # the load each measured round started at (bench_ceres.py waits for a quiet one)
+        load_text = f"{min(rounds):.2g}-{max(rounds):.2g} at the start of its {len(rounds)} rounds"
+        if isinstance(data.get("max_load"), (int, float)):
+            load_text += f" (at most {data['max_load']:.2g} allowed)"
+    elif load:
         v = load[1]
         load_text = ", ".join(f"{x:.2g}" for x in v) if isinstance(v, list) else str(v)
     command = data.get("command")
+    versions = [f"tlsjax {data['tlsjax_version']}"] if data.get("tlsjax_version") else []
+    if data.get("jax_version") and "JAX" not in str(machine):
+        versions.append(f"JAX {data['jax_version']}")
+    if versions and machine:
+        machine = f"{machine} ({', '.join(versions)})"
     parts = [
         f"measured {date[1]}" if date else "date not measured" + _committed(name),
         f"on {machine}" if machine else "machine not measured",
@@ -352,17 +385,23 @@ class CliDirective(SphinxDirective):
 #: Defined in every page's doctest namespace (``doctest_global_setup`` imports it).
 def run_cli(args: str, expected: int = 0) -> None:
     """Run ``tlsjax ARGS`` in this process; its output is kept out of the doctest's (a page
-    shows the command, not figures that change with every release) and shown on failure."""
+    shows the command, not figures that change with every release) and shown on failure.
+    Wildcards (``S1/*.txt``) are expanded in sorted order, as a shell does."""
     import contextlib
+    import glob
     import io
     import shlex
 
     from tlsjax._cli import main
 
+    argv = []
+    for word in shlex.split(args):
+        matches = sorted(glob.glob(word)) if glob.has_magic(word) else []
+        argv += matches or [word]
     out = io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
         try:
-            rc = main(shlex.split(args))
+            rc = main(argv)
         except SystemExit as exc:  # argparse errors exit
             rc = exc.code
     if rc != expected:
@@ -383,7 +422,8 @@ def _copy_notebooks(app):
 
 
 def _time_doctest_pages(app):
-    # TLSJAX_DOCS_TIMINGS=1: the seconds each page's examples take (to keep the build fast).
+    # TLSJAX_DOCS_TIMINGS=1: the seconds each page's examples take, wall and CPU of this
+    # process (to keep the build fast).
     import os
     import time
 
@@ -392,11 +432,13 @@ def _time_doctest_pages(app):
     inner = app.builder.test_doc
 
     def timed(docname, doctree):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         try:
             return inner(docname, doctree)
         finally:
-            print(f"docs: {docname} examples {time.perf_counter() - t0:.1f} s", flush=True)
+            wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+            if wall > 0.05:
+                print(f"docs: {docname} examples {wall:.1f} s ({cpu:.1f} CPU s)", flush=True)
 
     app.builder.test_doc = timed
 
