@@ -15,7 +15,10 @@ import time
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 # Compiling dominates the examples' time, and XLA's backend optimisations double it; the
 # examples' results do not depend on them (the notebooks' test runs the same way).
-os.environ.setdefault("XLA_FLAGS", "--xla_backend_optimization_level=0")
+# Added to flags already set (a device count, say), unless the caller chose a level.
+if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
+    flags = os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0"
+    os.environ["XLA_FLAGS"] = flags.strip()
 
 from sphinx.cmd.build import build_main  # noqa: E402
 
