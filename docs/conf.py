@@ -69,11 +69,18 @@ python_display_short_literal_types = True
 doctest_global_setup = f"""
 import os, tempfile
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
-os.chdir(tempfile.mkdtemp(prefix="tlsjax-docs-"))
+_DOCS_CWD, _DOCS_TMP = os.getcwd(), tempfile.mkdtemp(prefix="tlsjax-docs-")
+os.chdir(_DOCS_TMP)
 REPO = {str(ROOT)!r}
 import numpy as np
 import tlsjax as tj
 from tlsjax_docs import run_cli as _tlsjax_cli
+"""
+# ... and leave nothing behind (the pages write scans, JSONs and reports).
+doctest_global_cleanup = """
+import shutil
+os.chdir(_DOCS_CWD)
+shutil.rmtree(_DOCS_TMP, ignore_errors=True)
 """
 doctest_default_flags = (
     __import__("doctest").ELLIPSIS
