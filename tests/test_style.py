@@ -8,7 +8,7 @@ import sys
 import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-PATHS = ["tlsjax", "tests", "benchmarks", "notebooks"]
+PATHS = ["tlsjax", "tests", "benchmarks", "notebooks", "docs"]
 
 
 def _ruff():

@@ -54,6 +54,7 @@ class Settings:
     :meth:`_field_from_dict`."""
 
     def to_dict(self) -> dict:
+        """The settings as a dict of strict JSON (nested settings as their dicts)."""
         out = {}
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
@@ -62,6 +63,8 @@ class Settings:
 
     @classmethod
     def from_dict(cls, data: dict):
+        """The settings from a dict as :meth:`to_dict` writes it (an unknown name is a
+        one-line ValueError naming it)."""
         if not isinstance(data, dict):
             raise ValueError(f"{cls.__name__}: expected a JSON object, got {type(data).__name__}")
         names = {f.name: f for f in dataclasses.fields(cls)}

@@ -80,6 +80,8 @@ class CalibrationModel:
 
     @classmethod
     def from_dict(cls, data: dict) -> CalibrationModel:
+        """The model from a dict as :meth:`to_dict` writes it (an unknown field is a one-line
+        ValueError naming it)."""
         known = {
             "scanner",
             "datum",

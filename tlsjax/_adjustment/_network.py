@@ -55,22 +55,25 @@ class ObservationTable:
 class Network:
     """A point-based TLS network (host-side, numpy). Build it with :func:`make_network`.
 
-    Arrays (n observations of targets, s scans, t targets):
+    Arrays (n observations of targets, s scans, t targets)::
+
       observations (n, 3): range [m], horizontal direction [rad], elevation angle [rad]
       sigmas (n, 3): a priori standard deviations [m, rad, rad], incidence already applied
-      target_index, scan_index (n,): integer codes into ``targets`` / ``scans``
-      instrument_of_scan (s,): integer code into ``instruments``
-      levelling (s, 2) values [rad] and levelling_sigma (s, 2) [rad]; ``inf`` = not levelled:
+      target_index, scan_index (n,): integer codes into targets / scans
+      instrument_of_scan (s,): integer code into instruments
+      levelling (s, 2) values [rad] and levelling_sigma (s, 2) [rad]; inf = not levelled:
         the tilt readings (omega_c, phi_c) of a compensator or tilt sensor
-      heading (s,) observed kappa [rad] and heading_sigma (s,) [rad] (None or ``inf``: none);
+      heading (s,) observed kappa [rad] and heading_sigma (s,) [rad] (None or inf: none);
         with the tilt readings the weighted constraints of Chow et al. 2013, eq. (7)
       control_index (c,), control_xyz (c, 3) [m], control_sigma (c, 3) [m]
       scale_bars: tuple of (target_a, target_b) indices with scale_bar_length (b,) and
         scale_bar_sigma (b,) [m]
 
-    Plane observations (m points on k planes, SPEC section 4), empty for a target network:
+    Plane observations (m points on k planes, SPEC section 4), empty for a target network::
+
       planes (k,) names; plane_observations (m, 3), plane_sigmas (m, 3) (incidence applied),
-      plane_index, plane_scan_index (m,) integer codes into ``planes`` / ``scans``.
+      plane_index, plane_scan_index (m,) integer codes into planes / scans.
+
     A network may hold targets, planes or both (a combined network).
     """
 

@@ -200,6 +200,8 @@ def get_ap(name: str) -> APTerm:
 
 
 def registered_aps() -> tuple[str, ...]:
+    """Names of every registered AP term, built-in and user-registered (:func:`register_ap`),
+    in table order (A0, A1, ..., B1, ..., C0, ...)."""
     return tuple(sorted(_REGISTRY, key=_sort_key))
 
 
@@ -458,6 +460,13 @@ def resolve_aps(aps) -> tuple[str, ...]:
     """Turn ``"A0 B6 B7 C0"``, ``"physical"``, ``["A0", "C0"]`` or a mix into a tuple of names.
 
     Order is kept, duplicates are rejected, unknown names raise ``ValueError``.
+
+    >>> import tlsjax as tj
+    >>> tj.resolve_aps("physical")
+    ('A0', 'B6', 'B7', 'C0')
+    >>> tj.resolve_aps("A0, A3 A4 physical")
+    Traceback (most recent call last):
+    ValueError: AP A0 is listed twice in 'A0, A3 A4 physical'
     """
     if aps is None:
         return ()

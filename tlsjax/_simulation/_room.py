@@ -297,6 +297,13 @@ def simulate(
     (``Room.from_design``); the settings above that it carries must then be left at their
     defaults. Its ``n_targets`` are spread over the faces as here, all seen from every scan
     (this simulation's design: no field-of-view, range or incidence limit).
+
+    >>> import tlsjax as tj
+    >>> sim = tj.simulate(aps="A0 B6 B7 C0", seed=0)
+    >>> len(sim.network.scans), len(sim.network.targets), len(sim.network.observations)
+    (6, 120, 720)
+    >>> sorted(sim.true_aps)
+    ['A0', 'B6', 'B7', 'C0']
     """
     scans = None
     if room is not None and not isinstance(room, Room):  # a NetworkDesign

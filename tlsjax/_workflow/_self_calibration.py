@@ -61,8 +61,8 @@ class SelfCalibration(TestedCalibration):
 
     @property
     def implausible(self) -> bool:
-        """An estimated AP has a magnitude no working instrument has (:meth:`tlsjax.
-        CalibrationResult.plausibility`): the run is then no calibration."""
+        """An estimated AP has a magnitude no working instrument has
+        (:meth:`tlsjax.CalibrationResult.plausibility`): the run is then no calibration."""
         return any(f.level == "impossible" for f in self.calibration.plausibility()[0])
 
     @property
