@@ -8,7 +8,10 @@ from __future__ import annotations
 
 import math
 
+#: One arc second in radians (the unit of the angle APs and sigmas in reports):
+#: ``sigma_angle = 20 * tj.ARCSEC``.
 ARCSEC = math.pi / 648000.0
+#: One degree in radians: ``tilt = 45 * tj.DEG``.
 DEG = math.pi / 180.0
 GON = math.pi / 200.0
 

@@ -191,6 +191,8 @@ def check_basis(name: str, basis: Callable) -> None:
 
 
 def get_ap(name: str) -> APTerm:
+    """The registered AP term ``name`` (its unit, group and basis function), or a one-line
+    ValueError listing the known terms."""
     try:
         return _REGISTRY[name]
     except KeyError:
