@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._adjustment._calibrate import _run, analyze
+from .._adjustment._calibrate import analyze
 from .._adjustment._config import CalibrationModel, SolverOptions
 from .._adjustment._network import Network
 from .._adjustment._result import CalibrationResult, assemble
@@ -104,16 +104,14 @@ class Reweighter:
             heading_weights=heading_weight,
             ap_prior_weights=ap_prior_weight,
         )
-        if max_iterations is None:
-            state, q = adj.run(problem, params0)
-        else:  # e.g. 0: the misclosures and redundancy numbers at params0 (traced: no recompile)
+        opts = None
+        if max_iterations is not None:
+            # e.g. 0: the misclosures and redundancy numbers at params0 (traced: no recompile)
             opts = eqx.tree_at(
                 lambda o: o.max_iterations, adj.options.arrays(), jnp.asarray(max_iterations)
             )
-            params0 = adj.initial if params0 is None else params0
-            state, q = _run(adj.plan.spec, problem, params0, opts, adj.options.full_covariance)
-        plan = dataclasses.replace(self.plan, problem=problem)
-        res = assemble(self.net, self.model, plan, state, q)
+        plan, state, q, absent = adj.run_estimable(problem, params0, opts)
+        res = assemble(self.net, self.model, plan, state, q, absent)
         infl = np.zeros((self.net.observations.shape[0], 3, plan.spec.n_aps))
         for fi, rows in enumerate(plan.family_rows[: len(plan.family_targets)]):
             infl[rows] = np.asarray(q.ap_influence[fi])

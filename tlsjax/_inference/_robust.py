@@ -165,9 +165,8 @@ def _solve(adj, plane_weights, params):
     from .._adjustment._result import assemble
 
     problem = adj.problem(plane_weights=plane_weights)
-    state, q = adj.run(problem, params)
-    plan = dataclasses.replace(adj.plan, problem=problem)
-    return assemble(adj.network, adj.model, plan, state, q), q, state.params
+    plan, state, q, absent = adj.run_estimable(problem, params)
+    return assemble(adj.network, adj.model, plan, state, q, absent), q, state.params
 
 
 def _per_pair(net: Network, removed):
