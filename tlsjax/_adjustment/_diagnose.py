@@ -89,7 +89,7 @@ def confounded_partners(
         v[idx] = Q[jj] / d[idx]
         if k_over_n is not None and k_over_n[j] < ABSORBED:
             kind = "primitives"
-        elif _is_scale(v, params, ns):
+        elif is_scale(v, params, ns):
             kind = "scale"
         else:
             kind = "parameter"
@@ -97,7 +97,7 @@ def confounded_partners(
     return out
 
 
-def _is_scale(v, params, ns) -> bool:
+def is_scale(v, params, ns) -> bool:
     """True when the scan-position part of the null direction is a radial expansion."""
     S = np.asarray(params.eops)[:, :3]
     radial = (S - S.mean(axis=0)).reshape(-1)
