@@ -74,6 +74,10 @@ from ._inference._compat import CompatibilityResult as CompatibilityResult
 from ._inference._compat import compatibility_batch as compatibility_batch
 from ._inference._compat import compatibility_statistic as compatibility_statistic
 from ._inference._compat import compatibility_test as compatibility_test
+from ._inference._crossval import CrossValidation as CrossValidation
+from ._inference._crossval import CrossValidationCode as CrossValidationCode
+from ._inference._crossval import CrossValidationOptions as CrossValidationOptions
+from ._inference._crossval import cross_validate as cross_validate
 from ._inference._robust import PlaneScreening as PlaneScreening
 from ._inference._robust import PlaneScreeningOptions as PlaneScreeningOptions
 from ._inference._robust import screen_planes as screen_planes

@@ -207,7 +207,8 @@ class TestingState:
     those of the latest snooping and screening tests; ``vce_result`` and ``vce_iterations``
     say how VCE went. ``score_tests``: the score tests of the missing terms at the end
     (:mod:`._score`). ``robust_factor`` (n, 3): weight factors of a robust reweighting (the
-    robust start; None: none); ``fixed_aps``: AP labels held at zero (None: the model's).
+    robust start; None: none); ``fixed_aps``: AP labels held at zero (None: the model's);
+    ``cross_validation``: the model's cross-validation by scan groups (:mod:`._crossval`).
     """
 
     factor: np.ndarray
@@ -232,6 +233,7 @@ class TestingState:
     score_tests: object = None
     robust_factor: np.ndarray | None = None
     fixed_aps: tuple | None = None
+    cross_validation: object = None
 
     @classmethod
     def initial(cls, ctx: TestingContext, critical_value: float) -> TestingState:
