@@ -7,6 +7,9 @@ Small rooms (24 targets, six scans) so that each adjustment compiles once for th
 Private import: the hand-written dense point model of ``tests/helpers.py`` (the oracle).
 """
 
+import dataclasses
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -243,14 +246,56 @@ def test_the_pipeline_step_reuses_the_adjustment_and_leaves_gross_errors_out(phy
     def step(net):
         ctx = TestingContext.make(net, MODEL, tj.SolverOptions(), testing)
         state = run_pipeline(ctx, TestingState.initial(ctx, 3.29), PIPELINE)
-        return cross_validation_step(ctx, state)
+        return cross_validation_step(ctx, state), ctx
 
-    cv = step(s.network).cross_validation
+    cv = step(s.network)[0].cross_validation
     np.testing.assert_allclose(cv.rms_mm["xyz"], auto.rms_mm["xyz"], rtol=1e-5)
     obs = s.network.observations.copy()
     row = int(np.flatnonzero(s.network.scan_index == 1)[3])
     obs[row, 0] += 2.0
-    state = step(s.network.with_observations(obs))
+    state, ctx = step(s.network.with_observations(obs))
     assert not state.mask[row].all()
     fold = next(f for f in state.cross_validation.folds if f.held_out == ("S2",))
     assert fold.n == 23 and fold.rms_mm["xyz"] < 2 * auto.rms_mm["xyz"]
+
+    # A removal without a test statistic (a target the removals leave without redundancy) is
+    # never printed as nan (issue 41.6).
+    from tlsjax._inference._testing import tested_calibration
+
+    tested = tested_calibration(ctx, state)
+    extra = dataclasses.replace(tested.outliers[0], w=float("nan"))
+    text = dataclasses.replace(tested, outliers=tested.outliers + (extra,)).summary()
+    assert "no w-test" in text and not re.search(r"\bnan\b", text, re.IGNORECASE)
+
+
+# --- Selection that ends where prediction is best (issue 41.3) --------------------------------
+
+
+def test_selection_tries_alternatives_and_ends_no_worse_than_the_start(c3_room):
+    """C3 in the data, C5 (cos 2 alpha) its alternative after the physical model: both are
+    fitted and cross-validated, C3 enters; terms enter and leave by one statistic in one
+    variance factor (T / s0^2 and t^2 against one critical value), the final score tests are
+    judged in the same units (none significant where the selection stopped), and the end
+    point predicts held-out scans no worse than the start."""
+    s, _, tests = c3_room
+    assert "C5" in tests.group_of("C3")
+    none = tj.CalibrationModel(tj.Scanner(aps=()))
+    sel = tj.select_aps(s.network, none, start=PHYSICAL, candidates=("C3", "C5"))
+    assert "C3" in sel.aps and "C5" not in sel.aps
+    tried = {st.term: st for st in sel.steps if st.action == "try"}
+    assert set(tried) == {"C3", "C5"} and all(np.isfinite(t.cv_mm) for t in tried.values())
+    added = next(st for st in sel.steps if st.action == "add")
+    assert added.term == "C3" and "alternatives" in added.reason
+    before = sel.steps[0]
+    assert np.isclose(added.statistic, added.score / before.sigma0**2)
+    assert added.statistic > sel.critical
+    for st in sel.steps:
+        if st.action == "remove" and np.isfinite(st.statistic):
+            assert st.statistic < sel.critical  # leaving: t^2 below the same critical value
+    assert sel.cross_validation.cv_mm <= sel.start_cross_validation.cv_mm
+    final = sel.score_tests
+    assert np.isclose(final.variance_factor, sel.calibration.sigma0**2, rtol=1e-6)
+    assert not final.significant
+    doc = sel.to_dict()
+    assert doc["aps"] == list(sel.aps) and doc["cross_validation"]["folds"]
+    assert "CV" in sel.summary()

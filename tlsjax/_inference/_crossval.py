@@ -198,7 +198,8 @@ class CrossValidation:
             f"cross-validation by scan groups ({sum(f.ok for f in self.folds)} of "
             f"{len(self.folds)} folds; held-out scans placed on the targets adjusted from the "
             "rest): misfit RMS [mm]",
-            f"  with the APs:  {fmt(self.rms_mm)} (+- {self.se_mm:.3f} between folds)",
+            f"  with the APs:  {fmt(self.rms_mm)}"
+            + (f" (+- {self.se_mm:.3f} between folds)" if np.isfinite(self.se_mm) else ""),
             f"  without APs:   {fmt(self.rms_none_mm)}",
         ]
         for f in self.folds:
@@ -235,9 +236,9 @@ class CrossValidation:
 def paired_difference(a: CrossValidation, b: CrossValidation) -> tuple[float, float]:
     """Mean over the folds both evaluated of (MSE of ``a`` - MSE of ``b``) [mm^2], and its
     standard error from the folds' scatter (paired: the folds are the same scans). Negative:
-    ``a`` predicts better. NaN where fewer than two folds are common."""
+    ``a`` predicts better. NaN where fewer than two folds are common or the folds differ."""
     if [f.held_out for f in a.folds] != [f.held_out for f in b.folds]:
-        raise ValueError("paired_difference: the two cross-validations have different folds")
+        return float("nan"), float("nan")
     d = (a.mse - b.mse) * 1e6
     d = d[np.isfinite(d)]
     if d.size < 2:
@@ -295,6 +296,10 @@ class _Data:
     params: object  # warm start (Params) or None
     targets: np.ndarray  # (t, 3) estimates of the whole network (pins of undetermined targets)
     used_rows: np.ndarray  # (n,) observations whose three components are in use (placement)
+    fixed_aps: tuple | None = None  # AP labels held at zero (None: the model's)
+    # fold -> the fit without APs (the same for every AP set of one adjustment and weights:
+    # stepwise selection cross-validates many sets with one such cache)
+    none_cache: dict | None = None
 
 
 def _fold(adj: Adjustment, data: _Data, held: Sequence[str], opts: CrossValidationOptions):
@@ -324,6 +329,7 @@ def _fold(adj: Adjustment, data: _Data, held: Sequence[str], opts: CrossValidati
         weights=w,
         levelling_weights=lw,
         control={t: (xyz, PIN_SIGMA) for t, xyz in pins.items()},
+        fixed_aps=data.fixed_aps,
         **extra,
     )
     fixed = np.asarray(problem.fixed).copy()
@@ -332,7 +338,11 @@ def _fold(adj: Adjustment, data: _Data, held: Sequence[str], opts: CrossValidati
     fits = []
     # The model, then no calibration: the same adjustment with every AP held at zero.
     n_ap = adj.plan.spec.n_aps
+    cache = {} if data.none_cache is None else data.none_cache
     for held_aps in (False, True) if n_ap else (False,):
+        if held_aps and tuple(held) in cache:
+            fits.append(cache[tuple(held)])
+            continue
         f = fixed.copy()
         if held_aps:
             f[len(f) - n_ap :] = True
@@ -344,6 +354,8 @@ def _fold(adj: Adjustment, data: _Data, held: Sequence[str], opts: CrossValidati
         fit = _fit(adj, dataclasses.replace(problem, fixed=jnp.asarray(f)), params0)
         if isinstance(fit, str):
             return Fold(tuple(held), False, fit)
+        if held_aps:
+            cache[tuple(held)] = fit
         fits.append(fit)
     determined = ~lonely & ~np.isin(np.arange(len(net.targets)), list(data.pinned))
     return _place_fold(adj, fits[0], fits[-1], held, out_scans, determined, data, opts)
@@ -452,19 +464,31 @@ def _rms(e) -> dict:
 # --- The whole cross-validation --------------------------------------------------------------
 
 
-def run_folds(adj: Adjustment, data: _Data, opts: CrossValidationOptions) -> CrossValidation:
-    """Every fold of ``opts`` on the analysed adjustment ``adj`` with the weights ``data``."""
+def run_folds(
+    adj: Adjustment, data: _Data, opts: CrossValidationOptions, planned=None
+) -> CrossValidation:
+    """Every fold of ``opts`` on the analysed adjustment ``adj`` with the weights ``data``;
+    ``planned``: the (folds, refused) of :func:`plan_folds`, if already chosen."""
     net = adj.network
     labels = tuple(adj.plan.ap_labels)
-    if net.has_planes or not net.has_targets:
-        return _finish((), labels, net)
-    if opts.folds is None:
-        folds, refused = default_folds(net, _eops(adj, data))
-    else:
-        folds, refused = _checked_folds(net, opts.folds), ()
+    if planned is None:
+        planned = plan_folds(adj, _eops(adj, data), opts)
+    folds, refused = planned
     out = [_fold(adj, data, held, opts) for held in folds]
     out += [Fold(held, False, why) for held, why in refused]
     return _finish(tuple(out), labels, net)
+
+
+def plan_folds(adj: Adjustment, eops, opts: CrossValidationOptions) -> tuple:
+    """(folds, refused): the folds of ``opts`` (checked), or the default ones from the scan
+    positions ``eops`` (:func:`default_folds`); none for a network with planes."""
+    net = adj.network
+    if net.has_planes or not net.has_targets:
+        why = "cross-validation places held-out scans by their targets (not planes, yet)"
+        return (), (((), why),)
+    if opts.folds is not None:
+        return _checked_folds(net, opts.folds), ()
+    return default_folds(net, eops)
 
 
 def _eops(adj: Adjustment, data: _Data) -> np.ndarray:
@@ -532,6 +556,12 @@ def cross_validate(
     """
     options = options or CrossValidationOptions()
     adj = analyze(network, model, solver)
+    eops = np.asarray(adj.initial.eops if result is None else result.eops)
+    planned = plan_folds(adj, eops, options)
+    if not planned[0]:  # nothing to hold out: no adjustment needed to say so
+        return _finish(
+            tuple(Fold(h, False, why) for h, why in planned[1]), adj.plan.ap_labels, network
+        )
     if result is None:
         result = adj.solve()
     used = np.ones((network.observations.shape[0], 3), dtype=bool)
@@ -552,7 +582,7 @@ def cross_validate(
         result.target_xyz,
         used.all(axis=1),
     )
-    return run_folds(adj, data, options)
+    return run_folds(adj, data, options, planned)
 
 
 def cross_validation_step(ctx: TestingContext, state: TestingState) -> TestingState:

@@ -139,13 +139,16 @@ class ScoreTests:
     """Score tests of every candidate (:class:`ScoreTest`, largest statistic first), with the
     misfit ``vtpv`` they share, the family-wise ``alpha`` and ``critical`` value (chi^2(1)
     quantile at ``1 - alpha / k``, k testable candidates) and ``groups``: the groups of
-    alternatives (names, largest statistic first; module docstring), groups of one left out."""
+    alternatives (names, largest statistic first; module docstring), groups of one left out.
+    ``variance_factor``: the s0^2 that significance is judged in (``T / s0^2 > critical``; 1:
+    the a priori sigma0, the weights in use; stepwise selection judges in its fit's s0^2)."""
 
     tests: tuple
     vtpv: float
     alpha: float
     critical: float
     groups: tuple = ()
+    variance_factor: float = 1.0
 
     @property
     def significant(self) -> tuple:
@@ -169,9 +172,10 @@ class ScoreTests:
 
     def summary(self) -> str:
         n = sum(t.testable for t in self.tests)
+        scale = "" if self.variance_factor == 1.0 else f" / s0^2 = {self.variance_factor:.4g}"
         head = (
             f"missing terms (score tests of {n} candidate(s), family-wise alpha = {self.alpha:g}, "
-            f"chi^2(1) > {self.critical:.2f}):"
+            f"T{scale} > {self.critical:.2f}):"
         )
         sig = self.significant
         lines = [head]
@@ -215,6 +219,7 @@ class ScoreTests:
             f"{ALTERNATIVE_CORRELATION:g} between their whitened columns after the model",
             "alpha": self.alpha,
             "critical_value": fin(self.critical),
+            "variance_factor": fin(self.variance_factor),
             "vtpv": fin(self.vtpv),
             "significant": [t.name for t in self.significant],
             "alternatives": [list(g) for g in self.groups],

@@ -351,9 +351,11 @@ class TestedCalibration:
         )
         for o in self.outliers:
             what = f"plane {o.target} point {o.row}" if o.group == "plane" else f"target {o.target}"
+            # A target left without redundancy has no test statistic: never printed as nan.
+            w = f"w = {o.w:.4g}" if np.isfinite(o.w) else "no w-test"
             lines.append(
                 f"    step {o.step}: scan {o.scan} {what} {o.group}: v = {o.residual:.4g} {o.unit}, "
-                f"w = {o.w:.4g} ({o.reason})"
+                f"{w} ({o.reason})"
             )
         for w in self.warnings:
             lines.append(f"warning: {w}")

@@ -232,6 +232,7 @@ class _Lines:
                     self.notes.append(f"header from the comment on line {last_comment[0]}")
             self.data.append((i, line))
         self._skip_preamble()
+        self._skip_header_block()
 
     @staticmethod
     def _header_like(line: str) -> bool:
@@ -250,6 +251,35 @@ class _Lines:
             if int(line) == len(self.data) - 1:
                 self.data.pop(0)
                 self.notes.append(f"line {i} skipped (the point count of a PTS layout)")
+
+    def _skip_header_block(self):
+        # A survey's preamble (project, instrument, date, station lines, often with digits)
+        # before its column header and data: where the lines do not share one field count,
+        # the data are the longest tail of lines that do (3 or more fields under one
+        # separator); the lines before it are skipped and named, and the tail's first line is
+        # the header when it reads as one.
+        if len(self.data) < 4:
+            return
+        start = None
+        for sep in (";", "\t", ",", None):
+            counts = [len(_split(line, sep)) for _, line in self.data]
+            k = len(counts) - 1
+            while k > 0 and counts[k - 1] == counts[-1]:
+                k -= 1
+            if counts[-1] >= 3 and len(counts) - k >= 3 and (start is None or k < start):
+                start = k
+        if not start:
+            return
+        head, self.data = self.data[:start], self.data[start:]
+        if self.header is None and self._header_like(self.data[0][1]):
+            self.header = self.data.pop(0)
+        elif self.header is None and self._header_like(head[-1][1]):
+            self.header = head.pop()
+        if head:
+            self.notes.append(
+                f"lines {head[0][0]}-{head[-1][0]} skipped (a preamble before the data: "
+                f"{head[0][1].strip()[:40]!r}...)"
+            )
 
 
 _SEP_NAMES = {";": "semicolon-separated", "\t": "tab-separated", ",": "comma-separated"}
