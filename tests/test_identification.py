@@ -299,3 +299,29 @@ def test_selection_tries_alternatives_and_ends_no_worse_than_the_start(c3_room):
     doc = sel.to_dict()
     assert doc["aps"] == list(sel.aps) and doc["cross_validation"]["folds"]
     assert "CV" in sel.summary()
+
+
+# --- The architecture from the data (issue 41.5) ----------------------------------------------
+
+
+def test_hybrid_data_read_as_panoramic_are_named(physical_room):
+    """Hybrid data imported as panoramic (the back half folded into a second face): both
+    representations are fitted; hybrid explains the data clearly better (held-out misfit and
+    sigma0), the comparison warns naming it, and its APs are the truth within 3 sigma while the
+    panoramic reading's collimation is far off."""
+    from tlsjax._inference._architecture import as_architecture
+
+    s, rigid, auto = physical_room
+    pano = as_architecture(s.network, "panoramic")
+    assert (pano.observations[:, 2] > np.pi / 2).any()
+    cmp = tj.compare_architectures(pano, MODEL)
+    assert cmp.given == "panoramic" and cmp.best == "hybrid" and cmp.clearly
+    assert "hybrid" in cmp.warning and "read as panoramic" in cmp.warning
+    h, p = cmp.fits["hybrid"], cmp.fits["panoramic"]
+    assert h.cv_mm < p.cv_mm and h.sigma0 < p.sigma0
+    np.testing.assert_allclose(h.cv_mm, auto.cv_mm, rtol=1e-3)  # the same data, as hybrid
+    res = tj.calibrate(s.network, MODEL)
+    for k, name in enumerate(res.ap_names):
+        assert abs(h.aps[name] - s.true_aps[name]) < 3 * res.ap_sigmas[k], name
+    assert abs(p.aps["B6"] - s.true_aps["B6"]) > 5 * res.ap_sigmas[1]
+    assert cmp.to_dict()["best"] == "hybrid" and "warning" in cmp.summary()

@@ -65,6 +65,9 @@ from ._design._optimize import DesignOptimisation as DesignOptimisation
 from ._design._optimize import DesignSpace as DesignSpace
 from ._design._optimize import optimize_design as optimize_design
 from ._inference._apset import APSet as APSet
+from ._inference._architecture import ArchitectureComparison as ArchitectureComparison
+from ._inference._architecture import ArchitectureFit as ArchitectureFit
+from ._inference._architecture import compare_architectures as compare_architectures
 from ._inference._checkpoints import CheckpointReport as CheckpointReport
 from ._inference._checkpoints import TargetCheck as TargetCheck
 from ._inference._checkpoints import assess_checkpoints as assess_checkpoints
