@@ -325,3 +325,24 @@ def test_hybrid_data_read_as_panoramic_are_named(physical_room):
         assert abs(h.aps[name] - s.true_aps[name]) < 3 * res.ap_sigmas[k], name
     assert abs(p.aps["B6"] - s.true_aps["B6"]) > 5 * res.ap_sigmas[1]
     assert cmp.to_dict()["best"] == "hybrid" and "warning" in cmp.summary()
+
+
+# --- The HTML report reads the parts' to_dict() (issue 41.7) ----------------------------------
+
+
+def test_report_sections_for_score_tests_and_cross_validation(c3_room, physical_room, tmp_path):
+    _, _, tests = c3_room
+    _, rigid, _ = physical_room
+    doc = {"score_tests": tests.to_dict(), "cross_validation": rigid.to_dict()}
+    page = open(tj.write_html_report(doc, tmp_path / "r.html")).read()
+    assert ">Missing terms (score tests)" in page and "Groups of alternatives" in page
+    group = ", ".join(tests.group_of("C3"))
+    assert f"<li>{group}</li>" in page
+    assert "Not estimable in this design" in page and "A1: a change of the network" in page
+    assert ">Prediction of held-out scans (cross-validation)" in page
+    assert f"{rigid.rms_mm['xyz']:.3f}" in page and f"{rigid.rms_none_mm['xyz']:.3f}" in page
+    assert page.count("<td>S") >= len(rigid.folds)  # one row per fold
+    assert not re.search(r"\bnan\b", page, re.IGNORECASE)
+    # Without them, the report says they were not computed.
+    bare = open(tj.write_html_report({}, tmp_path / "bare.html")).read()
+    assert "score tests of the terms not in the model" in bare
