@@ -233,3 +233,13 @@ def test_a_survey_with_a_preamble_and_columns(tmp_path):
     np.testing.assert_allclose(ref["T002"], [12.125, 18.5, 1.2])
     cols = tj.read_reference(path, columns="name,x,y,z,-")
     np.testing.assert_array_equal(cols["T008"], ref["T008"])
+    # A block layout: keywords before, comment lines, and keywords after the points.
+    block = tmp_path / "op.txt"
+    block.write_text(
+        "OPDSCR = survey of 23-Oct-2018 21:21:08\nOPSTRT\n% id X /m Y /m Z /m std /m\n"
+        + "".join(f"  {i}  {i}.5  {2 * i}.25  1.{i}  0.0  0.0  0.0\n" for i in range(1, 6))
+        + "OP_END\nVCSTRT\nVC_END\n"
+    )
+    op = tj.read_reference(block)
+    assert sorted(op) == ["1", "2", "3", "4", "5"]
+    np.testing.assert_allclose(op["3"], [3.5, 6.25, 1.3])

@@ -253,33 +253,44 @@ class _Lines:
                 self.notes.append(f"line {i} skipped (the point count of a PTS layout)")
 
     def _skip_header_block(self):
-        # A survey's preamble (project, instrument, date, station lines, often with digits)
-        # before its column header and data: where the lines do not share one field count,
-        # the data are the longest tail of lines that do (3 or more fields under one
-        # separator); the lines before it are skipped and named, and the tail's first line is
-        # the header when it reads as one.
+        # A survey's preamble (project, instrument, date lines, often with digits) before its
+        # column header and data, and a trailer after them (e.g. OP_END): where the lines do
+        # not share one field count, the data are the longest run of lines that do (3 or more
+        # fields under one separator); the lines around it are skipped and named, provided
+        # none of them holds three numbers (a data line with a column more or less is an
+        # error, never skipped). The run's first line is the header when it reads as one.
         if len(self.data) < 4:
             return
-        start = None
+        best = None  # (length, start, stop)
         for sep in (";", "\t", ",", None):
             counts = [len(_split(line, sep)) for _, line in self.data]
-            k = len(counts) - 1
-            while k > 0 and counts[k - 1] == counts[-1]:
-                k -= 1
-            if counts[-1] >= 3 and len(counts) - k >= 3 and (start is None or k < start):
-                start = k
-        if not start:
+            i = 0
+            while i < len(counts):
+                j = i
+                while j + 1 < len(counts) and counts[j + 1] == counts[i]:
+                    j += 1
+                if counts[i] >= 3 and j + 1 - i >= 3 and (best is None or j + 1 - i > best[0]):
+                    best = (j + 1 - i, i, j + 1)
+                i = j + 1
+        if best is None or best[0] == len(self.data):
             return
-        head, self.data = self.data[:start], self.data[start:]
+        _, a, b = best
+        outside = self.data[:a] + self.data[b:]
+        numbers = lambda line: sum(_number(f, True) is not None for f in _split(line, None))
+        if any(numbers(line) >= 3 for _, line in outside):
+            return
+        head, trail = self.data[:a], self.data[b:]
+        self.data = self.data[a:b]
         if self.header is None and self._header_like(self.data[0][1]):
             self.header = self.data.pop(0)
-        elif self.header is None and self._header_like(head[-1][1]):
+        elif self.header is None and head and self._header_like(head[-1][1]):
             self.header = head.pop()
-        if head:
-            self.notes.append(
-                f"lines {head[0][0]}-{head[-1][0]} skipped (a preamble before the data: "
-                f"{head[0][1].strip()[:40]!r}...)"
-            )
+        for part, what in ((head, "a preamble before the data"), (trail, "after the data")):
+            if part:
+                self.notes.append(
+                    f"lines {part[0][0]}-{part[-1][0]} skipped ({what}: "
+                    f"{part[0][1].strip()[:40]!r}...)"
+                )
 
 
 _SEP_NAMES = {";": "semicolon-separated", "\t": "tab-separated", ",": "comma-separated"}
