@@ -65,7 +65,11 @@ def _alternative(tj, score, room, term, corr, seed):
     adj = tester.adjustment
     problem = adj.problem(fixed_aps=adj.model.fixed_aps)
     out = score._score_system(
-        adj.plan.spec, problem, params, score.jnp.asarray(float(adj.options.rank_tolerance))
+        adj.plan.spec,
+        problem,
+        params,
+        score.jnp.asarray(float(adj.options.rank_tolerance)),
+        score.jnp.asarray(score.station_positions(np.asarray(params.eops))),
     )
     K = np.asarray(out[0])
     labels = adj.plan.ap_labels

@@ -107,6 +107,35 @@ def is_scale(v, params, ns) -> bool:
     return bool(den > 0 and abs(pos @ radial) / den > 0.9)
 
 
+#: Scan positions closer than this [m] are one station of the design.
+STATION_TOLERANCE = 0.05
+
+
+def station_of_scans(eops, tolerance: float = STATION_TOLERANCE) -> np.ndarray:
+    """Station index of every scan (s,): scans whose positions are within ``tolerance`` of a
+    station's first scan share it (two scans of one set-up differ by the noise of their
+    estimated positions, which separates nothing that the design does not)."""
+    out, centres = np.zeros(len(eops), dtype=int), []
+    for j, x in enumerate(np.asarray(eops)[:, :3]):
+        for k, c in enumerate(centres):
+            if np.linalg.norm(x - c) < tolerance:
+                out[j] = k
+                break
+        else:
+            out[j] = len(centres)
+            centres.append(x)
+    return out
+
+
+def station_positions(eops, tolerance: float = STATION_TOLERANCE) -> np.ndarray:
+    """Every scan's position replaced by the mean position of its station (s, 3): the design
+    as set up, for estimability judged from the design rather than from noise."""
+    pos = np.asarray(eops)[:, :3]
+    st = station_of_scans(pos, tolerance)
+    means = np.stack([pos[st == k].mean(axis=0) for k in range(st.max() + 1)])
+    return means[st]
+
+
 #: Plane points of one scan whose mean distance from the adjusted plane exceeds this [m], and
 #: this many times its standard error, suggest a wrong match of that scan's patch.
 PLANE_OFFSET = 0.01

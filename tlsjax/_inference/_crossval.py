@@ -46,6 +46,7 @@ import numpy as np
 
 from .._adjustment._calibrate import Adjustment, analyze
 from .._adjustment._config import CalibrationModel, SolverOptions
+from .._adjustment._diagnose import station_of_scans
 from .._adjustment._network import Network
 from .._adjustment._result import CalibrationResult, assemble
 from .._model._aps import ap_corrections
@@ -53,8 +54,6 @@ from .._model._geometry import cartesian_from_spherical, helmert_fit
 from .._summary import finite_or_none
 from ._pipeline import PIN_SIGMA, TestingContext, TestingState, constraint_weights, weights
 
-#: Scan positions closer than this [m] are one station.
-STATION_TOLERANCE = 0.05
 AXES = ("xyz", "x", "y", "z")
 PLACEMENTS = ("auto", "rigid", "levelled")
 
@@ -249,24 +248,10 @@ def paired_difference(a: CrossValidation, b: CrossValidation) -> tuple[float, fl
 # --- Folds -----------------------------------------------------------------------------------
 
 
-def stations(eops: np.ndarray, tolerance: float = STATION_TOLERANCE) -> np.ndarray:
-    """Station index of every scan: scans whose positions are within ``tolerance`` share one."""
-    out, centres = np.zeros(len(eops), dtype=int), []
-    for j, x in enumerate(np.asarray(eops)[:, :3]):
-        for k, c in enumerate(centres):
-            if np.linalg.norm(x - c) < tolerance:
-                out[j] = k
-                break
-        else:
-            out[j] = len(centres)
-            centres.append(x)
-    return out
-
-
 def default_folds(net: Network, eops: np.ndarray) -> tuple[tuple, tuple]:
     """(folds, refused): each scan alone where the rest keeps scans from two stations (or
     from as many as the network has, if it has one), and the scans refused with the reason."""
-    st = stations(eops)
+    st = station_of_scans(eops)
     n_st = len(set(st.tolist()))
     folds, refused = [], []
     for j, scan in enumerate(net.scans):
@@ -589,7 +574,7 @@ def cross_validation_step(ctx: TestingContext, state: TestingState) -> TestingSt
     """The pipeline step (``step(ctx, state) -> state``): cross-validation of the model at the
     state's weights (variance factors, removals, pins) on the context's compiled adjustment,
     warm-started at its estimates; the result in ``state.cross_validation`` and, where the
-    calibration does not improve prediction, a warning. Options from
+    calibration does not improve prediction or no fold could be held out, a warning. Options from
     ``ctx.options.cross_validation`` (a :class:`CrossValidationOptions`; False: skip) when the
     options carry them, the defaults otherwise."""
     opts = getattr(ctx.options, "cross_validation", None)
@@ -605,6 +590,16 @@ def cross_validation_step(ctx: TestingContext, state: TestingState) -> TestingSt
     data = _Data(w, lw, extra, dict(state.pinned), params, res.target_xyz, state.mask.all(axis=1))
     cv = run_folds(ctx.reweighter.adjustment, data, opts)
     state = dataclasses.replace(state, cross_validation=cv)
+    if cv.code == CrossValidationCode.NO_FOLDS and cv.aps:
+        return dataclasses.replace(
+            state,
+            warnings=state.warnings
+            + (
+                "cross-validation: no scan could be held out (the rest would not determine the "
+                "APs), so whether this calibration improves the clouds is not checked: compare "
+                "with a reference survey (tlsjax check-targets) before applying it",
+            ),
+        )
     if cv.code == CrossValidationCode.NOT_IMPROVED:
         state = dataclasses.replace(
             state,

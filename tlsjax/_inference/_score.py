@@ -33,7 +33,11 @@ unknown above ``rank_tolerance``), with its column evaluated at the *adjusted* o
 range scale A1 (basis rho) differs from the network's scale (the computed ranges) by the
 residuals, which a large systematic misfit makes large enough to pass the test, so a free
 network would be told to add a term it cannot determine; at ``l + v`` its column is exactly a
-change of scale, the design's real defect. The reason is named: no scale information (scale
+change of scale, the design's real defect. Likewise the scans of one station (positions within
+:data:`tlsjax._adjustment._diagnose.STATION_TOLERANCE`) are placed at their station's mean
+position for this test: the few tenths of a millimetre between their estimated positions would
+let a short-period range term (A3, A4) pass the rank test from one station, where every range
+term is a change of the targets' distances. The reason is named: no scale information (scale
 bars, control), absorbed by the targets (one station), or confounded with the model.
 
 **Alternatives.** Two candidates whose whitened columns after the model, ``Q_vv^(1/2) P c``,
@@ -58,7 +62,7 @@ import numpy as np
 
 from .._adjustment._calibrate import analyze
 from .._adjustment._config import CalibrationModel, SolverOptions
-from .._adjustment._diagnose import ABSORBED, is_scale
+from .._adjustment._diagnose import ABSORBED, is_scale, station_positions
 from .._adjustment._families import Params, PointFamily, on_grid
 from .._adjustment._network import Network
 from .._adjustment._normal import linearise_rows, linearised_cost, null_space, reduce, reduced_rhs
@@ -240,24 +244,27 @@ def default_candidates(scanner: Scanner) -> tuple:
 
 
 @functools.partial(jit, static_argnums=(0,))
-def _score_system(spec, problem, params, rank_tolerance):
+def _score_system(spec, problem, params, rank_tolerance, positions):
     """The reduced normal matrix K (poses + APs), the reduced right-hand side ``-J^T e`` and
     ``v^T P v`` at ``params``, the diagonal of the unreduced matrix (the scale of the engine's
     rank test): the engine's linearisation and Schur elimination. Then the same reduced matrix
-    and diagonal with the AP columns evaluated at the adjusted observations ``l + v`` of the
-    target families (the design's estimability, module docstring)."""
+    and diagonal of the design (module docstring): the scans at their stations' ``positions``
+    (s, 3) and the AP columns evaluated at the observations computed there, ``l + v``."""
     grid = on_grid(problem)
     blocks, rows = linearise_rows(spec, grid, params)
     _, Hz = null_space(spec, grid.families, params)
     red = reduce(spec, grid, blocks, Hz, jnp.asarray(0.0), rank_tolerance)
     cost = linearised_cost(grid, params, rows)
+    at = Params(params.prims, params.eops.at[:, :3].set(positions), params.aps)
+    _, rows_d = linearise_rows(spec, grid, at)
     adjusted = tuple(
         dataclasses.replace(f, obs=f.obs + r.raw) if isinstance(f, PointFamily) else f
-        for f, r in zip(grid.families, rows)
+        for f, r in zip(grid.families, rows_d)
     )
     design = dataclasses.replace(grid, families=adjusted)
-    blocks_d, _ = linearise_rows(spec, design, params)
-    red_d = reduce(spec, design, blocks_d, Hz, jnp.asarray(0.0), rank_tolerance)
+    blocks_d, _ = linearise_rows(spec, design, at)
+    _, Hz_d = null_space(spec, grid.families, at)
+    red_d = reduce(spec, design, blocks_d, Hz_d, jnp.asarray(0.0), rank_tolerance)
     return (
         red.K, reduced_rhs(blocks.bp, blocks.bz, red), cost, jnp.diagonal(blocks.Nzz),
         red_d.K, jnp.diagonal(blocks_d.Nzz),
@@ -316,7 +323,8 @@ def tests_in(adjustment, problem, params, names, alpha: float) -> ScoreTests:
     stepwise selection asks of its one wide adjustment, and :class:`ScoreTester` of its own."""
     spec, tol = adjustment.plan.spec, float(adjustment.options.rank_tolerance)
     labels = adjustment.plan.ap_labels
-    out = _score_system(spec, problem, params, jnp.asarray(tol, dtype=jnp.float64))
+    positions = jnp.asarray(station_positions(np.asarray(params.eops)))
+    out = _score_system(spec, problem, params, jnp.asarray(tol, dtype=jnp.float64), positions)
     K, rhs, vtpv, nzz, K_d, nzz_d = (np.asarray(a) for a in out)
     free = ~np.asarray(problem.fixed)
     idx = np.array([labels.index(n) for n in names], dtype=int)

@@ -373,7 +373,8 @@ def _forward(fit, current, res, visited, unestimable, crit, options, steps):
         r = fit(trial)
         i = r.ap_names.index(chosen)
         entered = (
-            f"T / s0^2 = {z[chosen]:.1f} > {crit:.2f} (T = {t.statistic:.1f}, would absorb "
+            f"largest score statistic T / s0^2 = {z[chosen]:.1f} > {crit:.2f} (T = "
+            f"{t.statistic:.1f}, would absorb "
             f"{100 * t.share:.1f}% of v^T P v){note}"
         )
         if not np.isfinite(r.ap_t[i]):
