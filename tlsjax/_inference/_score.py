@@ -176,10 +176,14 @@ class ScoreTests:
 
     def summary(self) -> str:
         n = sum(t.testable for t in self.tests)
-        scale = "" if self.variance_factor == 1.0 else f" / s0^2 = {self.variance_factor:.4g}"
+        stat = (
+            "chi^2(1)"
+            if self.variance_factor == 1.0
+            else f"T / s0^2 (s0^2 = {self.variance_factor:.4g})"
+        )
         head = (
             f"missing terms (score tests of {n} candidate(s), family-wise alpha = {self.alpha:g}, "
-            f"T{scale} > {self.critical:.2f}):"
+            f"{stat} > {self.critical:.2f}):"
         )
         sig = self.significant
         lines = [head]
