@@ -476,7 +476,9 @@ def _screened_data(network, model, start, solver, options, screened=None):
 
 def _end_point(fit, path) -> tuple:
     """(set, reason): the path's last set (where the tests ended) unless it predicts held-out
-    scans worse than the start set, or significantly worse than another set of the path
+    scans worse than the start set (by more than one standard error of the paired difference:
+    a term whose effect on the clouds is below the folds' scatter is no reason to drop a term
+    the tests found), or significantly worse than another set of the path
     (:func:`_significantly_better`); then the fewest terms among the sets within one standard
     error (paired) of the best and not worse than the start (module docstring). The last set
     where the start could not be cross-validated."""
@@ -486,14 +488,16 @@ def _end_point(fit, path) -> tuple:
     if start not in ok or last not in ok:
         why = "prediction not checked (no fold could be held out)" if fit.cv_options else ""
         return last, why or "no significant candidate left"
-    ok = {p: cv for p, cv in ok.items() if cv.cv_mm <= ok[start].cv_mm}
-    best = min(ok, key=lambda p: ok[p].cv_mm)
     tail = f"; the start set: {cvs[start].cv_mm:.3f} mm"
-    if last in ok and not _significantly_better(ok[best], ok[last]):
+    d, se = paired_difference(ok[last], ok[start])
+    worse = ok[last].cv_mm > ok[start].cv_mm and not (np.isfinite(d) and d <= se)
+    if not worse and not any(_significantly_better(cv, ok[last]) for cv in ok.values()):
         return last, (
             f"no significant candidate left; it predicts held-out scans no worse than the "
-            f"start set: CV {ok[last].cv_mm:.3f} mm" + tail
+            f"start set within the folds' scatter: CV {ok[last].cv_mm:.3f} mm" + tail
         )
+    ok = {p: cv for p, cv in ok.items() if cv.cv_mm <= ok[start].cv_mm}
+    best = min(ok, key=lambda p: ok[p].cv_mm)
     near = []
     for p, cv in ok.items():
         d, se = paired_difference(cv, ok[best])
