@@ -40,15 +40,28 @@ pass of the compiled adjustment split into its kernels (``_phases.phase_times``)
 Where the peer cannot be built (no Ceres, no compiler), the JSON says why under ``ceres`` and
 every case runs without it (``"ceres": {"skipped": ...}``), scipy and tlsjax still measured.
 
+**Quiet machine only.** A ratio measured while other processes compete for the cores says
+nothing (peers and tlsjax suffer unequally). Before every round the one-minute load average
+must be at most ``--max-load`` (default 1.25 per core: 2.5 on 2 cores); while it is higher the
+benchmark says so and waits (``--wait`` seconds in all, default 900), and when the machine does
+not get quiet it stops with exit code 3 and writes no ratio. Each round records the load
+average before it and the share of the cores that other processes used during it.
+
+**The command line, in new processes**: ``tlsjax calibrate`` of the demo room (the README's
+command, without plots) with an empty compilation cache and again (re-run), and ``import
+tlsjax``, each the wall time of a new process (``cli`` in the JSON).
+
 Rounds alternate the sides (Ceres, scipy, tlsjax, ...), so all see the same load of this
-shared machine; medians over all rounds. The JSON records the machine, the JAX device, the
-load average of every round, the ratios (peer time / tlsjax time) and the checks that both
+shared machine; medians over all rounds. The JSON records the date, the machine, the jax version, the JAX
+device, the load average of every round, the ratios (peer time / tlsjax time) and the checks that both
 reached the same estimates (APs in tlsjax's sigmas, sigmas, s0^2, iterations).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import datetime
 import os
 import sys
 import tempfile
@@ -95,6 +108,106 @@ def _uptime():
         return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     except OSError:
         return None
+
+
+class NotQuiet(RuntimeError):
+    """The machine did not get quiet enough to measure a ratio."""
+
+
+def _cpu_busy() -> float | None:
+    """CPU seconds all processes of the machine have used (``/proc/stat``), or None."""
+    try:
+        with open("/proc/stat") as f:
+            fields = [float(x) for x in f.readline().split()[1:]]
+    except OSError:
+        return None
+    idle = fields[3] + (fields[4] if len(fields) > 4 else 0.0)
+    return (sum(fields) - idle) / os.sysconf("SC_CLK_TCK")
+
+
+def _own_cpu() -> float:
+    import resource
+
+    me, kids = (
+        resource.getrusage(resource.RUSAGE_SELF),
+        resource.getrusage(resource.RUSAGE_CHILDREN),
+    )
+    return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
+
+
+class Quiet:
+    """The load guard: :meth:`wait` before a round (the one-minute load average at most
+    ``max_load``, waiting up to ``budget`` seconds in all, else :class:`NotQuiet`), and
+    :meth:`round` as a context that records the load before it and the share of the machine's
+    cores that other processes used during it."""
+
+    def __init__(self, max_load: float, budget: float):
+        self.max_load, self.budget, self.waited = max_load, budget, 0.0
+        self.rounds: list[dict] = []
+
+    def wait(self) -> float:
+        while True:
+            load = os.getloadavg()[0]
+            if load <= self.max_load:
+                return load
+            if self.waited >= self.budget:
+                raise NotQuiet(
+                    f"load average {load:.2f} above {self.max_load:.2f} for {self.waited:.0f} s: "
+                    "no ratio is written (rerun on a quiet machine, or raise --wait)"
+                )
+            print(f"# load average {load:.2f} > {self.max_load:.2f}: waiting", file=sys.stderr)
+            time.sleep(30.0)
+            self.waited += 30.0
+
+    @contextlib.contextmanager
+    def round(self):
+        load = self.wait()
+        busy0, own0, t0 = _cpu_busy(), _own_cpu(), time.perf_counter()
+        yield
+        wall = time.perf_counter() - t0
+        entry = {"loadavg_before": load, "wall_s": wall}
+        busy1 = _cpu_busy()
+        if busy0 is not None and busy1 is not None:
+            others = max(busy1 - busy0 - (_own_cpu() - own0), 0.0)
+            entry["others_cpu_share"] = others / (wall * (os.cpu_count() or 1))
+        self.rounds.append(entry)
+
+
+def _cli_times(tmp: str) -> dict:
+    """Wall time of ``import tlsjax`` and of ``tlsjax calibrate`` of the demo room in new
+    processes: with an empty compilation cache (first) and again (re-run)."""
+    import subprocess
+
+    env = dict(os.environ, TLSJAX_CACHE_DIR=os.path.join(tmp, "cache"), JAX_PLATFORMS="cpu")
+    py = sys.executable
+    obs, scans = os.path.join(tmp, "observations.csv"), os.path.join(tmp, "scans.csv")
+    script = os.path.join(os.path.dirname(py), "tlsjax")  # the console script users run
+    tool = (
+        [script]
+        if os.path.exists(script)
+        else [py, "-c", "import sys; from tlsjax._cli import main; sys.exit(main())"]
+    )
+    # The demo room (tlsjax demo): seed 0, two scans rolled, the 23-term model in the data.
+    subprocess.run(
+        [*tool, "simulate", "--out", obs, "--scans-out", scans, "--aps", "chow2013-noscale"],
+        env=env, check=True, capture_output=True,
+    )  # fmt: skip
+    argv = [*tool, "calibrate", obs, "--scans", scans, "--aps", "chow2013-noscale"]
+    argv += ["--json", os.path.join(tmp, "cal.json"), "--quiet"]
+
+    def wall(cmd):
+        t = time.perf_counter()
+        subprocess.run(cmd, env=env, check=True, capture_output=True)
+        return time.perf_counter() - t
+
+    out = {
+        "command": "tlsjax calibrate observations.csv --scans scans.csv --aps chow2013-noscale "
+        "--json cal.json --quiet (the demo room: tlsjax simulate --aps chow2013-noscale)"
+    }
+    out["import_tlsjax_s"] = min(wall([py, "-c", "import tlsjax"]) for _ in range(3))
+    out["calibrate_first_s"] = wall(argv)
+    out["calibrate_rerun_s"] = [wall(argv) for _ in range(3)]
+    return out
 
 
 def _median(xs):
@@ -156,19 +269,20 @@ def single(binary, net, model, args, tmp) -> dict:
     compile_phases = _compile_phases(adj, opts)
     times = {"ceres": [], "scipy": [], "solve": [], "run": [], "calibrate": []}
     phases = {"plan": [], "approximate_values": [], "solve_and_result": []}
-    loads, peer, sol = [], None, None
-    for _ in range(args.rounds):
-        loads.append(loadavg())
+    got = {}
+
+    def one_round():
+        got["peer"] = None
         if binary is not None:
-            peer = _ceres.run(binary, "single", problem, repeats=args.repeats, threads=1)
-            times["ceres"] += peer["wall_s"]
-        t_sc, sol, sc_peer = _scipy(net, scanner, start, args.scipy_repeats)
+            got["peer"] = _ceres.run(binary, "single", problem, repeats=args.repeats, threads=1)
+            times["ceres"] += got["peer"]["wall_s"]
+        t_sc, got["sol"], got["sc_peer"] = _scipy(net, scanner, start, args.scipy_repeats)
         times["scipy"] += t_sc
         for k, v in _calibrate_phases(net, model, opts).items():
             phases[k].append(v)
         for _ in range(args.repeats):
             t = time.perf_counter()
-            res = adj.solve()
+            got["res"] = adj.solve()
             times["solve"].append(time.perf_counter() - t)
             t = time.perf_counter()
             jax.block_until_ready(adj.run())
@@ -177,6 +291,12 @@ def single(binary, net, model, args, tmp) -> dict:
             t = time.perf_counter()
             tj.calibrate(net, model, opts)
             times["calibrate"].append(time.perf_counter() - t)
+
+    for _ in range(args.rounds):
+        with args.quiet.round():
+            one_round()
+    loads = args.quiet.rounds[-args.rounds :]
+    peer, sol, sc_peer, res = got["peer"], got["sol"], got["sc_peer"], got["res"]
     med = {k: _median(v) for k, v in times.items()}
     _, _, ap_sc = sc_peer.unpack(sol.x, start[1])
     costs = {}
@@ -238,15 +358,16 @@ def montecarlo(binary, sim, model, args, tmp, scipy_single_s: float) -> dict:
     mc = monte_carlo(sim, model, options)
     compile_s = time.perf_counter() - t0 - mc.run_s
     times = {"ceres": [], "tlsjax": []}
-    loads = []
+    peer = None
     for _ in range(args.rounds):
-        loads.append(loadavg())
-        if binary is not None:
-            peer = _ceres.run(binary, "mc", problem, threads=args.peer_threads)
-            times["ceres"] += peer["wall_s"]
-        t = time.perf_counter()
-        mc = monte_carlo(sim, model, options)
-        times["tlsjax"].append(time.perf_counter() - t)
+        with args.quiet.round():
+            if binary is not None:
+                peer = _ceres.run(binary, "mc", problem, threads=args.peer_threads)
+                times["ceres"] += peer["wall_s"]
+            t = time.perf_counter()
+            mc = monte_carlo(sim, model, options)
+            times["tlsjax"].append(time.perf_counter() - t)
+    loads = args.quiet.rounds[-args.rounds :]
     base = {
         "runs": args.runs,
         "tlsjax_s": stats(times["tlsjax"]),
@@ -303,15 +424,36 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--devices", type=int, help="JAX CPU devices (default: one per core)")
     p.add_argument("--no-montecarlo", action="store_true")
+    p.add_argument("--no-cli", action="store_true", help="skip the command-line timings")
+    p.add_argument(
+        "--max-load",
+        type=float,
+        default=1.25 * (os.cpu_count() or 1),
+        help="largest one-minute load average a round may start at (default 1.25 per core)",
+    )
+    p.add_argument("--wait", type=float, default=900.0, help="seconds to wait for a quiet machine")
     args = p.parse_args(argv)
+    args.quiet = Quiet(args.max_load, args.wait)
+    try:
+        return _main(args)
+    except NotQuiet as exc:
+        print(f"bench_ceres: {exc}", file=sys.stderr)
+        return 3
+
+
+def _main(args) -> int:
     out = {
+        "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "jax_version": jax.__version__,
+        "tlsjax_version": tj.__version__,
+        "max_load": args.max_load,
         "machine": machine_info(),
         "device": str(jax.devices()[0].device_kind),
         "devices": [str(d) for d in jax.devices()],
         "loadavg_start": loadavg(),
         "shared_machine": "other processes may run beside this benchmark: see loadavg",
         "uptime": _uptime(),
-        "args": vars(args),
+        "args": {k: v for k, v in vars(args).items() if k != "quiet"},
     }
     binary, why = _ceres.build()
     out["ceres"] = {"binary": str(binary)} if binary is not None else {"skipped": why}
@@ -333,6 +475,12 @@ def main(argv=None) -> int:
                 case["montecarlo"] = montecarlo(peer, sim, model, args, tmp, sc)
                 print(f"# {name} Monte Carlo: {case['montecarlo']['times_s']}")
             out["cases"][name] = case
+        if not args.no_cli:
+            with args.quiet.round():
+                out["cli"] = _cli_times(tmp)
+            out["cli"]["round"] = args.quiet.rounds[-1]
+            print(f"# command line: {out['cli']}")
+    out["rounds"] = args.quiet.rounds
     out["loadavg_end"] = loadavg()
     out["uptime_end"] = _uptime()
     write_results(out, args.out)

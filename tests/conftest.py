@@ -1,4 +1,5 @@
 import os
+import shutil
 import tempfile
 
 import jax
@@ -6,10 +7,44 @@ import pytest
 from hypothesis import HealthCheck, Phase, settings
 from strict_json import check_tree
 
-# The CLI turns on JAX's persistent compilation cache for its process; tests call the CLI in
-# process, and one long run crashed (SIGSEGV) inside JAX's cache write after that. Tests compile
-# without it (test_notebooks.py gives its kernels their own cache folder).
-os.environ.setdefault("TLSJAX_CACHE_DIR", "off")
+# JAX's persistent compilation cache, which tlsjax turns on at import in TLSJAX_CACHE_DIR
+# (tlsjax/_jit.py), in one temporary folder that the pytest workers (they inherit the
+# variable) and the notebooks' kernels share: each program compiles once per run, not once per
+# worker, and a program that another test compiled from another Python function object (a new
+# closure, a new plan of the same shape) is read back instead of compiled. Removed at the end.
+# TLSJAX_CACHE_DIR=off compiles everything; a folder of one's own keeps the programs between
+# runs of the edit-test loop.
+_SUITE_CACHE = None
+if "TLSJAX_CACHE_DIR" not in os.environ:
+    _SUITE_CACHE = tempfile.mkdtemp(prefix="tlsjax-test-cache-")
+    os.environ["TLSJAX_CACHE_DIR"] = _SUITE_CACHE
+
+
+# The edit-test loop: ``./scripts/test -m fast`` runs the tests listed in tests/fast.txt (node
+# ids, one a line: every test file's cheapest tests, chosen from a profile of the whole suite
+# by ``scripts/suite_profile.py DIR --write-fast``), a few minutes on 2 cores.
+_FAST = os.path.join(os.path.dirname(__file__), "fast.txt")
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "fast: in the quick subset of tests/fast.txt (-m fast)")
+
+
+def pytest_collection_modifyitems(config, items):
+    try:
+        with open(_FAST) as f:
+            fast = {line.strip() for line in f if line.strip() and not line.startswith("#")}
+    except OSError:
+        return
+    for item in items:
+        if item.nodeid in fast:
+            item.add_marker(pytest.mark.fast)
+
+
+def pytest_unconfigure(config):
+    if _SUITE_CACHE is not None:  # the process that made it (the workers inherited it)
+        shutil.rmtree(_SUITE_CACHE, ignore_errors=True)
+
 
 # float64 everywhere (SPEC section 1); tlsjax sets it too, but tests may import jax first.
 jax.config.update("jax_enable_x64", True)
@@ -66,3 +101,60 @@ _COMMON = dict(
 settings.register_profile("ci", **_COMMON)
 settings.register_profile("thorough", **_COMMON)
 settings.load_profile(os.environ.get("TLSJAX_HYPOTHESIS_PROFILE", "ci"))
+
+
+# --- What the suite spends its time on (TLSJAX_TEST_PROFILE=folder) ----------------------------
+# Per test: wall and CPU time, XLA compiles and their seconds, tracing and lowering seconds, persistent
+# cache hits, and the asserts that passed (pytest's assertion-pass hook, on with
+# ``-o enable_assertion_pass_hook=true``). Each worker writes profile-<worker>.json into the
+# folder; ``scripts/test_profile`` sums them per file.
+_PROFILE = os.environ.get("TLSJAX_TEST_PROFILE")
+_current = {}
+_profile = {}
+
+if _PROFILE:
+    import json
+    import time
+
+    from jax import monitoring
+
+    _EVENTS = {
+        "/jax/core/compile/backend_compile_duration": "compile_s",
+        "/jax/core/compile/jaxpr_trace_duration": "trace_s",
+        "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower_s",
+        "/jax/compilation_cache/cache_retrieval_time_sec": "cache_read_s",
+    }
+
+    def _on_duration(event, seconds, **_):
+        key = _EVENTS.get(event)
+        if key and _current:
+            _current[key] = _current.get(key, 0.0) + seconds
+            if key == "compile_s":
+                _current["compiles"] = _current.get("compiles", 0) + 1
+            if key == "cache_read_s":
+                _current["cache_reads"] = _current.get("cache_reads", 0) + 1
+
+    monitoring.register_event_duration_secs_listener(_on_duration)
+
+    @pytest.hookimpl(hookwrapper=True)
+    def pytest_runtest_protocol(item, nextitem):
+        _current.clear()
+        _current["asserts"] = 0
+        t0, c0 = time.perf_counter(), time.process_time()
+        yield
+        # CPU seconds of the worker (all its threads): on a loaded machine the wall time says
+        # little, the CPU time what the test costs on an idle one.
+        _current["wall_s"] = time.perf_counter() - t0
+        _current["cpu_s"] = time.process_time() - c0
+        _profile[item.nodeid] = dict(_current)
+        _current.clear()
+
+    def pytest_assertion_pass(item, lineno, orig, expl):
+        if _current:
+            _current["asserts"] += 1
+
+    def pytest_sessionfinish(session):
+        worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+        os.makedirs(_PROFILE, exist_ok=True)
+        with open(os.path.join(_PROFILE, f"profile-{worker}.json"), "w") as f:
+            json.dump(_profile, f, indent=1)

@@ -10,6 +10,8 @@ import re
 import numpy as np
 import pytest
 import scipy.stats
+from helpers import printed_is_summary, same_run
+from networks import NumpyDrawer, point_case
 from strict_json import load_strict
 
 import tlsjax as tj
@@ -232,7 +234,7 @@ def test_demo_writes_report_and_plots(tmp_path):
 
 def test_global_test_against_scipy():
     for dof in (3, 40, 1753):
-        g = tj.global_test(1.0, dof, alpha=0.05)
+        g = tj.global_test(1.0, dof, level=0.05)
         assert np.isclose(g["lower"], scipy.stats.chi2.ppf(0.025, dof), rtol=1e-9)
         assert np.isclose(g["upper"], scipy.stats.chi2.ppf(0.975, dof), rtol=1e-9)
     # s0 = 1.05 with r = 1000: T = 1102.5 beyond the 97.5 % quantile 1089.5, rejected;
@@ -414,3 +416,203 @@ def test_select_with_a_gross_error_ends_as_on_the_clean_file(simulated, tmp_path
         assert js["selection"]["n_screened"] == (name == "bad")
     assert chosen[0] == chosen[1] == {"A0", "B6", "B7", "C0"}
     assert "largest score statistic" in capsys.readouterr().out
+
+
+# --------------------------------------------------------------------------------------------
+# Issue 39: the command prints and writes the one library call's result
+
+
+def _cli_and_api(obs, scans, out, capsys, cli_args, model, options):
+    """``tlsjax calibrate`` with ``cli_args`` and ``tj.self_calibrate`` of the same files with
+    ``model`` and ``options``: (exit code, stdout, CLI JSON, API result)."""
+    code = main(["calibrate", str(obs), "--scans", str(scans), "--json", str(out), *cli_args])
+    printed = capsys.readouterr().out
+    net = tj.read_network(str(obs), str(scans))
+    return code, printed, load_strict(out), tj.self_calibrate(net, model, options)
+
+
+@pytest.mark.parametrize(
+    "cli_args, options",
+    [
+        ([], tj.CalibrationOptions()),
+        (
+            ["--no-vce", "--snoop", "--bonferroni", "--snoop-alpha", "0.05"],
+            tj.CalibrationOptions(
+                vce=None, snooping=tj.SnoopingOptions(w_test_level=0.05, bonferroni=True)
+            ),
+        ),
+        (
+            ["--aps", "A0 B6 C0", "--select", "--select-candidates", "A3 B7 C2"],
+            tj.CalibrationOptions(selection=tj.SelectionOptions(candidates="A3 B7 C2")),
+        ),
+    ],
+    ids=["defaults", "snooping", "selection"],
+)
+def test_cli_prints_and_writes_the_self_calibration(simulated, tmp_path, capsys, cli_args, options):
+    d, obs, scans, _ = simulated
+    aps = cli_args[cli_args.index("--aps") + 1] if "--aps" in cli_args else "physical"
+    model = tj.CalibrationModel(tj.Scanner(aps=aps))
+    code, printed, doc, result = _cli_and_api(
+        obs, scans, tmp_path / "r.json", capsys, cli_args, model, options
+    )
+    assert code == 0 and result.ok
+    same_run(doc, result.to_dict())
+    printed_is_summary(printed, result.summary())
+    assert doc["settings"]["options"] == options.to_dict()
+    assert doc["settings"]["inputs"]["command"].startswith("tlsjax calibrate ")
+    if options.selection is not None:
+        assert doc["selection"]["aps"] == list(result.model.scanner.aps)
+        assert set(result.model.scanner.aps) == {"A0", "B6", "B7", "C0"}
+
+
+def test_cli_prints_and_writes_the_self_calibration_of_a_drawn_network(tmp_path, capsys):
+    """A network drawn at random (tests/networks.py: four scans from one to three stations,
+    levelled or tilted, hybrid or panoramic, any sigma scale), written as ``tlsjax simulate``
+    writes it; whatever the run ends in, the command's JSON and text are the entry's."""
+    case = point_case(NumpyDrawer(7))
+    sim = tj.simulate_design(case.design, seed=case.seed)
+    obs, scans = tmp_path / "obs.csv", tmp_path / "scans.csv"
+    tj.write_network(obs, sim.network, scans_path=scans, architecture=sim.scanner.architecture)
+    model = tj.CalibrationModel(tj.Scanner(architecture=sim.scanner.architecture))
+    code, printed, doc, result = _cli_and_api(
+        obs, scans, tmp_path / "r.json", capsys, [], model, tj.CalibrationOptions()
+    )
+    assert code == (0 if result.ok else 1)
+    same_run(doc, result.to_dict())
+    printed_is_summary(printed, result.summary())
+
+
+def test_from_json_reruns_the_recorded_calibration(simulated, tmp_path, capsys):
+    """Issue 40 item 5: the JSON records its inputs, how they were read, the model and the
+    options; ``--from-json`` re-runs it and reproduces it; only output options go with it."""
+    d, obs, scans, _ = simulated
+    first, again = tmp_path / "first.json", tmp_path / "again.json"
+    given = ["--aps", "A0 B6 B7 C0", "--no-vce", "--snoop", "--sigma-range-mm", "0.6"]
+    assert main(["calibrate", str(obs), "--scans", str(scans), *given, "--json", str(first)]) == 0
+    assert main(["calibrate", "--from-json", str(first), "--json", str(again)]) == 0
+    a, b = load_strict(first), load_strict(again)
+    same_run(a, b)
+    assert (
+        a["settings"]["inputs"]["sigma_range_mm"] == 0.6 and a["settings"]["options"]["vce"] is None
+    )
+    assert b["settings"]["inputs"] == {
+        **a["settings"]["inputs"],
+        "command": b["provenance"]["command"],
+    }
+    capsys.readouterr()
+    assert main(["calibrate", "--from-json", str(first), "--no-vce"]) == 2
+    assert "--vce: not with --from-json" in capsys.readouterr().err
+    # Issue 39 item 7: a simulation's truth where a calibration is expected is named.
+    truth = d / "truth.json"
+    assert main(["calibrate", "--from-json", str(truth)]) == 2
+    assert "the truth of a simulation" in capsys.readouterr().err
+    assert main(["calibrate", str(obs), "--ap-priors", str(truth)]) == 2
+    assert "the truth of a simulation" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------------------------
+# Issue 41: prediction judges the calibration; the architecture of Cartesian lists from the data
+
+#: The room of tests/test_identification.py (its compiled programs serve both).
+SMALL_ROOM = tj.Room(n_targets=24)
+
+
+def _cartesian_lists(net, folder):
+    """One vendor-style list per scan (name x y z in the scanner's frame, no header)."""
+    x = np.asarray(tj.cartesian_from_spherical(net.observations))
+    paths = []
+    for j, scan in enumerate(net.scans):
+        path = folder / f"{scan}.txt"
+        rows = np.flatnonzero(net.scan_index == j)
+        path.write_text(
+            "".join(
+                f"{net.targets[net.target_index[i]]} {x[i, 0]:.7f} {x[i, 1]:.7f} {x[i, 2]:.7f}\n"
+                for i in rows
+            )
+        )
+        paths.append(str(path))
+    return paths
+
+
+def test_a_calibration_no_better_than_none_exits_4_and_says_so(tmp_path, capsys):
+    """Data without systematic errors: the physical model's APs fit noise, and its held-out
+    scans are placed worse with them than without (seed 0): the command writes the result,
+    prints the warning and exits 4 (a script that applies what exits 0 does not apply it);
+    --no-cross-validation runs no folds and exits 0."""
+    sim = tj.simulate(SMALL_ROOM, seed=0, aps=())
+    obs, scans, out = tmp_path / "obs.csv", tmp_path / "scans.csv", tmp_path / "r.json"
+    tj.write_network(obs, sim.network, scans_path=scans, architecture="hybrid")
+    args = ["calibrate", str(obs), "--scans", str(scans), "--no-vce", "--quiet"]
+    assert main([*args, "--json", str(out)]) == 4
+    printed = capsys.readouterr().out
+    cv = load_strict(out)["cross_validation"]
+    assert cv["code"] == int(tj.CrossValidationCode.NOT_IMPROVED) and not cv["improves"]
+    assert cv["rms_mm"]["xyz"] > cv["rms_none_mm"]["xyz"]
+    assert "warning: cross-validation: the calibration does not improve" in printed
+    assert f"{cv['rms_mm']['xyz']:.3f} mm with the APs" in printed
+    assert "architecture_check" not in load_strict(out)  # the file records it: no check
+    assert main([*args, "--no-cross-validation", "--json", str(out)]) == 0
+    assert "cross_validation" not in load_strict(out)
+
+
+def test_cartesian_lists_imported_as_the_wrong_architecture_are_named(tmp_path, capsys):
+    """A hybrid scanner's Cartesian lists with the physical errors, imported as panoramic:
+    the imported file says the architecture was only declared, so calibrate fits both
+    (default on for such files) and warns naming hybrid, in the output and the JSON."""
+    sim = tj.simulate(SMALL_ROOM, seed=0, aps="A0 B6 B7 C0")
+    _, scans, _ = tj.write_network(
+        tmp_path / "o.csv", sim.network, scans_path=tmp_path / "s.csv"
+    ) or (None, tmp_path / "s.csv", None)
+    imported, out = tmp_path / "imported.csv", tmp_path / "r.json"
+    lists = _cartesian_lists(sim.network, tmp_path)
+    assert (
+        main(["import-targets", *lists, "--architecture", "panoramic", "--out", str(imported)]) == 0
+    )
+    assert "declared for Cartesian target lists" in imported.read_text().splitlines()[0]
+    capsys.readouterr()
+    code = main(
+        [
+            "calibrate",
+            str(imported),
+            "--scans",
+            str(scans),
+            "--no-vce",
+            "--quiet",
+            "--json",
+            str(out),
+        ]
+    )
+    printed = capsys.readouterr().out
+    check = load_strict(out)["architecture_check"]
+    assert check["given"] == "panoramic" and check["best"] == "hybrid" and check["clearly"]
+    assert "read as panoramic, but hybrid explains them clearly better" in printed
+    assert check["warning"] in load_strict(out)["warnings"]
+    assert code in (0, 4)
+    # Given explicitly, the architecture is the user's: no check.
+    assert (
+        main(
+            [
+                "calibrate",
+                str(imported),
+                "--scans",
+                str(scans),
+                "--no-vce",
+                "--quiet",
+                "--architecture",
+                "panoramic",
+                "--no-cross-validation",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
+    assert "architecture_check" not in load_strict(out)
+
+
+def test_calibrate_help_names_the_recommended_path(capsys):
+    with pytest.raises(SystemExit):
+        main(["calibrate", "--help"])
+    text = capsys.readouterr().out
+    assert "recommended path for a scanner owner" in text and "--select" in text
+    assert "exit 4" in text and "--no-cross-validation" in text

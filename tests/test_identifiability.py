@@ -11,8 +11,10 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
+from tlsjax import rotation_matrix, spherical_from_cartesian
 from tlsjax._model._aps import _REGISTRY
-from tlsjax._model._geometry import rotation_matrix, spherical_from_cartesian
+
+pytestmark = pytest.mark.internal
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -175,8 +177,10 @@ def test_removals_that_leave_a_target_undetermined_pin_it():
     obs = net.observations.copy()
     row = int(np.flatnonzero(net.target_index == 5)[0])
     obs[row, 0] += 0.05
-    testing = tj.TestingOptions(vce=False, snooping=False, score_tests=False)
-    tested = tj.calibrate_and_test(net.with_observations(obs), testing=testing)
+    options = tj.CalibrationOptions(
+        vce=None, tests=tj.TestOptions(score_tests=False), cross_validation=None
+    )
+    tested = tj.self_calibrate(net.with_observations(obs), None, options)
     assert tested.calibration.converged and tested.calibration.ok
     name = net.targets[5]
     assert name in tested.pinned_targets

@@ -112,7 +112,8 @@ def physical_room():
     """The room with the physical terms in the data; the physical model's cross-validation with
     rigid and with automatic (levelled where there are tilt readings) placement."""
     s = tj.simulate(ROOM, seed=0, aps=PHYSICAL)
-    rigid = tj.cross_validate(s.network, MODEL, tj.CrossValidationOptions(placement="rigid"))
+    rigid_folds = tj.CrossValidationOptions(placement="rigid")
+    rigid = tj.cross_validate(s.network, MODEL, tj.CalibrationOptions(cross_validation=rigid_folds))
     auto = tj.cross_validate(s.network, MODEL)
     return s, rigid, auto
 
@@ -233,39 +234,52 @@ def test_a_calibration_that_does_not_improve_prediction_says_so():
 
 
 def test_the_pipeline_step_reuses_the_adjustment_and_leaves_gross_errors_out(physical_room):
-    """The step on the pipeline's state (private: the step and its context): with a priori
-    weights it equals tj.cross_validate; a 2 m range error that the robust start removed is
-    left out of its scan's placement (one target fewer, the misfit unchanged in size)."""
-    from tlsjax._inference._crossval import cross_validation_step
-    from tlsjax._inference._pipeline import TestingContext, TestingState, run_pipeline
-    from tlsjax._inference._steps import PIPELINE
-
+    """The cross-validation step of tj.self_calibrate (on by default): with a priori weights
+    (no VCE) it equals tj.cross_validate; a 2 m range error that the robust start removed is
+    left out of its scan's placement (one target fewer, the misfit unchanged in size); the
+    result's summary, JSON and warnings carry it."""
     s, rigid, auto = physical_room
-    testing = tj.TestingOptions(vce=False, snooping=False, score_tests=False)
-
-    def step(net):
-        ctx = TestingContext.make(net, MODEL, tj.SolverOptions(), testing)
-        state = run_pipeline(ctx, TestingState.initial(ctx, 3.29), PIPELINE)
-        return cross_validation_step(ctx, state), ctx
-
-    cv = step(s.network)[0].cross_validation
+    options = tj.CalibrationOptions(vce=None, tests=tj.TestOptions(score_tests=False))
+    clean = tj.self_calibrate(s.network, MODEL, options)
+    cv = clean.cross_validation
     np.testing.assert_allclose(cv.rms_mm["xyz"], auto.rms_mm["xyz"], rtol=1e-5)
+    assert cv.code == tj.CrossValidationCode.IMPROVED and not clean.not_improved
+    assert clean.to_dict()["cross_validation"]["rms_mm"]["xyz"] == cv.rms_mm["xyz"]
+    assert "cross-validation by scan groups" in clean.summary()
     obs = s.network.observations.copy()
     row = int(np.flatnonzero(s.network.scan_index == 1)[3])
     obs[row, 0] += 2.0
-    state, ctx = step(s.network.with_observations(obs))
-    assert not state.mask[row].all()
-    fold = next(f for f in state.cross_validation.folds if f.held_out == ("S2",))
+    result = tj.self_calibrate(s.network.with_observations(obs), MODEL, options)
+    assert not result.mask[row].all()
+    fold = next(f for f in result.cross_validation.folds if f.held_out == ("S2",))
     assert fold.n == 23 and fold.rms_mm["xyz"] < 2 * auto.rms_mm["xyz"]
+    # Off: no folds, no section.
+    off = tj.self_calibrate(s.network, MODEL, dataclasses.replace(options, cross_validation=None))
+    assert off.cross_validation is None and "cross_validation" not in off.to_dict()
 
     # A removal without a test statistic (a target the removals leave without redundancy) is
     # never printed as nan (issue 41.6).
-    from tlsjax._inference._testing import tested_calibration
-
-    tested = tested_calibration(ctx, state)
-    extra = dataclasses.replace(tested.outliers[0], w=float("nan"))
-    text = dataclasses.replace(tested, outliers=tested.outliers + (extra,)).summary()
+    extra = dataclasses.replace(result.outliers[0], w=float("nan"))
+    text = dataclasses.replace(result, outliers=result.outliers + (extra,)).summary()
     assert "no w-test" in text and not re.search(r"\bnan\b", text, re.IGNORECASE)
+
+
+def test_a_calibration_that_does_not_improve_prediction_has_its_own_code_and_warning():
+    """Data without systematic errors, the physical model: its APs fit noise, and its held-out
+    scans (seed 0) are placed worse with them than without. The result is a calibration
+    (``ok``) that is ``not_improved``, with a warning naming both figures (``tlsjax
+    calibrate`` exits with code 4 then: tests/test_cli.py)."""
+    s = tj.simulate(ROOM, seed=0, aps=())
+    options = tj.CalibrationOptions(vce=None, tests=tj.TestOptions(score_tests=False))
+    result = tj.self_calibrate(s.network, MODEL, options)
+    cv = result.cross_validation
+    assert result.ok and result.not_improved
+    assert (
+        cv.code == tj.CrossValidationCode.NOT_IMPROVED and cv.rms_mm["xyz"] > cv.rms_none_mm["xyz"]
+    )
+    (warning,) = [w for w in result.warnings if w.startswith("cross-validation:")]
+    assert f"{cv.rms_mm['xyz']:.3f} mm with" in warning and "do not apply it" in warning
+    assert result.to_dict()["cross_validation"]["code"] == int(tj.CrossValidationCode.NOT_IMPROVED)
 
 
 # --- Selection that ends where prediction is best (issue 41.3) --------------------------------
@@ -279,8 +293,11 @@ def test_selection_tries_alternatives_and_ends_no_worse_than_the_start(c3_room):
     point predicts held-out scans no worse than the start."""
     s, _, tests = c3_room
     assert "C5" in tests.group_of("C3")
-    none = tj.CalibrationModel(tj.Scanner(aps=()))
-    sel = tj.select_aps(s.network, none, start=PHYSICAL, candidates=("C3", "C5"))
+    selection = tj.SelectionOptions(candidates=("C3", "C5"))
+    options = tj.CalibrationOptions(vce=None, selection=selection)
+    result = tj.self_calibrate(s.network, MODEL, options)
+    sel = result.selection
+    assert result.model.scanner.aps == sel.aps
     assert "C3" in sel.aps and "C5" not in sel.aps
     tried = {st.term: st for st in sel.steps if st.action == "try"}
     assert set(tried) == {"C3", "C5"} and all(np.isfinite(t.cv_mm) for t in tried.values())
@@ -294,11 +311,12 @@ def test_selection_tries_alternatives_and_ends_no_worse_than_the_start(c3_room):
             assert st.statistic < sel.critical  # leaving: t^2 below the same critical value
     assert sel.cross_validation.cv_mm <= sel.start_cross_validation.cv_mm
     final = sel.score_tests
-    assert np.isclose(final.variance_factor, sel.calibration.sigma0**2, rtol=1e-6)
+    assert np.isclose(final.variance_factor, result.calibration.sigma0**2, rtol=1e-6)
     assert not final.significant
     doc = sel.to_dict()
     assert doc["aps"] == list(sel.aps) and doc["cross_validation"]["folds"]
-    assert "CV" in sel.summary()
+    assert "CV" in sel.summary() and "CV" in result.summary()
+    assert result.to_dict()["selection"]["steps"][0]["cv_mm"] == sel.steps[0].cv_mm
 
 
 # --- The architecture from the data (issue 41.5) ----------------------------------------------
@@ -309,11 +327,12 @@ def test_hybrid_data_read_as_panoramic_are_named(physical_room):
     representations are fitted; hybrid explains the data clearly better (held-out misfit and
     sigma0), the comparison warns naming it, and its APs are the truth within 3 sigma while the
     panoramic reading's collimation is far off."""
-    from tlsjax._inference._architecture import as_architecture
-
     s, rigid, auto = physical_room
-    pano = as_architecture(s.network, "panoramic")
-    assert (pano.observations[:, 2] > np.pi / 2).any()
+    l = s.network.observations.copy()
+    back = l[:, 1] >= np.pi  # the back half in the second face: (theta - pi, pi - alpha)
+    l[back, 1] -= np.pi
+    l[back, 2] = np.pi - l[back, 2]
+    pano = s.network.with_observations(l)
     cmp = tj.compare_architectures(pano, MODEL)
     assert cmp.given == "panoramic" and cmp.best == "hybrid" and cmp.clearly
     assert "hybrid" in cmp.warning and "read as panoramic" in cmp.warning

@@ -5,8 +5,8 @@ with the ``python3`` kernel from the repository root: the cells are not edited. 
 inherits ``TLSJAX_NOTEBOOK_FAST=1``; a notebook whose full run takes minutes reads that variable
 in its first code cell (shown to the reader) and runs fewer Monte Carlo runs or optimiser steps,
 and runs in full without it, as a reader's fresh kernel does. XLA compiles without its backend
-optimisations (compiling dominates these runs) and the kernels share one JAX compilation cache.
-A cell that raises fails the test, so an API change that breaks a notebook fails CI.
+optimisations (compiling dominates these runs) and the kernels share the suite's compilation
+cache. A cell that raises fails the test, so an API change that breaks a notebook fails CI.
 
 Two cheap checks keep the committed files honest: each notebook was saved executed (every code
 cell run, in order, none raising), and its cells are those its builder ``notebooks/_make_NN.py``
@@ -60,17 +60,12 @@ def test_committed_notebook_is_its_builders_and_was_executed(path):
     assert not errors, f"{path.name} was saved with an error output"
 
 
-@pytest.fixture(scope="module")
-def jax_cache(tmp_path_factory):
-    return str(tmp_path_factory.mktemp("jax_cache"))
-
-
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=IDS)
-def test_notebook_runs_top_to_bottom(path, jax_cache, monkeypatch):
-    # The kernel inherits these: the notebooks' fast mode, faster compiles, a shared cache.
+def test_notebook_runs_top_to_bottom(path, monkeypatch):
+    # The kernel inherits these: the notebooks' fast mode, faster compiles, and the suite's
+    # compilation cache (TLSJAX_CACHE_DIR, tests/conftest.py), shared with the other kernels.
     monkeypatch.setenv("TLSJAX_NOTEBOOK_FAST", "1")
     monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=0")
-    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", jax_cache)
     monkeypatch.setenv("JAX_PLATFORMS", "cpu")
     nb = nbformat.read(path, as_version=4)
     for cell in nb.cells:

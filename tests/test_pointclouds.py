@@ -8,9 +8,13 @@ import numpy as np
 import pytest
 
 import tlsjax  # noqa: F401  (x64)
-from tlsjax import CloudDesign, PointCloudWarning, read_point_clouds, simulate_point_clouds
-from tlsjax._io._point_clouds import observations_from_points, write_ptx, write_xyz
-from tlsjax._model._geometry import cartesian_from_spherical
+from tlsjax import (
+    CloudDesign,
+    PointCloudWarning,
+    cartesian_from_spherical,
+    read_point_clouds,
+    simulate_point_clouds,
+)
 
 DEG = np.pi / 180
 
@@ -33,8 +37,11 @@ def _write_pcd_double(path, x):
         np.savetxt(fh, x, fmt="%.17g")
 
 
+@pytest.mark.internal
 @pytest.mark.parametrize("fmt", ["xyz", "ptx", "ply", "pcd"])
 def test_round_trip_equals_simulated_observations(tmp_path, clouds, fmt):
+    from tlsjax._io._point_clouds import write_ptx, write_xyz
+
     arch = clouds.scanner.architecture
     j = 4  # a tilted scan
     l = clouds.observations[j]
@@ -73,7 +80,10 @@ def test_open3d_pcd_is_single_precision(tmp_path, clouds):
     assert 1e-12 < err < 2e-6
 
 
+@pytest.mark.internal
 def test_ptx_several_scans_and_zero_points(tmp_path, clouds):
+    from tlsjax._io._point_clouds import write_ptx
+
     arch = clouds.scanner.architecture
     scans = [
         (cartesian_from_spherical(clouds.observations[j], xp=np), clouds.eops[j]) for j in (0, 5)
@@ -88,7 +98,7 @@ def test_ptx_several_scans_and_zero_points(tmp_path, clouds):
     np.testing.assert_allclose(b.observations, clouds.observations[5], rtol=0, atol=1e-9)
     np.testing.assert_allclose(b.pose, clouds.eops[5], rtol=0, atol=1e-12)
     # The pose maps the scanner-space points onto the simulation's object-space points.
-    from tlsjax._model._geometry import rotation_matrix
+    from tlsjax import rotation_matrix
 
     R = rotation_matrix(*b.pose[3:], xp=np)
     X = b.points @ R + b.pose[:3]
@@ -102,7 +112,7 @@ def test_e57_round_trip(tmp_path, clouds):
     import pye57
     from pyquaternion import Quaternion
 
-    from tlsjax._model._geometry import rotation_matrix
+    from tlsjax import rotation_matrix
 
     j = 3
     x = cartesian_from_spherical(clouds.observations[j], xp=np)
@@ -120,7 +130,10 @@ def test_e57_round_trip(tmp_path, clouds):
     np.testing.assert_allclose(scan.observations, clouds.observations[j], rtol=0, atol=2e-6)
 
 
+@pytest.mark.internal
 def test_panoramic_convention_by_hand():
+    from tlsjax._io._point_clouds import observations_from_points
+
     x = np.array([[1.0, 1.0, 0.0], [-1.0, -1.0, 0.0], [0.0, -2.0, 2.0]])
     hyb = observations_from_points(x, "hybrid")
     pan = observations_from_points(x, "panoramic")
@@ -131,7 +144,10 @@ def test_panoramic_convention_by_hand():
     np.testing.assert_allclose(cartesian_from_spherical(pan, xp=np), x, atol=1e-15)
 
 
+@pytest.mark.internal
 def test_bad_input_names_file_and_line(tmp_path):
+    from tlsjax._io._point_clouds import write_ptx
+
     p = tmp_path / "bad.xyz"
     p.write_text("# comment\n1 2 3\n\n4 five 6\n")
     with pytest.raises(ValueError, match=r"bad\.xyz, line 4: not a number"):
@@ -190,8 +206,72 @@ def test_ptx_transform_convention_by_hand(tmp_path):
     (tmp_path / "hand.ptx").write_text(text)
     (scan,) = read_point_clouds(tmp_path / "hand.ptx")
     np.testing.assert_allclose(scan.pose, [10, 20, 30, 0, 0, np.pi / 2], atol=1e-15)
-    from tlsjax._model._geometry import rotation_matrix
+    from tlsjax import rotation_matrix
 
     X = scan.points @ rotation_matrix(*scan.pose[3:], xp=np) + scan.pose[:3]
     np.testing.assert_allclose(X, [[10, 21, 30], [10, 20, 32]], atol=1e-14)
     np.testing.assert_allclose(scan.observations, [[1, 0, 0], [2, 0, np.pi / 2]], atol=1e-15)
+
+
+_LAYOUTS = [
+    # (file name, header, columns written, where x y z and intensity are)
+    ("cc.txt", "//X Y Z R G B Intensity", "xyzrgbi", "by the header"),
+    ("cc_comma.asc", "//X,Y,Z,Rf,Gf,Bf,Intensity", "xyzrgbi", "by the header"),
+    ("plain.csv", "X,Y,Z,Intensity", "xyzi", "by the header"),
+    (
+        "riscan.txt",
+        "X[m] Y[m] Z[m] Amplitude[dB] Reflectance[dB] Deviation",
+        "xyzaid",
+        "by the header",
+    ),
+    ("pcl.xyz", "# x y z intensity", "xyzi", "by the header"),
+    ("cyclone.pts", "{n}", "xyzirgb", "by the column count"),
+    ("four.xyz", None, "xyzi", "by the column count"),
+]
+
+
+def _write_columns(path, header, layout, P, inten):
+    rng = np.random.default_rng(0)
+    cols = {"x": P[:, 0], "y": P[:, 1], "z": P[:, 2], "i": inten}
+    cols |= {k: rng.integers(0, 255, len(P)).astype(float) for k in "rgbad"}
+    sep = "," if path.suffix == ".csv" or (header and "," in header) else " "
+    with open(path, "w") as fh:
+        if header:
+            fh.write(header.format(n=len(P)) + "\n")
+        np.savetxt(fh, np.stack([cols[c] for c in layout], 1), fmt="%.6f", delimiter=sep)
+
+
+@pytest.mark.parametrize("name, header, layout, how", _LAYOUTS)
+def test_text_columns_by_name(tmp_path, name, header, layout, how):
+    # Intensity by its name (never the red column of "//X Y Z R G B Intensity"; RiSCAN's
+    # reflectance, not its amplitude), PTS by its format; the streamed reader and the whole-file
+    # reader agree on x y z.
+    from tlsjax._io._point_clouds import text_layout
+    from tlsjax._io._scan_chunks import open_scans
+
+    rng = np.random.default_rng(1)
+    P, inten = rng.uniform(-5, 5, (50, 3)), rng.uniform(100, 2000, 50)
+    path = tmp_path / name
+    _write_columns(path, header, layout, P, inten)
+    lines = path.read_text().splitlines()
+    assert text_layout(lines, str(path), pts=name.endswith(".pts")).how == how
+    ((pts, got, _),) = list(open_scans(path)[0].chunks())
+    np.testing.assert_allclose(pts, P, atol=1e-6)
+    np.testing.assert_allclose(got, inten, atol=1e-6)
+    (scan,) = read_point_clouds(path)
+    np.testing.assert_allclose(scan.points, P, atol=1e-6)
+
+
+def test_unnamed_columns_are_refused_with_the_fix(tmp_path):
+    from tlsjax._io._scan_chunks import open_scans
+
+    rng = np.random.default_rng(2)
+    P, inten = rng.uniform(-5, 5, (20, 3)), rng.uniform(100, 2000, 20)
+    path = tmp_path / "seven.txt"
+    _write_columns(path, None, "xyzrgbi", P, inten)
+    with pytest.raises(ValueError, match=r"seven.txt: 7 unnamed columns.*--columns x,y,z"):
+        open_scans(path)
+    ((_, got, _),) = list(open_scans(path, columns="x,y,z,r,g,b,intensity")[0].chunks())
+    np.testing.assert_allclose(got, inten, atol=1e-6)
+    (scan,) = read_point_clouds(path)  # x y z only: the first three in every convention
+    np.testing.assert_allclose(scan.points, P, atol=1e-6)

@@ -1,5 +1,9 @@
 """Target centres from point clouds (issue 33): simulated spheres, checkerboards and circles
-extracted, matched and calibrated against the simulation's truth."""
+extracted, matched and calibrated against the simulation's truth.
+
+Private imports: ``tlsjax._cli.main`` (the console script) and the chunked scan reader
+``open_scans``, whose chunking is checked.
+"""
 
 import csv
 import dataclasses
@@ -9,9 +13,8 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
+from tlsjax import cartesian_from_spherical, rotation_matrix
 from tlsjax._cli import main
-from tlsjax._io._scan_chunks import open_scans
-from tlsjax._model._geometry import cartesian_from_spherical, rotation_matrix
 
 DEG = np.pi / 180
 DATA = pathlib.Path(__file__).parent / "data"
@@ -162,7 +165,9 @@ def test_contrast_range_bias_is_reported():
     opts = dataclasses.replace(OPTIONS, spheres=(), checkerboards=False)
     found = tj.extract_targets(pc.observations[:1], opts, intensity=pc.intensity[:1])
     (i,) = np.flatnonzero(found.accepted)
-    assert abs(found.contrast_bias[i] - 0.5e-3) < 0.1e-3
+    # 0.5 mm of range noise on about 100 dark and 100 bright points: the difference of their
+    # means scatters by 0.07 mm.
+    assert abs(found.contrast_bias[i] - 0.5e-3) < 0.15e-3
     assert -0.4e-3 < found.plane_offset[i] < -0.1e-3
 
 
@@ -268,16 +273,25 @@ def test_cli_extract_targets(room, tmp_path):
 
 def test_real_scan_without_targets_accepts_none(tmp_path):
     # A real scan of an industrial room (pye57's test data, thinned): pipes, tanks and clutter
-    # give candidates, and every one is rejected with its reason; the CLI says so (exit 1).
+    # give candidates, and every one is rejected with its reason (pipes by their fit RMS
+    # against the scan's own 2-5 mm noise there, or by the shape of their residuals), but for
+    # one round object of 42 points that no test can tell from a 100 mm sphere at that noise
+    # (fit RMS 1.15 x the points' noise, no trend in its residuals); it finds no partner in
+    # another scan, and the CLI says so (exit 1).
     out = tmp_path / "t.csv"
     args = ["extract-targets", str(DATA / "pump_every7th.e57"), "--spheres", "0.0725", "0.1"]
     assert main([*args, "--checkerboards", "--out", str(out), "--no-progress"]) == 1
     rows = list(csv.DictReader(open(tmp_path / "t_table.csv")))
-    assert rows and all(r["accepted"] == "False" and r["reason"] for r in rows)
+    rejected = [r for r in rows if r["accepted"] == "False"]
+    assert len(rejected) >= len(rows) - 1 and all(r["reason"] for r in rejected)
+    assert {r["kind"] for r in rows if r["accepted"] == "True"} <= {"sphere"}
     assert not out.exists()
 
 
+@pytest.mark.internal
 def test_streamed_readers_carry_intensity():
+    from tlsjax._io._scan_chunks import open_scans
+
     (scan,) = open_scans(DATA / "pump_every7th.e57")
     parts = list(scan.chunks(5000))
     pts = np.concatenate([p for p, _, _ in parts])
@@ -301,3 +315,112 @@ def test_options_are_checked(kw, match):
         tj.TargetExtractionOptions(**kw)
     with pytest.raises(ValueError, match="nothing to look for"):
         tj.extract_targets([np.ones((10, 3))], tj.TargetExtractionOptions())
+
+
+@pytest.fixture(scope="module")
+def noisy_plate():
+    # One checkerboard 9.5 m from S1 on the far wall, seen square on, with the range noise of
+    # a phase scanner on black paper (5 x the white's 1.5 mm) and 3 % stray points 5-60 mm
+    # behind it along their rays (mixed pixels at the plate's edge, a wall behind).
+    target = tj.PlanarTarget((13.995, 4.5, 1.5), (-1, 0, 0), "checkerboard")
+    design = tj.CloudDesign(
+        angular_step=3 * DEG, target_step=0.04 * DEG, tilted=False, planar_targets=(target,),
+        sigma_range=1.5e-3, dark_noise_factor=5.0,
+    )  # fmt: skip
+    pc = tj.simulate_point_clouds(design, seed=4)
+    obs, inten = pc.observations[0].copy(), pc.intensity[0]
+    on = np.flatnonzero(pc.target_ids[0] >= 0)
+    stray = np.random.default_rng(0).choice(on, len(on) * 3 // 100, replace=False)
+    obs[stray, 0] += np.random.default_rng(1).uniform(0.005, 0.06, len(stray))
+    truth = cartesian_from_spherical(pc.target_observations()[("S1", pc.target_names[0])], xp=np)
+    return obs, inten, truth
+
+
+@pytest.mark.parametrize("size", [0.13, 0.15, 0.17])
+def test_noisy_dark_squares_found_whatever_the_size_within_its_tolerance(noisy_plate, size):
+    # Fixed limits (voxel flatness 0.1, plane RMS 3 mm) lost such targets; the tests now
+    # compare with the points' own noise, and the size given is a prior +-30 %.
+    obs, inten, truth = noisy_plate
+    opts = tj.TargetExtractionOptions(checkerboards=True, pattern_size=size)
+    found = tj.extract_targets([obs], opts, intensity=[inten])
+    (i,) = np.flatnonzero(found.accepted)
+    assert np.linalg.norm(found.centre[i] - truth) < 1e-3
+    # Every rejected candidate says which test it failed, with its figure.
+    for why in found.reason[~found.accepted]:
+        assert any(ch.isdigit() for ch in why), why
+
+
+def test_a_fit_that_wandered_off_says_so():
+    from tlsjax._clouds._contrast import _judge
+
+    rec = dict(kind="checkerboard", shift=0.72, n_points=0, converged=False, covariance=np.eye(3))
+    why = _judge(rec, OPTIONS)
+    assert why.startswith("the fit wandered 720 mm from the candidate, out of its 75 mm window")
+
+
+def test_sphere_rms_limit_from_the_scans_noise():
+    # A sphere scanned with 4 mm of range noise: a fixed 3 mm RMS limit refused it; the limit
+    # is 3 x the noise the voxels measure there. A radius 9 mm off the nominal passes unless
+    # the user gives a radius misfit limit.
+    design = tj.CloudDesign(
+        angular_step=3 * DEG, target_step=0.06 * DEG, tilted=False, sigma_range=4e-3,
+        spheres=(tj.SphereTarget((8.0, 3.0, 1.5), 0.0815),),
+    )  # fmt: skip
+    pc = tj.simulate_point_clouds(design, seed=3)
+    opts = dataclasses.replace(OPTIONS, checkerboards=False, circles=False)
+    found = tj.extract_targets(pc.observations[:1], opts)
+    (i,) = np.flatnonzero(found.accepted)
+    assert found.rms[i] > 3e-3
+    strict = tj.extract_targets(
+        pc.observations[:1], dataclasses.replace(opts, max_radius_misfit=3e-3)
+    )
+    assert not strict.accepted.any() and "differs from the nominal" in " ".join(strict.reason)
+
+
+def _one_target_scans(target, station, seeds, **design):
+    """Scanner-space centre errors [m] (seeds, 3) of one target seen from one levelled station
+    of a 40 x 40 x 4 m hall on a 0.03 deg grid, one simulation per seed (NaN: not accepted)."""
+    errors = []
+    for seed in range(seeds):
+        d = tj.CloudDesign(
+            room=tj.Room(length=40.0, width=40.0, height=4.0, stations=(station,)),
+            scans=((*station, 0.0, 0.0, 0.2),), boards=(), angular_step=3 * DEG,
+            target_step=0.03 * DEG, **design,
+        )  # fmt: skip
+        pc = tj.simulate_point_clouds(d, seed=seed)
+        kinds = dict(spheres=(0.0725,)) if design.get("spheres") else dict(checkerboards=True)
+        found = tj.extract_targets(
+            pc.observations, tj.TargetExtractionOptions(**kinds), intensity=pc.intensity
+        )
+        X = cartesian_from_spherical(next(iter(pc.target_observations().values())), xp=np)
+        acc = np.flatnonzero(found.accepted)
+        errors.append(found.centre[acc[0]] - X if len(acc) == 1 else np.full(3, np.nan))
+    return np.array(errors)
+
+
+def test_far_sphere_judged_by_its_angular_noise_too():
+    # At 28 m, 20" moves the limb's points along the sphere's normal by up to 2.7 mm, which
+    # the voxels (one or two points each there) do not measure: with 0.5 mm of range noise the
+    # fit RMS (about 2 mm) was judged against twice the voxels' 0.5 mm and the sphere refused
+    # (benchmarks/bench_target_rooms.py lost such spheres at 1 mm of range noise too).
+    err = _one_target_scans(
+        None, (8.0, 20.0, 1.5), 2, sigma_range=0.5e-3,
+        spheres=(tj.SphereTarget((36.0, 21.0, 1.6), 0.0725),),
+    )  # fmt: skip
+    assert np.all(np.isfinite(err)) and np.max(np.linalg.norm(err, axis=1)) < 2.5e-3
+
+
+def test_checkerboard_points_go_onto_the_plate_along_their_noise():
+    # 6.3 m at 57 deg, 4 mm of range noise on the black squares: projected along the plate's
+    # normal, each point kept dr sin(57 deg) = 3.4 mm of it in the plane and the centres
+    # scattered by 0.54 mm along the incidence (8 seeds); moved as a condition adjustment of
+    # the point moves it (nearly along its ray), by 0.19 mm.
+    beta = 57 * DEG
+    c = np.array([39.998, 20.0, 1.5])
+    station = (40.0 - 6.3 * np.cos(beta), 20.0 - 6.3 * np.sin(beta), 1.5)
+    target = tj.PlanarTarget(tuple(c), (-1, 0, 0), "checkerboard", rotation=0.3)
+    err = _one_target_scans(
+        target, station, 6, sigma_range=1e-3, dark_noise_factor=4.0, planar_targets=(target,)
+    )
+    assert np.all(np.isfinite(err))
+    assert np.sqrt(np.mean(np.sum(err**2, axis=1))) < 0.35e-3

@@ -13,14 +13,30 @@ emitters are chosen.
 The option is a field of XLA's debug options; a jaxlib without it rejects it when compiling, so
 it is tried once, on a trivial function, at the first compile (not at import: the backend must
 not start before the user's own XLA settings, e.g. the host device count, are read).
+
+**The persistent compilation cache.** A calibration compiles a few programs for seconds; run
+again on a network of the same shape (the CLI on the next data set, a notebook restarted) it
+should compile nothing. JAX's persistent cache stores an executable under a hash of its
+program, the compile options, the backend and the versions of jax and jaxlib; tlsjax turns it
+on at import (:func:`use_persistent_cache`) in a folder of its own version,
+``$TLSJAX_CACHE_DIR/tlsjax-<version>`` (default ``~/.cache/tlsjax/jax``; ``off`` turns it
+off), for every program, small ones included (JAX's default stores only those that took over a
+second to compile). It is bounded (:data:`CACHE_MAX_BYTES`, least recently used evicted) and
+safe under concurrent processes: reads and writes take a file lock (``filelock``). A user who
+set ``jax_compilation_cache_dir`` themselves keeps their cache and its settings.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import os
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+
+from ._version import __version__
 
 #: XLA options of every compiled tlsjax function (where this jaxlib knows them).
 PREFERRED_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
@@ -74,3 +90,224 @@ def jit(fun=None, **kwargs):
     if fun is None:
         return functools.partial(jit, **kwargs)
     return _Jit(fun, kwargs)
+
+
+#: Environment variable naming the folder of the persistent compilation cache ("off": none).
+CACHE_ENV = "TLSJAX_CACHE_DIR"
+#: Its size bound: least recently used entries are evicted beyond it (an adjustment's
+#: executable is about 1 MB).
+CACHE_MAX_BYTES = 1 << 30
+_OFF = ("", "0", "off", "none", "false", "no")
+
+
+def cache_dir() -> str | None:
+    """The folder of tlsjax's compiled programs (:envvar:`TLSJAX_CACHE_DIR`, default
+    ``~/.cache/tlsjax/jax``, one subfolder per tlsjax version), or None when turned off."""
+    base = os.environ.get(CACHE_ENV)
+    if base is None:
+        home = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+        base = os.path.join(home, "tlsjax", "jax")
+    if base.strip().lower() in _OFF:
+        return None
+    return os.path.join(base, f"tlsjax-{__version__}")
+
+
+def use_persistent_cache() -> str | None:
+    """Turn on JAX's persistent compilation cache in :func:`cache_dir` for every program of
+    this process (module docstring); the folder in use, or None. Leaves a cache the user set
+    up (``jax_compilation_cache_dir``) as it is; turns nothing on where the folder cannot be
+    made. Process-wide, as JAX's cache is: the user's own programs are cached there too."""
+    own = jax.config.jax_compilation_cache_dir
+    if own:
+        return own
+    path = cache_dir()
+    if path is None:
+        return None
+    try:
+        os.makedirs(path, exist_ok=True)
+    except OSError:
+        return None
+    jax.config.update("jax_compilation_cache_dir", path)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+    try:
+        import filelock  # noqa: F401  JAX locks the folder with it when the size is bounded
+    except ImportError:  # unbounded and unlocked: still correct (a torn read recompiles)
+        pass
+    else:
+        jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
+    # JAX decides at its first compile whether this process uses the cache; a program compiled
+    # before this call (the user's own) made it decide without one: let it decide again.
+    from jax.experimental.compilation_cache import compilation_cache
+
+    compilation_cache.reset_cache()
+    return path
+
+
+# --- Programs stored traced (jax.export) ----------------------------------------------------
+# The persistent cache skips XLA's compile, not the tracing and lowering of tlsjax's Python
+# (seconds for the adjustment). A program whose key holds everything it depends on is stored
+# traced and lowered, as a serialized ``jax.export.Exported`` beside the cache; a later process
+# with the same key loads it and compiles it (from the persistent cache): no tracing.
+
+
+def _stable(obj):
+    """A description of ``obj`` that is equal across processes when ``obj`` is (dataclasses
+    field by field, with their types; tlsjax's own functions by name, their code being in
+    :func:`_code_digest`); raises TypeError for what has none (e.g. a user's function)."""
+    if obj is None or isinstance(obj, (bool, int, float, str, bytes)):
+        return repr(obj)
+    if isinstance(obj, (tuple, list)):
+        return "(" + ",".join(_stable(o) for o in obj) + ")"
+    if isinstance(obj, dict):
+        return "{" + ",".join(f"{_stable(k)}:{_stable(v)}" for k, v in sorted(obj.items())) + "}"
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        fields = ",".join(
+            f"{f.name}={_stable(getattr(obj, f.name))}" for f in dataclasses.fields(obj)
+        )
+        return f"{type(obj).__module__}.{type(obj).__qualname__}({fields})"
+    if isinstance(obj, jax.tree_util.PyTreeDef):
+        return repr(obj)
+    if callable(obj) and getattr(obj, "__module__", "").startswith("tlsjax."):
+        return f"{obj.__module__}.{obj.__qualname__}"  # tlsjax's code: in the source digest
+    raise TypeError(f"no stable description of {type(obj).__name__}")
+
+
+@functools.cache
+def _code_digest() -> str:
+    """Versions of tlsjax and of what its programs are traced with, and a hash of tlsjax's own
+    source (a development install keeps its version number while the code changes)."""
+    import hashlib
+    import importlib.metadata as md
+    from pathlib import Path
+
+    h = hashlib.sha256()
+    for pkg in ("jax", "jaxlib", "equinox", "numpy"):
+        try:
+            h.update(f"{pkg}={md.version(pkg)};".encode())
+        except md.PackageNotFoundError:
+            h.update(f"{pkg}=?;".encode())
+    h.update(__version__.encode())
+    root = Path(__file__).resolve().parent
+    for path in sorted(root.rglob("*.py")):
+        h.update(str(path.relative_to(root)).encode())
+        h.update(path.read_bytes())
+    return h.hexdigest()
+
+
+def traced_folder() -> str | None:
+    """Where :class:`StoredProgram` keeps its programs: ``traced/`` in the compilation cache
+    folder in use (a local one), or None."""
+    folder = jax.config.jax_compilation_cache_dir
+    if not folder or "://" in folder:
+        return None
+    return os.path.join(folder, "traced")
+
+
+class StoredProgram:
+    """``jax.jit(fun)`` of flat array arguments, stored traced in the cache folder (above) under
+    ``key``, a description of everything ``fun`` closes over; without a cache folder, or for a
+    key without a stable description (e.g. a user's own AP term, a function), a plain
+    ``jit``."""
+
+    def __init__(self, fun, key):
+        self._fun, self._key = fun, key
+        self._calls = {}  # avals -> (compiled callable of flat leaves, output treedef)
+
+    def __call__(self, *leaves):
+        # Per call only the arguments' abstract values (cheap: jax arrays carry theirs); the
+        # stable description (shape, dtype, weak type) on a miss.
+        seen = tuple(x.aval if hasattr(x, "aval") else _aval(x) for x in leaves)
+        call = self._calls.get(seen)
+        if call is None:
+            avals = tuple(_aval(x) for x in leaves)
+            call = self._calls.get(avals)
+            if call is None:
+                call = self._calls[avals] = self._load_or_trace(leaves, avals)
+            self._calls[seen] = call
+        fn, treedef = call
+        if treedef is None:
+            return fn(*leaves)
+        return jax.tree.unflatten(treedef, fn(*leaves))
+
+    def _file(self, avals):
+        folder = traced_folder()
+        if folder is None:
+            return None
+        try:
+            desc = _stable((self._key, avals, sorted(compiler_options().items())))
+        except TypeError:
+            return None
+        import hashlib
+
+        digest = hashlib.sha256((_code_digest() + desc).encode()).hexdigest()
+        return os.path.join(folder, f"{digest}.bin")
+
+    def _load_or_trace(self, leaves, avals):
+        path = self._file(avals)
+        plain = (jax.jit(self._fun, compiler_options=compiler_options()), None)
+        if path is None:
+            return plain
+        import pickle
+
+        from jax import export
+
+        try:
+            with open(path, "rb") as f:
+                blob, skeleton = pickle.load(f)
+            exported = export.deserialize(blob)
+            treedef = jax.tree.structure(pickle.loads(skeleton))
+            os.utime(path)  # recently used: the folder is pruned by modification time
+        except Exception:  # none yet (or unreadable): trace, export and store
+            out = {}
+
+            def flat(*args):
+                leaves_out, out["tree"] = jax.tree.flatten(self._fun(*args))
+                return leaves_out
+
+            try:
+                exported = export.export(jax.jit(flat))(*leaves)
+                treedef = out["tree"]
+                skeleton = jax.tree.unflatten(treedef, list(range(treedef.num_leaves)))
+                data = pickle.dumps((exported.serialize(), pickle.dumps(skeleton)))
+            except Exception:  # not exportable here (e.g. no flatbuffers): as before
+                return plain
+            _write_atomically(path, data)
+        call = functools.wraps(self._fun)(lambda *args: exported.call(*args))
+        return jax.jit(call, compiler_options=compiler_options()), treedef
+
+
+def _aval(x) -> tuple:
+    """Shape, dtype and weak type of an argument (what a compiled program is specialised on)."""
+    if not hasattr(x, "dtype"):
+        x = np.asarray(x)
+    return tuple(x.shape), str(x.dtype), bool(getattr(x, "weak_type", False))
+
+
+#: Traced programs kept in the cache folder; the least recently used beyond it are removed
+#: (a program of an older tlsjax source is never read again).
+MAX_TRACED = 256
+
+
+def _write_atomically(path: str, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file renamed into place (a concurrent
+    reader sees the whole file or none), and keep the folder to :data:`MAX_TRACED` files."""
+    import tempfile
+
+    folder = os.path.dirname(path)
+    try:
+        os.makedirs(folder, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=folder, suffix=".tmp")
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+        files = [e for e in os.scandir(folder) if e.name.endswith(".bin")]
+        if len(files) > MAX_TRACED:
+            files.sort(key=lambda e: e.stat().st_mtime)
+            for e in files[: len(files) - MAX_TRACED]:
+                os.remove(e.path)
+    except OSError:  # a full disk, a concurrent removal: the program is traced next time
+        pass
+
+
+use_persistent_cache()

@@ -20,7 +20,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._jit import compiler_options, jit
+from .._jit import StoredProgram, jit
+from .._model._aps import get_ap
 from .._model._plausibility import PlausibilityWarning
 from ._config import CalibrationModel, SolverOptions
 from ._families import Params, grid_layout, on_grid
@@ -49,7 +50,16 @@ def _flat_run(spec, treedef, full_covariance: bool):
         problem, params0, options = jax.tree.unflatten(treedef, leaves)
         return _run(spec, problem, params0, options, full_covariance)
 
-    return jax.jit(run, compiler_options=compiler_options())
+    # Stored traced (a re-run in a new process neither traces nor compiles it), keyed on what
+    # it closes over: the spec with its AP terms, the arguments' structure, full_covariance.
+    return StoredProgram(run, ("adjustment", spec_key(spec), treedef, full_covariance))
+
+
+def spec_key(spec) -> tuple:
+    """What a program specialised on ``spec`` closes over besides tlsjax's code: the spec and
+    its AP terms (a user's own term has no stable description: such a program is not stored,
+    :class:`tlsjax._jit.StoredProgram`)."""
+    return spec, tuple(get_ap(n) for names in spec.ap_names for n in names)
 
 
 def estimate(spec, problem, params0, options):
@@ -75,9 +85,21 @@ def result_code(spec, problem, state, s):
     )
 
 
+def _to_device(a: np.ndarray):
+    """A host array on the device by a transfer (``jnp.asarray`` of a numpy array runs a small
+    program of its own: an operation dispatched eagerly)."""
+    return jax.device_put(a)
+
+
 def _replace(module, **changes):
     """``dataclasses.replace`` for an ``eqx.Module`` (a dataclass)."""
     return dataclasses.replace(module, **changes)
+
+
+#: Pseudo-observation sigma [m] that holds a target at an estimate (``control`` of
+#: :meth:`Adjustment.problem`) where it has no observations left to determine it (removed as
+#: gross errors, or held out of a fold): it carries no information about anything else.
+PIN_SIGMA = 1.0
 
 
 class Adjustment:
@@ -136,7 +158,7 @@ class Adjustment:
         for fi, rows in enumerate(plan.family_rows):
             w = plane_weights if fi == plan.plane_family else weights
             if w is not None:
-                fams[fi] = _replace(fams[fi], weight=jnp.asarray(np.asarray(w, dtype=float)[rows]))
+                fams[fi] = _replace(fams[fi], weight=_to_device(np.asarray(w, dtype=float)[rows]))
         if control:
             fams = self._with_control(fams, control)
         changes = {"families": tuple(fams)}
@@ -146,7 +168,7 @@ class Adjustment:
             ("ap_prior_weight", ap_prior_weights),
         ):
             if w is not None:
-                changes[key] = jnp.asarray(w, dtype=jnp.float64)
+                changes[key] = _to_device(np.asarray(w, dtype=np.float64))
         if fixed_aps is not None:
             changes["fixed"] = build_plan(
                 self.network, self.model, fixed_aps=fixed_aps
@@ -166,7 +188,7 @@ class Adjustment:
                 f, pi, k = where[int(t)]
                 if f == fi:
                     cx[pi, k], cw[pi, k] = xyz, 1.0 / np.asarray(sigma, dtype=float)
-            fams[fi] = _replace(fams[fi], ctrl_xyz=jnp.asarray(cx), ctrl_weight=jnp.asarray(cw))
+            fams[fi] = _replace(fams[fi], ctrl_xyz=_to_device(cx), ctrl_weight=_to_device(cw))
         return fams
 
     def with_data(
@@ -208,14 +230,16 @@ class Adjustment:
             changes["levelling"] = jnp.asarray(levelling)
         return _replace(problem, **changes)
 
-    def run(self, problem=None, params0=None):
-        """The compiled call: (solver state, quality) as arrays."""
+    def run(self, problem=None, params0=None, options=None):
+        """The compiled call: (solver state, quality) as arrays. ``options``: other numerical
+        settings (:meth:`SolverOptions.arrays`, e.g. another ``max_iterations``): the same
+        compiled program, they are data."""
         args = (
             self.plan.problem if problem is None else problem,
             self.initial if params0 is None else params0,
-            self.options.arrays(),
+            self.options.arrays() if options is None else options,
         )
-        if problem is None and params0 is None:
+        if problem is None and params0 is None and options is None:
             if self._leaves is None:  # the plan's own arguments, flattened once
                 self._leaves = jax.tree.flatten(args)
             leaves, treedef = self._leaves
@@ -244,11 +268,8 @@ class Adjustment:
         absent, n6 = (), 6 * self.plan.spec.n_scans
         # Each pass can only add held columns; an AP found in pass k is held in pass k + 1.
         for _ in range(self.plan.spec.n_aps + 1):
-            if options is None:
-                out = self.run(problem, params0)
-            else:
-                out = _run(self.plan.spec, problem, params0, options, self.options.full_covariance)
-            state, q = jax.device_get(out)  # one transfer of every output to the host
+            # One transfer of every output to the host.
+            state, q = jax.device_get(self.run(problem, params0, options))
             plan = dataclasses.replace(self.plan, problem=problem)
             dep = np.asarray(q.dependent)[n6:] & ~np.asarray(problem.fixed)[n6:]
             if not dep.any() or not bool(state.finite):
@@ -256,8 +277,8 @@ class Adjustment:
             absent += not_estimable_aps(plan, q, state, np.flatnonzero(dep))
             fixed = np.asarray(problem.fixed).copy()
             fixed[n6:] |= dep
-            problem = _replace(problem, fixed=jnp.asarray(fixed))
-            params0 = _replace(params0, aps=jnp.where(jnp.asarray(dep), 0.0, params0.aps))
+            problem = _replace(problem, fixed=_to_device(fixed))
+            params0 = _replace(params0, aps=_to_device(np.where(dep, 0.0, np.asarray(params0.aps))))
         return plan, state, q, absent
 
     def solve(self, *, initial=None, **weights) -> CalibrationResult:

@@ -164,7 +164,7 @@ def failure_diagnosis(net, plan, q) -> dict:
     worst, per_prim, planes_off = [], {}, []
     for fi, fam in enumerate(plan.problem.families):
         e = np.asarray(q.misclosure[fi])
-        active = np.asarray(fam.active_rows())
+        active = fam.active_rows(np)
         e2 = np.where(active, e**2, 0.0)
         scan, prim = np.asarray(fam.scan), np.asarray(fam.prim)
         np.add.at(scan_ss, scan, e2.sum(axis=1))
@@ -212,7 +212,7 @@ def _plane_offsets(net, fam, q, fi):
     g = np.asarray(q.misclosure[fi])[:, 0]  # whitened condition g / sqrt(m)
     m_sigma = 1.0 / np.where(np.asarray(fam.weight)[:, 0] > 0, np.asarray(fam.weight)[:, 0], np.inf)
     dist = g * m_sigma  # approximately the point's distance [m] (m ~ range variance)
-    active = np.asarray(fam.active_rows())[:, 0]
+    active = fam.active_rows(np)[:, 0]
     out = []
     pair = np.asarray(fam.pair)
     n_pairs = int(np.asarray(fam.pair_prim).shape[0])

@@ -198,9 +198,10 @@ class Family(eqx.Module):
         constraint's reaction, which the retraction removes from every step."""
         return b
 
-    def active_rows(self):
-        """Which residual rows are observations in the adjustment (weight > 0), (m, rows)."""
-        return self.weight > 0
+    def active_rows(self, xp=jnp):
+        """Which residual rows are observations in the adjustment (weight > 0), (m, rows);
+        ``xp=np`` on the host."""
+        return xp.asarray(self.weight) > 0
 
     def retract(self, P):
         """The primitives after an update, on their constraint manifold (identity here)."""
@@ -532,8 +533,8 @@ class PlaneFamily(Family):
         keeps ``|n| = 1`` to first order)."""
         return P / jnp.linalg.norm(P[:, :3], axis=1, keepdims=True)
 
-    def active_rows(self):
-        return jnp.any(self.weight > 0, axis=-1, keepdims=True)
+    def active_rows(self, xp=jnp):
+        return xp.any(xp.asarray(self.weight) > 0, axis=-1, keepdims=True)
 
     def rounding(self):
         eps = np.finfo(np.float64).eps
@@ -620,11 +621,17 @@ def orientation_observations(problem):
     return values, jnp.concatenate([problem.levelling_weight, hw[:, None]], axis=1)
 
 
+def orientation_residual(problem, eops):
+    """Residuals ``v = f(x) - l`` (s, 3) [rad] of the scans' orientation pseudo-observations
+    (tilt readings and kappa; also where not observed), wrapped to (-pi, pi]."""
+    values = orientation_observations(problem)[0]
+    return wrap_angle(jax.vmap(orientation_reading)(eops) - values)
+
+
 def levelling_residual(problem, eops):
     """Whitened residuals (s, 3) of the scans' orientation pseudo-observations: tilt readings
     and observed kappa (0 where not observed); angles wrapped to (-pi, pi]."""
-    values, weight = orientation_observations(problem)
-    return wrap_angle(jax.vmap(orientation_reading)(eops) - values) * weight
+    return orientation_residual(problem, eops) * orientation_observations(problem)[1]
 
 
 def levelling_jacobian(problem, eops):

@@ -1,5 +1,6 @@
 """Command line: ``tlsjax demo | simulate | calibrate | extract-planes | extract-targets |
-correct | report | montecarlo | compare | design | import-targets | check-targets``.
+correct | report | montecarlo | compare | design | import-targets | check-targets |
+field-check``.
 
 Every subcommand is a thin layer over the public API. Bad input is reported as one line
 naming the file, line, scan, target or parameter (exit code 2), and so is every file-system
@@ -26,28 +27,11 @@ from ._correct import add_correct_parser
 from ._design import add_design_parser
 from ._extract import add_extract_parser
 from ._extract_targets import add_targets_parser
+from ._field_check import add_field_check_parser
 from ._montecarlo import add_montecarlo_parser
 from ._report import add_report_parser
 from ._simulate import add_demo_parser, add_simulate_parser
 from ._targets import add_check_targets_parser, add_import_targets_parser
-
-
-def _enable_compilation_cache():
-    # Compiling the adjustment costs seconds; the CLI is run again and again on the same
-    # shapes, so JAX's persistent cache pays (PERFORMANCE.md).
-    import jax
-
-    path = os.environ.get(
-        "TLSJAX_CACHE_DIR", os.path.join(os.path.expanduser("~"), ".cache", "tlsjax", "jax")
-    )
-    if path.lower() in ("", "0", "off", "none"):
-        return
-    try:
-        os.makedirs(path, exist_ok=True)
-        jax.config.update("jax_compilation_cache_dir", path)
-    except OSError:
-        pass
-
 
 #: Exit code of a command stopped by Ctrl-C (128 + SIGINT, as shells report it).
 EXIT_INTERRUPTED = 130
@@ -78,6 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
         add_design_parser,
         add_import_targets_parser,
         add_check_targets_parser,
+        add_field_check_parser,
     ):
         add(sub)
     return ap
@@ -101,10 +86,11 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
 
 
 def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
+    args.argv = argv  # the command line, recorded in what a command writes
     if getattr(args, "devices", None):
         use_host_devices(args.devices)
-    _enable_compilation_cache()
     reset_warnings()
     prefix = f"tlsjax {args.command}: error:"
     try:

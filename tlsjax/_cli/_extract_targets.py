@@ -44,6 +44,10 @@ def add_targets_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--architecture", choices=("hybrid", "panoramic"), default="hybrid",
                    help="panoramic: observations in the two-face form (SPEC section 1)")  # fmt: skip
     p.add_argument("--poses", help="scan poses CSV replacing the files' (LAS needs one)")
+    p.add_argument("--columns", metavar="NAMES",
+                   help="columns of text point files without a header naming them, e.g. "
+                   "x,y,z,r,g,b,intensity (other names are skipped; default: the header's "
+                   "names, else x y z [intensity] by the column count)")  # fmt: skip
     p.add_argument(
         "--target-list",
         help="name the targets by this list of approximate coordinates in any one frame (a "
@@ -53,11 +57,15 @@ def add_targets_parser(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--plots", help="folder for one PNG per scan of what was found")
     p.add_argument("--min-points", type=positive_int, default=TargetExtractionOptions.min_points)
     p.add_argument("--min-coverage", type=fraction, default=TargetExtractionOptions.min_coverage)
-    p.add_argument(
-        "--max-rms-mm", type=positive_float, default=TargetExtractionOptions.max_rms * 1e3
-    )
-    p.add_argument("--max-radius-misfit-mm", type=positive_float,
-                   default=TargetExtractionOptions.max_radius_misfit * 1e3)  # fmt: skip
+    p.add_argument("--max-rms-mm", type=positive_float, default=None,
+                   help="fixed limit on a sphere's fit RMS and a plate's plane scale [mm] "
+                   "(default: 3 x the scan's own noise there, from the points)")  # fmt: skip
+    p.add_argument("--max-radius-misfit-mm", type=positive_float, default=None,
+                   help="test a sphere's fitted radius against the nominal one to this [mm] "
+                   "(default: only against --size-tolerance, to tell sphere sizes apart)")  # fmt: skip
+    p.add_argument("--size-tolerance", type=fraction, default=TargetExtractionOptions.size_tolerance,
+                   help="how far (relative) a target's real size may be from --pattern-size or "
+                   "the radius given (default 0.3)")  # fmt: skip
     p.add_argument("--max-incidence-deg", type=positive_float,
                    default=TargetExtractionOptions.max_incidence / DEG)  # fmt: skip
     p.add_argument(
@@ -65,6 +73,12 @@ def add_targets_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("--tolerance-mm", type=positive_float, default=TargetMatchingOptions.tolerance * 1e3,
                    help="matching tolerance of distances between targets [mm] (default 20)")  # fmt: skip
+    p.add_argument("--min-common", type=positive_int, default=TargetMatchingOptions.min_common,
+                   help="targets a scan must share with the others to be named (at least 3; "
+                   f"default {TargetMatchingOptions.min_common}). A scan placed on exactly 3 "
+                   "is named only when their distances agree within 5 mm + 0.5 mm/m and a "
+                   "chance match of 3 is improbable among the centres; else it is reported "
+                   "as undecided")  # fmt: skip
     p.add_argument("--length-unit", choices=("m", "mm"), default="m")
     p.add_argument("--angle-unit", choices=("rad", "deg", "gon", "arcsec"), default="deg")
     p.add_argument("--seed", type=non_negative_int, default=0)
@@ -88,13 +102,18 @@ def _options(args) -> tuple[TargetExtractionOptions, TargetMatchingOptions]:
             circle_radius=args.circle_radius,
             min_points=args.min_points,
             min_coverage=args.min_coverage,
-            max_rms=args.max_rms_mm * 1e-3,
-            max_radius_misfit=args.max_radius_misfit_mm * 1e-3,
+            max_rms=None if args.max_rms_mm is None else args.max_rms_mm * 1e-3,
+            max_radius_misfit=(
+                None if args.max_radius_misfit_mm is None else args.max_radius_misfit_mm * 1e-3
+            ),
+            size_tolerance=args.size_tolerance,
             max_incidence=args.max_incidence_deg * DEG,
             sigma_range=args.sigma_range_mm * 1e-3,
             seed=args.seed,
         ),
-        TargetMatchingOptions(tolerance=args.tolerance_mm * 1e-3, seed=args.seed),
+        TargetMatchingOptions(
+            tolerance=args.tolerance_mm * 1e-3, min_common=args.min_common, seed=args.seed
+        ),
     )
 
 
@@ -139,8 +158,9 @@ def cli_targets(args) -> int:
     poses = read_poses(args.poses) if args.poses else None
     progress = not args.no_progress and sys.stderr.isatty()
     found = extract_targets_from_files(
-        args.scans, options, architecture=args.architecture, poses=poses, progress=progress
-    )
+        args.scans, options, architecture=args.architecture, poses=poses, columns=args.columns,
+        progress=progress,
+    )  # fmt: skip
     for note in found.notes:
         print(f"warning: {note}", file=sys.stderr)
     targets = match_targets(found, matching, target_list=target_list)

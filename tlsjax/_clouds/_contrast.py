@@ -14,7 +14,8 @@ checkerboard, 0.71 of the size apart, that touch only at the centre).
 
 **Fit** (the points near a candidate, second pass): the plane of the plate and its surround
 by iteratively trimmed least squares (``_extract._refine``), the points' in-plane coordinates
-(u, v) and then the centre by the pattern:
+(u, v) (each point moved onto the plane along its own noise, ``_in_plane``: nearly along its
+line of sight on black print) and then the centre by the pattern:
 
 - checkerboard: the saddle point of the intensity, by a least-squares fit of the blurred
   pattern of ``_model/_targets.py``, ``I = dark + (bright - dark) W(u', v'; blur)`` in the
@@ -40,11 +41,9 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 import numpy as np
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import connected_components
 
 from .._model._targets import checkerboard_white
-from ._extract import _refine
+from .._stats import MAD_TO_SIGMA
 from ._lsq import FIT_POINTS, covariance, fit_batch
 from ._spheres import disc_coverage
 from ._voxels import crop
@@ -65,67 +64,176 @@ def _components(vox, label, link):
     ok[:, 0] = False  # the voxel itself
     indptr = np.concatenate([[0], np.cumsum(ok.sum(axis=1))])
     cols = idx[ok]
+    from scipy.sparse import csr_matrix  # at first use: it is slow to import
+    from scipy.sparse.csgraph import connected_components
+
     graph = csr_matrix((np.ones(len(cols), dtype=np.int8), cols, indptr), shape=(m, m))
     return connected_components(graph, directed=False)[1]
 
 
+#: A candidate's robust thickness may reach this many times the noise of its points (3 sigma:
+#: a flat target's voxel centroids, each a mean of many points, scatter far less).
+FLATNESS_SIGMAS = 3.0
+#: Largest ratio of a candidate's in-plane variances (two squares on a diagonal: 4-10; a
+#: line of dark voxels along an edge: hundreds).
+MAX_ELONGATION = 25.0
+#: Rejected candidates reported per scan (the largest first): the rest are specks.
+REPORTED_CANDIDATES = 20
+
+
+def _robust_plane(P, w, noise, draws: int = 96):
+    """Weighted plane of points P (m, 3) with weights w: least median of squares from ``draws``
+    triplets (seeded; up to half the points may lie off the target: a stand, a wall behind
+    its edge), then weighted least squares of the points within 3 robust scales (at least 3
+    times ``noise``), twice. Returns (inlier mask, normal, signed distances, robust scale =
+    1.4826 x weighted median |r| of the inliers)."""
+    rng = np.random.default_rng(len(P))
+    tri = rng.integers(0, len(P), (draws, 3))
+    nrm = np.cross(P[tri[:, 1]] - P[tri[:, 0]], P[tri[:, 2]] - P[tri[:, 0]])
+    ok = np.linalg.norm(nrm, axis=1) > 0
+    sub = rng.choice(len(P), min(len(P), 2000), replace=False)
+    best, n, c = np.inf, None, P.mean(axis=0)
+    for t, m in zip(tri[ok], nrm[ok] / np.linalg.norm(nrm[ok], axis=1)[:, None]):
+        med = _weighted_median(np.abs((P[sub] - P[t[0]]) @ m), w[sub])
+        if med < best:
+            best, n, c = med, m, P[t[0]]
+    if n is None:
+        n = np.linalg.eigh((P - c).T @ (P - c))[1][:, 0]
+    floor = 3.0 * noise if np.isfinite(noise) else 0.0
+    keep = np.abs((P - c) @ n) <= max(3.0 * MAD_TO_SIGMA * best, floor, 1e-9)
+    for _ in range(2):
+        if keep.sum() < 4:
+            keep = np.ones(len(P), dtype=bool)
+        ww = w * keep
+        c = (ww @ P) / ww.sum()
+        Q = P - c
+        n = np.linalg.eigh((ww[:, None] * Q).T @ Q)[1][:, 0]
+        r = Q @ n
+        scale = MAD_TO_SIGMA * _weighted_median(np.abs(r[keep]), w[keep])
+        keep = np.abs(r) <= max(3.0 * scale, floor, 1e-9)
+    return keep, n, r, scale
+
+
+def _weighted_median(x, w):
+    order = np.argsort(x)
+    cw = np.cumsum(w[order])
+    return float(x[order][np.searchsorted(cw, 0.5 * cw[-1])]) if len(x) else 0.0
+
+
+def size_band(options):
+    """(lo, hi) [m]: RMS radius of a dark or bright component that may belong to a target of
+    the given pattern size. A square of a 2 x 2 checkerboard has 0.20 of the size, the two dark
+    squares together 0.41, a disc of radius 0.1-0.45 of the size 0.07-0.32; the band spans
+    0.15-0.6 of the size widened by the size tolerance (the size is a prior, not a gate)."""
+    s, tol = options.pattern_size, options.size_tolerance
+    return 0.15 * s * (1.0 - tol), 0.6 * s * (1.0 + tol)
+
+
 def planar_candidates(vox, normalise, options):
-    """Candidate centres (c, 3) of planar targets on the voxel cloud (module docstring)."""
+    """Candidate centres (c, 3) of planar targets on the voxel cloud (module docstring), and the
+    components of about a target's size that failed a test: list of (centre (3,), reason)."""
     P = vox.centroid
     if len(P) < 4:
-        return np.zeros((0, 3))
+        return np.zeros((0, 3)), []
     dark = normalise(vox.intensity, np.linalg.norm(P, axis=1)) < options.dark_threshold
     comp = _components(vox, dark, 2.0 * vox.size)
-    n = np.bincount(comp).astype(np.float64)
-    big = n >= 4
-    c = np.stack([np.bincount(comp, weights=P[:, k]) for k in range(3)], 1) / n[:, None]
-    d = P - c[comp]
-    cov = (
-        np.stack(
-            [np.bincount(comp, weights=d[:, i] * d[:, j]) for i in range(3) for j in range(3)], 1
-        ).reshape(-1, 3, 3)
-        / n[:, None, None]
-    )
-    lam = np.linalg.eigvalsh(cov)
-    s = options.pattern_size
-    rms = np.sqrt(lam.sum(axis=1))
-    ok = (
-        big
-        & (rms >= 0.12 * s)
-        & (rms <= 0.75 * s)
-        & (lam[:, 0] <= 0.1 * lam.sum(axis=1))
-        & (lam[:, 2] <= 25.0 * np.maximum(lam[:, 1], 1e-30))  # two squares on a diagonal: 4-10
-    )
-    cands = list(c[ok][np.argsort(-n[ok])])
+    n = np.bincount(comp)
+    lo, hi = size_band(options)
+    scan_noise = None
+    good, rejected = [], []
+    order = np.argsort(comp, kind="stable")
+    bounds = np.concatenate([[0], np.cumsum(n)])
+    for k in np.flatnonzero(n >= 4):
+        idx = order[bounds[k] : bounds[k + 1]]
+        Q = P[idx]
+        c = Q.mean(axis=0)
+        rms = float(np.sqrt(np.mean(np.sum((Q - c) ** 2, axis=1))))
+        if not 0.5 * lo <= rms <= 2.0 * hi:  # a speck, a wall: not worth a line
+            continue
+        keep, normal, r, thick = _robust_plane(Q, vox.count[idx].astype(float), np.nan)
+        noise = vox.noise(idx, normal)
+        if not np.isfinite(noise):  # single-point voxels only: the scan's noise at large
+            if scan_noise is None:
+                scan_noise = vox.noise(np.arange(len(P)))
+            noise = scan_noise
+        keep, normal, r, thick = _robust_plane(Q, vox.count[idx].astype(float), noise)
+        Qk = Q[keep] - Q[keep].mean(axis=0)
+        lam = np.linalg.eigvalsh(Qk.T @ Qk / len(Qk))
+        c = Q[keep].mean(axis=0)
+        rms = float(np.sqrt(lam.sum()))
+        what = "dark" if dark[idx[0]] else "bright"
+        where = f"{what} patch of {len(idx)} voxels"
+        if not lo <= rms <= hi:
+            reason = (
+                f"candidate: {where} of RMS radius {rms * 1e3:.0f} mm, outside "
+                f"{lo * 1e3:.0f}..{hi * 1e3:.0f} mm for a {options.pattern_size * 1e3:.0f} mm "
+                f"pattern (+-{options.size_tolerance:.0%})"
+            )
+        elif thick > FLATNESS_SIGMAS * max(noise, 1e-4):
+            reason = (
+                f"candidate: {where} not flat: thickness {thick * 1e3:.1f} mm > "
+                f"{FLATNESS_SIGMAS:.0f} x the points' noise {noise * 1e3:.1f} mm"
+            )
+        elif lam[2] > MAX_ELONGATION * max(lam[1], 1e-30):
+            reason = (
+                f"candidate: {where} elongated (variances {lam[2] / max(lam[1], 1e-30):.0f}:1 "
+                f"> {MAX_ELONGATION:.0f}:1, a line, not a pattern)"
+            )
+        else:
+            good.append((len(idx), c, rms))
+            continue
+        rejected.append((len(idx), c, reason))
+    good.sort(key=lambda g: -g[0])
+    cands = [g[1] for g in good]
     # A checkerboard's two squares may be two components (touching only at the centre): their
     # midpoint is a candidate too. The fits decide; duplicates are dropped after them.
-    single = c[ok][rms[ok] < 0.3 * s]
+    square = 0.3 * options.pattern_size * (1 + options.size_tolerance)
+    single = [g[1] for g in good if g[2] < square]
     for a in range(len(single)):
         for b in range(a + 1, len(single)):
-            if np.linalg.norm(single[a] - single[b]) < 0.9 * s:
+            if np.linalg.norm(single[a] - single[b]) < 0.9 * options.pattern_size * (
+                1 + options.size_tolerance
+            ):
                 cands.append(0.5 * (single[a] + single[b]))
-    return np.array(cands).reshape(-1, 3)
+    rejected.sort(key=lambda g: -g[0])
+    return np.array(cands).reshape(-1, 3), [
+        (c, why) for _, c, why in rejected[:REPORTED_CANDIDATES]
+    ]
 
 
 def _plane_frame(P, c0, size):
-    """Trimmed plane of the points within 0.45 size of c0 (on the target itself: a plate
-    stands off its wall), all points within 0.72 size taken to it: (mask over P of those within
-    3 RMS of the plane, n towards the scanner, d, rms, origin p0 on the plane nearest c0,
-    in-plane axes (2, 3))."""
+    """Robust plane of the points within 0.45 size of c0 (on the target itself: a plate stands
+    off its wall), all points within 0.72 size taken to it: (mask over P of those within 3
+    robust scales of the plane, n towards the scanner, d, robust scale, origin p0 on the plane
+    nearest c0, in-plane axes (2, 3), bend). The scale is 1.4826 x the median absolute
+    distance (the dark squares' range noise may be several times the white ones'; an RMS
+    would be ruled by their outliers); ``bend`` is the RMS departure from the plane of the
+    quadric surface fitted to the distances (a sphere or a curved object bends by far more
+    than its points' noise; a flat target by a fraction of it)."""
     near = np.linalg.norm(P - c0, axis=1) <= 0.45 * size
-    keep = np.zeros(len(P), dtype=bool)
-    if near.sum() < 3:
+    if near.sum() < 6:
         return None
-    k, n, d, rms, _ = _refine(P[near], 3.0)
+    keep_n, n, _, scale = _robust_plane(P[near], np.ones(int(near.sum())), np.nan)
+    c = P[near][keep_n].mean(axis=0)
+    d = float(n @ c)
     if d > 0:  # normal towards the scanner at the origin
         n, d = -n, -d
-    keep = (np.linalg.norm(P - c0, axis=1) <= 0.72 * size) & (np.abs(P @ n - d) <= 3.0 * rms)
+    dist = P @ n - d
+    keep = (np.linalg.norm(P - c0, axis=1) <= 0.72 * size) & (np.abs(dist) <= 4.0 * scale)
     p0 = c0 - (n @ c0 - d) * n
     e1 = np.cross([0.0, 0.0, 1.0], n)
     if np.linalg.norm(e1) < 1e-6:
         e1 = np.cross([1.0, 0.0, 0.0], n)
     e1 /= np.linalg.norm(e1)
-    return keep, n, d, rms, p0, np.stack([e1, np.cross(n, e1)])
+    E = np.stack([e1, np.cross(n, e1)])
+    inner = keep & near
+    uv = (P[inner] - p0) @ E.T
+    A = np.stack([np.ones(len(uv)), uv[:, 0], uv[:, 1], uv[:, 0] ** 2, uv[:, 0] * uv[:, 1],
+                  uv[:, 1] ** 2], 1)  # fmt: skip
+    coef = np.linalg.lstsq(A, dist[inner], rcond=None)[0] if len(uv) >= 6 else np.zeros(6)
+    bend = A[:, 3:] @ coef[3:]
+    bend = float(np.sqrt(np.mean((bend - bend.mean()) ** 2))) if len(uv) else 0.0
+    return keep, n, d, float(scale), p0, E, bend
 
 
 def _target_intensity(normalise, intensity, centre):
@@ -160,7 +268,7 @@ def _effective_weights(y, uv, inten, sigma_pos):
         for dx in (np.array([h, 0.0]), np.array([0.0, h]))
     ]
     res = inten - _checker_model(y, uv, np)
-    s_i = max(1.4826 * np.median(np.abs(res)), 1e-6 * abs(y[4] - y[3]))
+    s_i = max(MAD_TO_SIGMA * np.median(np.abs(res)), 1e-6 * abs(y[4] - y[3]))
     return 1.0 / np.sqrt(s_i**2 + (g[0] ** 2 + g[1] ** 2) * sigma_pos**2), res
 
 
@@ -306,7 +414,7 @@ def fit_circle(uv, inten, area, options, sigma_pos):
     res = np.concatenate(
         [inten[win][rr < 0.7 * r_eff] - bright, inten[win][rr > 1.3 * r_eff] - dark]
     )
-    sig_i = 1.4826 * np.median(np.abs(res)) / (bright - dark) if len(res) else 0.0
+    sig_i = MAD_TO_SIGMA * np.median(np.abs(res)) / (bright - dark) if len(res) else 0.0
     live = (w[win] > 0) & (w[win] < 1)
     g = (area[win] * live)[:, None] * d / W
     C = sig_i**2 * g.T @ g + np.eye(2) * np.sum((wa / W) ** 2 * sigma_pos[win] ** 2)
@@ -335,6 +443,43 @@ def _disc_misfit(d, w, wa, r_eff, r_w, size):
     return float(max(1.0 - inner.mean(), ring, m4))
 
 
+def _in_plane(P, inten, frame, sigma_angle):
+    """In-plane coordinates (m, 2) of a plate's points and their position sigmas (m,) [m].
+
+    Each point is moved onto the plate's plane ``n.X = d`` as a condition adjustment of the
+    point alone would move it (best linear unbiased; one condition on three coordinates): with
+    its covariance ``S = s_r^2 u u^T + (rho s_a)^2 (I - u u^T)`` (u the line of sight, s_r the
+    range sigma, s_a the angle sigma), ``x = P - S n (n^T S n)^-1 (n.P - d)``. Where the range
+    noise outweighs the angle noise (the dark print of a phase scanner: 3-5 times the white's)
+    this is nearly along the line of sight and the range noise drops out of the in-plane
+    position, which a projection along the normal keeps as ``dr sin(beta)`` (at 57 deg and 4
+    mm on black, 3.4 mm a point, the largest checkerboard errors of
+    benchmarks/bench_target_rooms.py); where the angle noise dominates it tends to the
+    normal. s_r: robust scale (1.4826 MAD) of the points' range residuals from the plane, of
+    the dark and the bright points apart (the Otsu split of their intensities); the in-plane
+    sigma: ``sqrt(trace(S - S n n^T S / n^T S n) / 2)``."""
+    _, n, d, _, p0, E, _ = frame
+    rho = np.linalg.norm(P, axis=1)
+    u = P / np.maximum(rho, 1e-12)[:, None]
+    c = u @ n
+    c = np.where(np.abs(c) < 0.05, np.copysign(0.05, c), c)  # grazing: bounded
+    dist = P @ n - d
+    r = dist / c  # the range error that would put the point on the plane
+    dark_level, bright_level = _levels(inten) if len(inten) >= 4 else (0.0, 1.0)
+    bright = inten > 0.5 * (dark_level + bright_level)
+    pooled = MAD_TO_SIGMA * np.median(np.abs(r)) if len(r) else 0.0
+    s_r = np.empty(len(P))
+    for cls in (bright, ~bright):
+        s_r[cls] = MAD_TO_SIGMA * np.median(np.abs(r[cls])) if cls.sum() >= 5 else pooled
+    s_r = np.maximum(s_r, 1e-6)
+    s_p = np.maximum(rho * sigma_angle, 1e-7)
+    Sn = (s_r**2 * c)[:, None] * u + (s_p**2)[:, None] * (n[None, :] - c[:, None] * u)
+    q = s_r**2 * c**2 + s_p**2 * (1.0 - c**2)
+    X = P - Sn * (dist / q)[:, None]
+    var = np.maximum(s_r**2 + 2 * s_p**2 - np.sum(Sn**2, axis=1) / q, 0.0)
+    return (X - p0) @ E.T, np.sqrt(var / 2.0)
+
+
 def _offsets(P, n, d, los_cos, weights, white):
     """Range offsets (along the line of sight, positive farther) from the plane: of the
     weighted centroid, and of the dark points minus the bright ones."""
@@ -349,17 +494,16 @@ def _offsets(P, n, d, los_cos, weights, white):
 def _fit_candidate(P, I_raw, normalise, c0, frame, options, kinds, checker_fit):
     """The pattern fits (checkerboard, circle or both) of one candidate, as record dicts."""
     s = options.pattern_size
-    keep, n, d, rms, p0, E = frame
+    keep, n, d, rms, p0, E, _ = frame
     Pk = P[keep]
     rho = np.linalg.norm(Pk, axis=1)
     inten = _target_intensity(normalise, I_raw[keep], p0)
-    uv = (Pk - p0) @ E.T
+    uv, sigma_pos = _in_plane(Pk, inten, frame, options.sigma_angle)
     cosb = abs(float(n @ p0) / np.linalg.norm(p0))
     cos_alpha = np.hypot(Pk[:, 0], Pk[:, 1]) / rho
     # Each point's own incidence: across a disc seen at 50 deg it varies enough (+-2.5 % at
     # 2.3 m) to move an unweighted centroid by 0.2-0.3 mm.
     area = rho**2 * cos_alpha / np.maximum(np.abs(Pk @ n) / rho, 1e-3)
-    sigma_pos = rho * options.sigma_angle
     recs = {}
     if "checkerboard" in kinds and checker_fit is not None:
         c, C, (dark, bright), prms, blur, ok, used = checker_fit
@@ -410,8 +554,15 @@ def _fit_candidate(P, I_raw, normalise, c0, frame, options, kinds, checker_fit):
 
 
 def _judge(rec, options):
-    """The first failed check of a planar target fit, or ""."""
+    """The first failed check of a planar target fit, or "". A fit that wandered out of the
+    candidate's window says so first (its window then holds no points, which is not the
+    cause)."""
     s = options.pattern_size
+    if not rec["shift"] <= 0.5 * s:
+        return (
+            f"the fit wandered {rec['shift'] * 1e3:.0f} mm from the candidate, out of its "
+            f"{0.5 * s * 1e3:.0f} mm window (not a {rec['kind']} of this size)"
+        )
     if rec["n_points"] < options.min_points:
         return f"too few points ({rec['n_points']} < {options.min_points})"
     if not rec["converged"] or not np.all(np.isfinite(rec["covariance"])):
@@ -421,8 +572,8 @@ def _judge(rec, options):
             f"incidence {np.degrees(rec['incidence']):.0f} deg > "
             f"{np.degrees(options.max_incidence):.0f} deg"
         )
-    if rec["rms"] > options.max_rms:
-        return f"plane RMS {rec['rms'] * 1e3:.2f} mm > {options.max_rms * 1e3:.2f} mm"
+    if options.max_rms is not None and rec["rms"] > options.max_rms:
+        return f"plane scale {rec['rms'] * 1e3:.2f} mm > max_rms {options.max_rms * 1e3:.2f} mm"
     if rec["contrast"] < options.min_contrast:
         return f"contrast {rec['contrast']:.2f} < {options.min_contrast:.2f} (not a {rec['kind']})"
     if not rec["pattern_rms"] <= options.max_pattern_rms:
@@ -439,8 +590,6 @@ def _judge(rec, options):
         )
         if not lo <= r <= hi:
             return f"disc radius {r * 1e3:.1f} mm outside {lo * 1e3:.1f}..{hi * 1e3:.1f} mm"
-    if rec["shift"] > 0.5 * s:
-        return "the centre left the candidate's window"
     if rec["coverage"] < options.min_coverage:
         return f"coverage {rec['coverage']:.2f} of the target < {options.min_coverage:.2f}"
     return ""
@@ -471,18 +620,19 @@ def _unfitted(kind, c0, frame, options, reason):
 
 
 def scan_planar_targets(scan, vox, normalise, options, rng, bar):
-    """Planar target records of one scan (accepted or not)."""
-    starts = planar_candidates(vox, normalise, options)
-    if not len(starts):
-        return []
-    crops = crop(
-        scan, starts, 0.75 * options.pattern_size + 0.02, chunk=options.chunk_points, bar=bar
-    )
+    """Planar target records of one scan (accepted or not), with the candidates of about a
+    target's size rejected on the voxel cloud."""
+    starts, dropped = planar_candidates(vox, normalise, options)
     kinds = [
         k for k, on in (("checkerboard", options.checkerboards), ("circle", options.circles)) if on
     ]
+    out = [_unfitted(kinds[0], c, None, options, why) for c, why in dropped]
+    if not len(starts):
+        return out
+    crops = crop(
+        scan, starts, 0.75 * options.pattern_size + 0.02, chunk=options.chunk_points, bar=bar
+    )
     frames = []
-    out = []
     for (P, _), c0 in zip(crops, starts):
         fr = _plane_frame(P, c0, options.pattern_size) if len(P) >= 3 else None
         inside = (
@@ -497,8 +647,15 @@ def scan_planar_targets(scan, vox, normalise, options, rng, bar):
                 )
             )
             fr = None
-        elif fr[3] > options.max_rms:  # not planar (a sphere, clutter)
-            reason = f"plane RMS {fr[3] * 1e3:.2f} mm > {options.max_rms * 1e3:.2f} mm (not planar)"
+        elif fr[6] > max(fr[3], 1e-4):  # not planar (a sphere, clutter)
+            reason = (
+                f"not planar: bends {fr[6] * 1e3:.2f} mm (RMS) from its plane, more than the "
+                f"points' noise {fr[3] * 1e3:.2f} mm"
+            )
+            out.append(_unfitted(kinds[0], c0, fr, options, reason))
+            fr = None
+        elif options.max_rms is not None and fr[3] > options.max_rms:
+            reason = f"plane scale {fr[3] * 1e3:.2f} mm > max_rms {options.max_rms * 1e3:.2f} mm"
             out.append(_unfitted(kinds[0], c0, fr, options, reason))
             fr = None
         frames.append(fr)
@@ -508,14 +665,10 @@ def scan_planar_targets(scan, vox, normalise, options, rng, bar):
         for q, ((P, I_raw), fr) in enumerate(zip(crops, frames)):
             if fr is None or I_raw is None:
                 continue
-            keep, n, d, rms, p0, E = fr
-            Pk = P[keep]
-            rho = np.linalg.norm(Pk, axis=1)
-            tanb = np.tan(np.arccos(np.clip(np.abs(Pk @ n) / rho, 0.0, 1.0)))
-            sigma_pos = np.hypot(rho * options.sigma_angle, options.sigma_range * tanb)
-            items.append(
-                ((Pk - p0) @ E.T, _target_intensity(normalise, I_raw[keep], p0), sigma_pos)
-            )
+            keep, p0 = fr[0], fr[4]
+            inten = _target_intensity(normalise, I_raw[keep], p0)
+            uv, sigma_pos = _in_plane(P[keep], inten, fr, options.sigma_angle)
+            items.append((uv, inten, sigma_pos))
             where.append(q)
         for q, fit in zip(where, fit_checkerboards(items, options)):
             checker[q] = fit

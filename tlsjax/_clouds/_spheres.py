@@ -34,6 +34,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
+from .._stats import MAD_TO_SIGMA
 from ._lsq import FIT_POINTS, covariance, fit_batch
 from ._voxels import NEIGHBOURS as _NEIGHBOURS
 from ._voxels import voxel_keys
@@ -161,10 +162,9 @@ def radial_sigma(P, c, sigma_range, sigma_angle):
     return np.sqrt(sigma_range**2 + (rho * sigma_angle) ** 2 * np.clip(1 - cosb**2, 0, 1))
 
 
-def coverage(P, c, R):
-    """Share of the visible hemisphere covered (module docstring), in [0, 1]."""
-    if len(P) == 0:
-        return 0.0
+def _disc_coordinates(P, c, R):
+    """The unit vectors ``(x_i - c) / R`` projected onto the plane across the line of sight
+    to c: (a, b) on the unit disc."""
     los = c / np.linalg.norm(c)
     u = (P - c) / R
     u -= np.outer(u @ los, los)
@@ -173,7 +173,27 @@ def coverage(P, c, R):
         e1 = np.cross(los, [1.0, 0.0, 0.0])
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(los, e1)
-    return disc_coverage(u @ e1, u @ e2)
+    return u @ e1, u @ e2
+
+
+def residual_trend(P, c, R, res) -> float:
+    """RMS [m] of the quadratic trend ``1, a, b, a^2, a b, b^2`` over the visible disc
+    (:func:`_disc_coordinates`) fitted to the radial residuals ``res``: a sphere leaves noise
+    (a trend of about ``sigma sqrt(6 / n)``), a cylinder or a bump that voted for a centre
+    leaves its shape (residuals of one sign along its axis, the other across)."""
+    if len(P) < 12:
+        return np.nan
+    a, b = _disc_coordinates(P, c, R)
+    A = np.stack([np.ones_like(a), a, b, a * a, a * b, b * b], 1)
+    fit = A @ np.linalg.lstsq(A, res, rcond=None)[0]
+    return float(np.sqrt(np.mean(fit**2)))
+
+
+def coverage(P, c, R):
+    """Share of the visible hemisphere covered (module docstring), in [0, 1]."""
+    if len(P) == 0:
+        return 0.0
+    return disc_coverage(*_disc_coordinates(P, c, R))
 
 
 def disc_coverage(a, b) -> float:
@@ -220,7 +240,7 @@ def fit_spheres(crops, starts, radii, options, rng):
             centres[q] = y[q, :3]
             res = np.linalg.norm(pts[q] - centres[q], axis=1) - radii[q]
             sig = radial_sigma(pts[q], centres[q], options.sigma_range, options.sigma_angle)
-            scale = 1.4826 * np.median(np.abs(res[inl[q]])) if inl[q].any() else 0.0
+            scale = MAD_TO_SIGMA * np.median(np.abs(res[inl[q]])) if inl[q].any() else 0.0
             lim = np.maximum(3.0 * max(scale, 1e-12), 3.0 * sig)
             new = (np.abs(res) <= lim) & _shell(pts[q], centres[q], radii[q], tol[q])
             changed |= not np.array_equal(new, inl[q])
@@ -269,6 +289,7 @@ def _record(q, P, R, fits, options):
         U = P / np.linalg.norm(P, axis=1)[:, None]
         res = np.linalg.norm(P - y[0, 3] * (U - uc) - c, axis=1) - R
     return {
+        "trend": residual_trend(P, c, R, res),
         "kind": "sphere",
         "size": float(R),
         "centre": c,

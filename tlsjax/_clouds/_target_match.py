@@ -12,8 +12,33 @@ relative_tolerance x distance``). Registration of a set A of centres onto a set 
    vectorised).
 3. **Decision**: the best motion, refitted to its inliers, is accepted when it is supported by
    at least ``min_common`` targets and no essentially different motion (rotated by more than
-   1 deg or shifted by more than the tolerance) is supported nearly as well (``ambiguity``
-   share of the best): a symmetric layout is reported as ambiguous, never guessed.
+   1 deg or shifted by more than the tolerance) is supported nearly as well (at least the
+   ``ambiguity`` share of the best, and at least as many targets as the best where that is 3
+   or 4): a symmetric layout is reported as ambiguous, never guessed.
+4. **Three targets.** Three centres fix a motion; a fourth checks it. Without the fourth,
+   the distances are the only guard, so a placement on exactly three needs (a) their three
+   distances to agree within the tighter ``tolerance_3 + relative_tolerance_3 x distance``
+   (the distances between targets of a field check agree to a few millimetres even before a
+   calibration: DVW-Merkblatt 7-2014's limits are 2-4 mm), and (b) a chance match to be
+   improbable among the centres at hand: the expected number of false triangle matches (an
+   *a contrario* number of false alarms, Desolneux, Moisan and Morel 2008, ch. 5) must not
+   exceed ``max_chance``. A false triangle match needs a pair of A to match a pair of B
+   (truly, when two targets are shared, or by chance) and a third centre of B to lie, by
+   chance, at A's third centre's two distances from the pair: on a circle about the pair's
+   axis. With B's centres spread uniformly over their bounding box (volume V, each side at
+   least 2 m), a centre lies within ``t_1``, ``t_2`` of the distances ``d_1``, ``d_2`` from a
+   pair ``L`` apart with probability ``2 t_1 2 t_2 x 2 pi d_1 d_2 / (L V)`` (the circle's
+   tube; at most the shell ``4 pi d_1^2 2 t_1 / V``), so
+   ``E = sum over matching pairs (i k, j l) and third centres m of A of P(d_im, d_km) x
+   (number of B's other centres of m's kind)``. Every real pair match enters, true or
+   chance, so the scans' own structure (shared targets, walls) is counted, not modelled;
+   each triangle enters once per side, which errs on the safe side (by about 2 on walls,
+   more elsewhere: tests/test_field_check.py counts chance placements against it). In random
+   hall layouts, 94-98 % of scans of 3 targets sharing all 3 with a set of 3 or 4 are placed
+   and 73-78 % of 6 sharing 3 with 6; the rest are reported as undecided, with the figure,
+   rather than placed on what may be a coincidence; of scans sharing only 2 targets, about
+   1-2 in 1,000 on walls are still placed on a chance third. A placement on 4 or more needs a
+   fourth centre to coincide as well, which the tolerance makes negligible.
 
 Scans are joined one at a time onto the growing set of global targets, the best-supported
 scan first; a scan's centres without a partner become new targets, so targets seen by only
@@ -33,28 +58,35 @@ import dataclasses
 import itertools
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .._model._geometry import angles_from_matrix, rigid_fit
+from .._summary import Settings, to_json_value
+from ._targets import ExtractedTargets
 
 
 @dataclasses.dataclass(frozen=True)
-class TargetMatchingOptions:
+class TargetMatchingOptions(Settings):
     """Thresholds of :func:`match_targets` (lengths in metres).
 
     ``tolerance`` + ``relative_tolerance`` x distance: how far two distances between the same
     targets, or a mapped centre and its partner, may differ (noise plus the uncalibrated
     scanner's distortion, about a centimetre at 10 m for 3' angular errors). ``min_common``:
-    targets a scan must share with the others (or the list) to be placed. ``ambiguity``: a
-    different motion supported by at least this share of the best one's targets makes the
-    scan ambiguous. ``min_side``: shortest triangle side used for hypotheses. ``max_triangles``:
-    triangles of A tried (drawn with ``seed``). ``min_scans``: scans a target needs to get a
-    name when no list is given.
+    targets a scan must share with the others (or the list) to be placed (at least 3, which
+    fix a motion). A placement on exactly 3 needs their distances to agree within
+    ``tolerance_3 + relative_tolerance_3 x distance`` and the expected number of chance
+    triangle matches among the scan's and the others' centres to be at most ``max_chance``
+    (module docstring, step 4). ``ambiguity``: a different motion supported by at least this
+    share of the best one's targets makes the scan ambiguous. ``min_side``: shortest triangle
+    side used for hypotheses. ``max_triangles``: triangles of A tried (drawn with ``seed``).
+    ``min_scans``: scans a target needs to get a name when no list is given.
     """
 
     tolerance: float = 0.02
     relative_tolerance: float = 2e-3
-    min_common: int = 4
+    min_common: int = 3
+    tolerance_3: float = 0.005
+    relative_tolerance_3: float = 5e-4
+    max_chance: float = 1e-2
     ambiguity: float = 0.75
     min_side: float = 0.5
     max_triangles: int = 300
@@ -62,13 +94,15 @@ class TargetMatchingOptions:
     seed: int = 0
 
     def __post_init__(self):
-        for name in ("tolerance", "min_side"):
+        for name in ("tolerance", "min_side", "tolerance_3"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"TargetMatchingOptions.{name} must be positive")
-        if not self.relative_tolerance >= 0:
-            raise ValueError("TargetMatchingOptions.relative_tolerance must be >= 0")
+        if not (self.relative_tolerance >= 0 and self.relative_tolerance_3 >= 0):
+            raise ValueError("TargetMatchingOptions.relative_tolerance(_3) must be >= 0")
         if self.min_common < 3:
             raise ValueError("TargetMatchingOptions.min_common must be at least 3")
+        if not 0 < self.max_chance < 1:
+            raise ValueError("TargetMatchingOptions.max_chance must be in (0, 1)")
         if not 0 < self.ambiguity <= 1:
             raise ValueError("TargetMatchingOptions.ambiguity must be in (0, 1]")
         if self.max_triangles < 1 or self.min_scans < 1:
@@ -78,7 +112,8 @@ class TargetMatchingOptions:
 @dataclasses.dataclass(frozen=True, eq=False)
 class TargetMatching:
     """What :func:`match_targets` did: per scan its ``status`` ("reference", "placed",
-    "ambiguous", "too few common targets", "no targets"), ``n_common`` targets matched, the
+    "ambiguous", "undecided" (3 common targets where a chance triangle is not improbable),
+    "too few common targets", "no targets"), ``n_common`` targets matched, the
     RMS [m] of its rigid fit and its ``pose`` (6,) in the matching frame (that of the first
     scan or of the list; NaN when not placed); ``targets`` name -> coordinates (3,) in that
     frame; ``messages``: every ambiguity and conflict, one line each."""
@@ -98,6 +133,25 @@ class TargetMatching:
         ]
         return "\n".join(lines + list(self.messages))
 
+    def to_dict(self) -> dict:
+        """Strict JSON: per scan its status, common targets, fit RMS [m] and pose (6,); the
+        targets' coordinates [m] in the matching frame; the messages."""
+        return to_json_value(
+            {
+                "scans": {
+                    s: {
+                        "status": self.status[s],
+                        "n_common": self.n_common[s],
+                        "rms": self.rms[s],
+                        "pose": self.pose[s],
+                    }
+                    for s in self.status
+                },
+                "targets": self.targets,
+                "messages": list(self.messages),
+            }
+        )
+
 
 @dataclasses.dataclass
 class _Registration:
@@ -108,6 +162,8 @@ class _Registration:
     rms: float = np.nan
     support: int = 0
     second: int = 0
+    chance: float = 0.0
+    misfit: float = 0.0
 
 
 def _tol(d, options):
@@ -136,13 +192,14 @@ def _triangles(X, rng, options):
     return tri[rng.permutation(len(tri))[: options.max_triangles]]
 
 
-def _hypotheses(A, ka, B, kb, rng, options):
-    """Rigid motions (R (h, 3, 3), t (h, 3)) of A onto B from triangles of equal sides."""
+def _hypotheses(A, ka, B, kb, tri, options):
+    """Rigid motions (R (h, 3, 3), t (h, 3)) of A onto B from the triangles ``tri`` of A and
+    the triplets of B with equal sides."""
     DA = np.linalg.norm(A[:, None] - A[None], axis=2)
     DB = np.linalg.norm(B[:, None] - B[None], axis=2)
     same = ka[:, None] == kb[None, :]  # (nA, nB)
     src, dst = [], []
-    for i, k, m in _triangles(A, rng, options):
+    for i, k, m in tri:
         jl = np.argwhere(
             (np.abs(DB - DA[i, k]) <= _tol(DA[i, k], options)) & same[i][:, None] & same[k][None, :]
         )
@@ -172,9 +229,49 @@ def _hypotheses(A, ka, B, kb, rng, options):
     return R, cd - np.einsum("hij,hj->hi", R, cs)
 
 
+def _tol_3(d, options):
+    return options.tolerance_3 + options.relative_tolerance_3 * np.asarray(d)
+
+
+def _chance(A, ka, B, kb, options):
+    """Expected number of chance triangle matches of A with B (module docstring, step 4), at
+    the tolerance of a placement on 3 targets. B with more than 60 centres: infinite (3
+    common targets never decide among so many)."""
+    if len(B) > 60:
+        return float("inf")
+    DA = np.linalg.norm(A[:, None] - A[None], axis=2)
+    DB = np.linalg.norm(B[:, None] - B[None], axis=2)
+    V = float(np.prod(np.maximum(np.ptp(B, axis=0), 2.0)))
+    counts = {int(c): int(n) for c, n in zip(*np.unique(kb, return_counts=True))}
+    total = 0.0
+    for i, k in itertools.combinations(range(len(A)), 2):
+        L = DA[i, k]
+        match = np.abs(DB - L) <= _tol_3(L, options)
+        match &= (kb[:, None] == ka[i]) & (kb[None, :] == ka[k])
+        np.fill_diagonal(match, False)
+        if not match.any():
+            continue
+        jl = np.argwhere(match)
+        for m in range(len(A)):
+            if m in (i, k):
+                continue
+            d1, d2 = DA[i, m], DA[k, m]
+            t1, t2 = 2 * _tol_3(d1, options), 2 * _tol_3(d2, options)
+            p = min(
+                t1 * t2 * 2 * np.pi * d1 * d2 / (max(L, 1e-9) * V),
+                4 * np.pi * d1**2 * t1 / V,
+                1.0,
+            )
+            others = counts.get(int(ka[m]), 0) - np.sum((kb[jl] == ka[m]).astype(np.int64), axis=1)
+            total += p * float(np.maximum(others, 0).sum())
+    return total
+
+
 def _support(R, t, A, ka, B, kb, options):
     """Per motion: number of A's centres with a same-kind centre of B within the tolerance
     (``tolerance + relative_tolerance x`` the centre's range in its scan)."""
+    from scipy.spatial import cKDTree  # at first use: it is slow to import
+
     tree = cKDTree(B)
     tol = _tol(np.linalg.norm(A, axis=1), options)
     Y = np.einsum("hij,nj->hni", R, A) + t[:, None, :]
@@ -205,7 +302,8 @@ def register(A, ka, B, kb, options, rng) -> _Registration:
     (module docstring)."""
     if min(len(A), len(B)) < 3:
         return _Registration("too few common targets")
-    R, t = _hypotheses(A, ka, B, kb, rng, options)
+    tri = _triangles(A, rng, options)
+    R, t = _hypotheses(A, ka, B, kb, tri, options)
     if not len(R):
         return _Registration("too few common targets")
     sup = _support(R, t, A, ka, B, kb, options)
@@ -227,14 +325,48 @@ def register(A, ka, B, kb, options, rng) -> _Registration:
     other = (cosang < np.cos(np.radians(1.0))) | (moved > 2 * options.tolerance)
     second = int(sup[other].max()) if other.any() else 0
     reg = _Registration("placed", Rb, tb, tuple(pairs), support=n, second=second)
+    # A rival is a tie where the best rests on 3 or 4 targets (a 3-target rival of a 4-target
+    # fit needs the fourth partner to be a coincidence), else the ambiguity share of the best.
     if n < options.min_common:
         reg.status = "too few common targets"
-    elif second >= options.min_common and second >= options.ambiguity * n:
+    elif second >= max(options.ambiguity * n, min(n, 4)):
         reg.status = "ambiguous"
+    elif n == 3:
+        i, j = np.asarray(pairs).T
+        da = np.linalg.norm(A[i][:, None] - A[i][None], axis=2)
+        db = np.linalg.norm(B[j][:, None] - B[j][None], axis=2)
+        reg.misfit = float(np.max(np.abs(da - db) - _tol_3(da, options)))
+        reg.chance = _chance(A, ka, B, kb, options)
+        if reg.misfit > 0 or reg.chance > options.max_chance:
+            reg.status = "undecided"
     if n:
         i, j = np.asarray(pairs).T
         reg.rms = float(np.sqrt(np.mean(np.sum((A[i] @ Rb.T + tb - B[j]) ** 2, axis=1))))
     return reg
+
+
+def _not_placed(scan, reg, onto, options) -> str | None:
+    """The message of a registration that was not accepted for its ambiguity, or None."""
+    if reg.status == "ambiguous":
+        return (
+            f"scan {scan}: two different placements {onto} are supported by {reg.support} and "
+            f"{reg.second} targets: ambiguous, not named"
+        )
+    if reg.status == "undecided" and reg.misfit > 0:
+        return (
+            f"scan {scan}: placed {onto} by 3 common targets only, whose distances disagree by "
+            f"{reg.misfit * 1e3:.1f} mm more than the tolerance of 3 (tolerance_3 + "
+            "relative_tolerance_3 x distance): 3 cannot decide, not named (a target list, or a "
+            "fourth target seen by this scan and another, can)"
+        )
+    if reg.status == "undecided":
+        return (
+            f"scan {scan}: placed {onto} by 3 common targets only, and among these centres a "
+            f"chance match of 3 is expected {reg.chance:.2g} times (limit "
+            f"{options.max_chance:g}): 3 cannot decide, not named (a target list, or a fourth "
+            "target seen by this scan and another, can)"
+        )
+    return None
 
 
 def _kind_codes(kind, size):
@@ -273,7 +405,7 @@ def match_targets(
     options: TargetMatchingOptions | None = None,
     *,
     target_list=None,
-):
+) -> ExtractedTargets:
     """Name the accepted detections of :func:`~tlsjax.extract_targets` consistently across
     scans (module docstring). ``target_list``: optional mapping name -> (x, y, z) [m] (or
     name -> (x, y, z, kind) with kind "sphere", "checkerboard", "circle"), e.g. from
@@ -333,11 +465,8 @@ def _match_to_list(targets, options, rng, scan_sets, target_list, messages):
         if reg.status == "placed":
             frame_R[s], frame_t[s] = reg.R, reg.t
             pose[s] = _pose(reg.R, reg.t)
-        elif reg.status == "ambiguous":
-            messages.append(
-                f"scan {targets.scans[s]}: two different placements on the target list are "
-                f"supported by {reg.support} and {reg.second} targets: ambiguous, not named"
-            )
+        elif note := _not_placed(targets.scans[s], reg, "on the target list", options):
+            messages.append(note)
     names = _assign(targets, options, scan_sets, frame_R, frame_t, G, kG, names_g, messages)
     _conflicts(targets, names, messages)
     return names, status, n_common, rms, pose, dict(zip(names_g, G))
@@ -384,11 +513,8 @@ def _match_by_geometry(targets, options, rng, scan_sets, messages):
         if not placed:
             for s, r in regs.items():
                 status[s], n_common[s], rms[s] = r.status, r.support, r.rms
-                if r.status == "ambiguous":
-                    messages.append(
-                        f"scan {targets.scans[s]}: two different placements are supported by "
-                        f"{r.support} and {r.second} targets: ambiguous, not matched"
-                    )
+                if note := _not_placed(targets.scans[s], r, "onto the other scans", options):
+                    messages.append(note)
             break
         s = max(placed, key=lambda q: regs[q].support)
         r = regs[s]

@@ -26,6 +26,7 @@ from collections.abc import Sequence
 
 import jax
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .._adjustment._network import DEFAULT_SIGMA_ANGLE, DEFAULT_SIGMA_RANGE, ObservationTable
 from .._io._point_clouds import observations_from_points
@@ -33,6 +34,7 @@ from .._io._scan_chunks import CHUNK_POINTS, ScanChunks, open_scans, scan_from_o
 from .._jit import jit
 from .._model._geometry import spherical_from_cartesian
 from .._model._scanner import ARCHITECTURES
+from .._summary import Settings, to_json_value
 from .._units import DEG
 from . import _spheres
 from ._voxels import crop, intensity_normaliser, voxelise
@@ -41,7 +43,7 @@ KINDS = ("sphere", "checkerboard", "circle")
 
 
 @dataclasses.dataclass(frozen=True)
-class TargetExtractionOptions:
+class TargetExtractionOptions(Settings):
     """What to look for and when to reject it (lengths in metres, angles in radians).
 
     ``spheres``: nominal radii of the sphere targets (e.g. ``(0.0725, 0.1)``);
@@ -51,13 +53,21 @@ class TargetExtractionOptions:
     known) or "free" (radius free); the radius misfit is judged from the free fit always. ``checkerboards``, ``circles``: look for 2 x 2
     checkerboards and white discs on a dark ground, of side (plate) ``pattern_size``;
     ``circle_radius`` of the disc (None: any from 0.1 to 0.45 of the size).
-    ``voxel_size`` of the candidate search (None: the smallest of 2 cm, a quarter of the
-    smallest radius and an eighth of the pattern). ``sigma_range``/``sigma_angle``: a priori
-    point sigmas (SPEC section 5) for the sphere fit's weights. Rejection: fewer than
-    ``min_points``; fit RMS above ``max_rms``; radius misfit above ``max_radius_misfit``;
-    coverage below ``min_coverage``; planar targets seen at more than ``max_incidence``, with a
-    contrast below ``min_contrast`` (bright minus dark, in units of the scan's median
-    intensity at that range) or a pattern residual above ``max_pattern_rms`` of the contrast.
+    ``size_tolerance``: how far (relative) a target's real size may be from the one given: the
+    size is a prior, not a gate (a candidate's extent is tested against the size widened by it,
+    and a sphere's fitted radius against the nominal one). ``voxel_size`` of the candidate
+    search (None: the smallest of 2 cm, a quarter of the smallest radius and an eighth of the
+    pattern). ``sigma_range``/``sigma_angle``: a priori point sigmas (SPEC section 5) for the
+    sphere fit's weights. Rejection, from the scan's own noise where no limit is given (the
+    median thickness of the voxels there, ``_voxels``): a candidate patch thicker than 3 times
+    the noise of its points, a planar target bending from its plane by more than that noise, a
+    sphere whose fit RMS exceeds 3 times it (``max_rms``, when given, is a fixed limit [m] on
+    both instead); fewer than ``min_points``; a sphere's fitted radius off the nominal by more
+    than ``max_radius_misfit`` [m] when given, else by more than ``size_tolerance`` of it (a
+    sphere of another size); coverage below ``min_coverage``; planar targets seen at more than
+    ``max_incidence``, with a contrast below ``min_contrast`` (bright minus dark, in units of the
+    scan's median intensity at that range) or a pattern residual above ``max_pattern_rms`` of
+    the contrast.
     ``min_votes``: sphere votes a candidate needs. ``chunk_points``: points per streamed chunk.
     ``seed``: thinning of fits beyond 2,048 points.
     """
@@ -72,8 +82,9 @@ class TargetExtractionOptions:
     sigma_range: float = DEFAULT_SIGMA_RANGE
     sigma_angle: float = DEFAULT_SIGMA_ANGLE
     min_points: int = 30
-    max_rms: float = 0.003
-    max_radius_misfit: float = 0.003
+    max_rms: float | None = None
+    max_radius_misfit: float | None = None
+    size_tolerance: float = 0.3
     min_coverage: float = 0.6
     max_incidence: float = 75.0 * DEG
     min_contrast: float = 0.3
@@ -93,16 +104,16 @@ class TargetExtractionOptions:
             "pattern_size",
             "sigma_range",
             "sigma_angle",
-            "max_rms",
-            "max_radius_misfit",
             "min_contrast",
             "max_pattern_rms",
             "dark_threshold",
         )
-        for name in positive:
+        for name in positive + ("max_rms", "max_radius_misfit"):
             v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0):
+            if v is not None and not (np.isfinite(v) and v > 0):
                 raise ValueError(f"TargetExtractionOptions.{name} must be positive, got {v}")
+        if not 0.0 <= self.size_tolerance < 1.0:
+            raise ValueError(f"size_tolerance must be in [0, 1), got {self.size_tolerance}")
         if self.voxel_size is not None and not (0 < self.voxel_size <= 0.2):
             raise ValueError(f"voxel_size must be in (0, 0.2] m, got {self.voxel_size}")
         if self.sphere_model not in ("offset", "known", "free"):
@@ -275,6 +286,37 @@ class ExtractedTargets:
             )
         return rows
 
+    def summary(self) -> str:
+        """The detections per scan and kind, accepted and rejected (with the reasons), and the
+        notes."""
+        lines = [
+            f"{len(self)} target candidate(s) in {len(self.scans)} scan(s), {self.architecture}"
+        ]
+        for j, scan in enumerate(self.scans):
+            rows = self.scan_index == j
+            for kind in sorted(set(self.kind[rows].tolist())):
+                k = rows & (self.kind == kind)
+                ok = int((k & self.accepted).sum())
+                lines.append(f"  {scan}: {kind}: {ok} accepted, {int(k.sum()) - ok} rejected")
+        reasons = sorted(set(str(r) for r in self.reason[~self.accepted]))
+        lines += [f"  rejected: {r}" for r in reasons if r]
+        if self.matching is not None:
+            lines.append(self.matching.summary())
+        return "\n".join(lines + [f"note: {n}" for n in self.notes])
+
+    def to_dict(self) -> dict:
+        """Strict JSON: the scans, the architecture, one record per detection (:meth:`table`,
+        SI units), the matching's report and the notes."""
+        return to_json_value(
+            {
+                "scans": list(self.scans),
+                "architecture": self.architecture,
+                "targets": self.table(),
+                "matching": None if self.matching is None else self.matching.to_dict(),
+                "notes": list(self.notes),
+            }
+        )
+
     def to_table(self) -> ObservationTable:
         """The target observations (SPEC section 11) of the accepted, named detections, with
         their sigmas; no incidence column (the sigmas are the centres' own, already)."""
@@ -335,19 +377,44 @@ def _empty_record(kind, size, centre, reason, n=0):
     }
 
 
+#: A sphere's fit RMS may reach this many times the noise of the scan's points there (the
+#: radial residuals of a true sphere are that noise; a pipe or a curved bump that voted for a
+#: centre leaves 1.2-3 times it in a real plant room, pye57's pump scan).
+SPHERE_RMS_SIGMAS = 2.0
+
+
 def _judge_sphere(rec, options: TargetExtractionOptions):
     """The first failed check of a sphere fit, or ""."""
     if rec["n_points"] < options.min_points:
         return f"too few points ({rec['n_points']} < {options.min_points})"
     if not rec["converged"] or not np.all(np.isfinite(rec["covariance"])):
         return "the fit did not converge"
-    if rec["rms"] > options.max_rms:
-        return f"fit RMS {rec['rms'] * 1e3:.2f} mm > {options.max_rms * 1e3:.2f} mm"
+    if options.max_rms is not None:
+        if rec["rms"] > options.max_rms:
+            return f"fit RMS {rec['rms'] * 1e3:.2f} mm > max_rms {options.max_rms * 1e3:.2f} mm"
+    elif rec["rms"] > SPHERE_RMS_SIGMAS * rec["noise"]:
+        return (
+            f"fit RMS {rec['rms'] * 1e3:.2f} mm > {SPHERE_RMS_SIGMAS:.0f} x the points' noise "
+            f"{rec['noise'] * 1e3:.2f} mm there (not a sphere of this radius)"
+        )
+    n = max(rec["n_points"], 7)
+    trend_limit = max(0.5, 2.0 * np.sqrt(6.0 / n)) * rec["noise"]
+    if options.max_rms is None and not rec["trend"] <= trend_limit:
+        return (
+            f"residuals with a shape: their quadratic trend over the sphere has an RMS of "
+            f"{rec['trend'] * 1e3:.2f} mm > {trend_limit * 1e3:.2f} mm (half the points' noise, "
+            "or twice what noise leaves): not a sphere"
+        )
     miss = rec["radius_fit"] - rec["size"]
-    if abs(miss) > options.max_radius_misfit:
+    limit = (
+        options.max_radius_misfit
+        if options.max_radius_misfit is not None
+        else options.size_tolerance * rec["size"]
+    )
+    if not abs(miss) <= limit:
         return (
             f"radius {rec['radius_fit'] * 1e3:.1f} mm differs from the nominal "
-            f"{rec['size'] * 1e3:.1f} mm by {miss * 1e3:+.1f} mm"
+            f"{rec['size'] * 1e3:.1f} mm by {miss * 1e3:+.1f} mm (limit {limit * 1e3:.1f} mm)"
         )
     if rec["coverage"] < options.min_coverage:
         return (
@@ -376,7 +443,26 @@ def _scan_spheres(scan, vox, options, rng, bar):
         return []
     crops = crop(scan, starts, 1.5 * radii[which] + 0.02, chunk=options.chunk_points, bar=bar)
     recs = _spheres.fit_spheres([p for p, _ in crops], starts, radii[which], options, rng)
-    for rec in recs:
+    tree = cKDTree(vox.centroid)
+    for rec, R in zip(recs, radii[which]):
+        # The points' noise there: the within-voxel spread along the radius, pooled over the
+        # voxels on the sphere (a voxel of a quarter radius holds a cap whose points spread
+        # about R / 400 along it, 0.2 mm at R = 7 cm: below any scanner's noise at the
+        # sphere's range); the a priori range sigma where no voxel holds 2 points.
+        near = np.asarray(tree.query_ball_point(rec["centre"], 1.2 * R), dtype=np.int64)
+        radial = vox.centroid[near] - rec["centre"]
+        radial /= np.maximum(np.linalg.norm(radial, axis=1), 1e-12)[:, None]
+        rec["noise"] = vox.noise(near, radial) if len(near) else np.nan
+        if not np.isfinite(rec["noise"]):
+            rec["noise"] = options.sigma_range
+        # Toward the limb the angular noise moves points along the sphere's normal by
+        # rho sigma_a sin(beta) (2.7 mm at 28 m for 20"), which a voxel of a quarter radius,
+        # holding one or two points at that range, does not measure: the fit's residuals
+        # carry it, so the noise they are judged by does too (a priori sigma_angle: the
+        # scan's angle noise cannot be told from its points).
+        if rec.get("points") is not None and len(rec["points"]):
+            lateral = _spheres.radial_sigma(rec["points"], rec["centre"], 0.0, options.sigma_angle)
+            rec["noise"] = float(np.hypot(rec["noise"], np.sqrt(np.mean(lateral**2))))
         # A sphere of another of the given radii votes for this one's too: take the nearest.
         rec["size"] = float(radii[np.argmin(np.abs(radii - rec["radius_fit"]))])
         rec["reason"] = _judge_sphere(rec, options)
@@ -547,10 +633,15 @@ def extract_targets_from_files(
     *,
     architecture: str = "hybrid",
     poses=None,
+    columns: str | None = None,
     progress: bool = False,
 ) -> ExtractedTargets:
-    """Find the target centres in point-cloud files (E57, PTX, LAS/LAZ, PLY, PCD, XYZ), every
-    scan of each file, streamed in chunks (``options.chunk_points``): two passes per scan, and
-    only the points near candidates held. ``poses``: scan name -> pose (replacing the files')."""
-    sources = [s for p in paths for s in open_scans(p, poses=poses)]
+    """Find the target centres in point-cloud files (E57, PTX, LAS/LAZ, PLY, PCD, and text:
+    XYZ, TXT, ASC, CSV, PTS), every scan of each file, streamed in chunks
+    (``options.chunk_points``): two passes per scan, and only the points near candidates
+    held. ``poses``: scan name -> pose (replacing the files'). Intensity is taken by name
+    (a text file's header, E57/LAS/PLY fields); ``columns`` names the columns of text files
+    without a header, e.g. "x,y,z,r,g,b,intensity" (unnamed columns beyond x y z intensity are
+    refused, never guessed)."""
+    sources = [s for p in paths for s in open_scans(p, poses=poses, columns=columns)]
     return _run(sources, options or TargetExtractionOptions(), architecture, progress)

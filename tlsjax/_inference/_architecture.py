@@ -10,14 +10,15 @@ panoramic scanner and not over the back half of a hybrid one, and the collimatio
 ``sec(alpha)`` in the one and ``sec(alpha) - 1`` in the other. Calibrated in the wrong
 representation, the same data give wrong APs (issue 41: B6 17" where the truth is 206").
 
-So both are fitted, each with the robust start and screening of
-:func:`tlsjax.calibrate_and_test` (vendor lists hold gross errors) and the a priori weights,
-and compared by what each explains: the a priori sigma0 (``sqrt(v^T P v / r)`` with the given
-sigmas, on the observations both keep) and the cross-validated misfit of held-out scans
-(:mod:`._crossval`), the judge where there are folds. One is *clearly* better when its
-cross-validated misfit is lower by more than twice the standard error of the paired difference
-over the folds (without folds: its sigma0 lower by more than :data:`SIGMA0_RATIO`); where the
-architecture the network was read as is clearly worse, the comparison says so in a warning
+So both are fitted, each by the pipeline of :func:`tlsjax.self_calibrate` with the robust start
+and screening (vendor lists hold gross errors), the a priori weights (no VCE, no snooping, no
+selection) and the cross-validation step, and compared by what each explains: the a priori
+sigma0 (``sqrt(v^T P v / r)`` with the given sigmas, on the observations it keeps) and the
+cross-validated misfit of held-out scans (:mod:`._crossval`), the judge where there are folds.
+One is *clearly* better when its cross-validated misfit is lower by more than
+:attr:`ArchitectureCheckOptions.margin` standard errors of the paired difference over the
+folds (without folds: the other's sigma0 more than ``sigma0_ratio`` times its own); where
+the architecture the network was read as is clearly worse, the comparison says so in a warning
 naming the other.
 """
 
@@ -27,16 +28,14 @@ import dataclasses
 
 import numpy as np
 
-from .._adjustment._config import CalibrationModel, SolverOptions
+from .._adjustment._config import CalibrationModel
 from .._adjustment._network import Network
 from .._model._geometry import cartesian_from_spherical, scanner_observations
 from .._model._scanner import ARCHITECTURES, Scanner
-from .._summary import finite_or_none
-from ._crossval import CrossValidation, CrossValidationOptions, cross_validate, paired_difference
-
-#: Without folds, one architecture is clearly better when the other's a priori sigma0 is this
-#: many times its own.
-SIGMA0_RATIO = 1.2
+from .._summary import to_json_value
+from ._crossval import CrossValidation, paired_difference
+from ._options import ArchitectureCheckOptions, CalibrationOptions
+from ._run import run_tests
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -59,9 +58,16 @@ class ArchitectureFit:
         cv = self.cross_validation
         return cv.cv_mm if cv is not None and cv.ok else float("nan")
 
+    def summary(self) -> str:
+        """One line: the architecture, its sigma0, cross-validated misfit and removals."""
+        if not self.ok:
+            return f"{self.architecture}: failed: {self.message}"
+        cv = f"{self.cv_mm:.3f} mm" if np.isfinite(self.cv_mm) else "not cross-validated"
+        return f"{self.architecture}: sigma0 {self.sigma0:.3f}, CV {cv}, {self.n_removed} removed"
+
     def to_dict(self) -> dict:
         cv = self.cross_validation
-        return finite_or_none(
+        return to_json_value(
             {
                 "architecture": self.architecture,
                 "ok": self.ok,
@@ -92,30 +98,28 @@ class ArchitectureComparison:
     warning: str = ""
 
     def summary(self) -> str:
+        """Each architecture's sigma0 and cross-validated misfit, the verdict, the warning."""
         lines = ["architecture from the data (a priori sigma0; cross-validated misfit):"]
         for arch, f in self.fits.items():
             mark = " (as read)" if arch == self.given else ""
-            if not f.ok:
-                lines.append(f"  {arch:9s}{mark}: failed: {f.message}")
-                continue
-            cv = f"{f.cv_mm:.3f} mm" if np.isfinite(f.cv_mm) else "not cross-validated"
-            lines.append(
-                f"  {arch:9s}{mark}: sigma0 {f.sigma0:.3f}, CV {cv}, {f.n_removed} removed"
-            )
+            lines.append(f"  {f.summary()}{mark}")
         lines.append(f"  explains the data better: {self.best} ({self.reason})")
         if self.warning:
             lines.append(f"warning: {self.warning}")
         return "\n".join(lines)
 
     def to_dict(self) -> dict:
-        return {
-            "given": self.given,
-            "best": self.best,
-            "clearly": self.clearly,
-            "reason": self.reason,
-            "warning": self.warning or None,
-            "fits": {a: f.to_dict() for a, f in self.fits.items()},
-        }
+        """The result JSON's ``architecture_check`` (strict JSON)."""
+        return to_json_value(
+            {
+                "given": self.given,
+                "best": self.best,
+                "clearly": self.clearly,
+                "reason": self.reason,
+                "warning": self.warning or None,
+                "fits": {a: f.to_dict() for a, f in self.fits.items()},
+            }
+        )
 
 
 def read_as(network: Network) -> str | None:
@@ -132,38 +136,56 @@ def as_architecture(network: Network, architecture: str) -> Network:
     return network.with_observations(np.asarray(scanner_observations(x, architecture, xp=np)))
 
 
-def _fit(network, model, arch, solver, cv_options) -> ArchitectureFit:
-    from ._tested import TestingOptions
-    from ._testing import calibrate_and_test
-
+def _fit(network, model, arch, options: CalibrationOptions) -> ArchitectureFit:
+    """One architecture's calibration by the pipeline with ``options`` (module docstring)."""
     scanner = dataclasses.replace(model.scanner, architecture=arch)
     m = dataclasses.replace(model, scanner=scanner)
-    net = as_architecture(network, arch)
-    testing = TestingOptions(vce=False, snooping=False, score_tests=False)
-    tested = calibrate_and_test(net, m, solver, testing)
+    tested = run_tests(as_architecture(network, arch), m, options)
     res = tested.calibration
     if not res.ok:
         return ArchitectureFit(arch, False, res.message, np.nan, np.nan, 0, {}, None)
-    cv = cross_validate(net, m, cv_options, solver=solver, result=res)
     aps = {n: float(v) if np.isfinite(v) else None for n, v in zip(res.ap_names, res.ap_values)}
     return ArchitectureFit(
-        arch, True, res.message, float(res.sigma0), float(res.dof), len(tested.outliers), aps, cv
+        arch,
+        True,
+        res.message,
+        float(res.sigma0),
+        float(res.dof),
+        len(tested.outliers),
+        aps,
+        tested.cross_validation,
+    )
+
+
+def _fitting_options(options: CalibrationOptions) -> CalibrationOptions:
+    """The settings of both fits: the caller's solver, screening and folds, the a priori
+    weights (sigma0 is the comparison), no snooping, selection or score tests."""
+    return dataclasses.replace(
+        options,
+        vce=None,
+        snooping=None,
+        selection=None,
+        tests=dataclasses.replace(options.tests, score_tests=False),
+        architecture_check=None,
     )
 
 
 def compare_architectures(
     network: Network,
     model: CalibrationModel | None = None,
+    options: CalibrationOptions | None = None,
     *,
     given: str | None = None,
-    cross_validation: CrossValidationOptions | None = None,
-    solver: SolverOptions | None = None,
 ) -> ArchitectureComparison:
     """Fit hybrid and panoramic two-face to ``network`` (module docstring) and say which
     explains the data. ``model``: the calibration model (its scanner's APs and unit lengths,
-    one instrument; default physical); ``given``: the architecture the data were read as
-    (default: panoramic where an elevation is beyond 90 deg, else the model scanner's)."""
+    one instrument; default physical); ``options``: the solver, screening and cross-validation
+    of both fits and the margins (``options.architecture_check``, default
+    :class:`tlsjax.ArchitectureCheckOptions`); VCE, snooping and selection are not run (module
+    docstring). ``given``: the architecture the data were read as (default: panoramic where an
+    elevation is beyond 90 deg, else the model scanner's)."""
     model = model or CalibrationModel()
+    options = options or CalibrationOptions()
     if not isinstance(model.scanner, Scanner):
         raise ValueError("compare_architectures: one instrument; pass one Scanner")
     if network.has_planes or not network.has_targets:
@@ -171,9 +193,10 @@ def compare_architectures(
     if given is not None and given not in ARCHITECTURES:
         raise ValueError(f"given={given!r} is not one of {ARCHITECTURES}")
     given = given or read_as(network) or model.scanner.architecture
-    solver = solver or SolverOptions(full_covariance=False)
-    fits = {a: _fit(network, model, a, solver, cross_validation) for a in ARCHITECTURES}
-    best, clearly, reason = _decide(fits)
+    margins = options.architecture_check or ArchitectureCheckOptions()
+    fitting = _fitting_options(options)
+    fits = {a: _fit(network, model, a, fitting) for a in ARCHITECTURES}
+    best, clearly, reason = _decide(fits, margins)
     warning = ""
     if clearly and best != given:
         f, g = fits[best], fits[given]
@@ -192,7 +215,7 @@ def _mm(x: float) -> str:
     return f"{x:.3f} mm" if np.isfinite(x) else "n/a"
 
 
-def _decide(fits: dict) -> tuple:
+def _decide(fits: dict, margins: ArchitectureCheckOptions) -> tuple:
     """(best, clearly, reason): by the cross-validated misfit where both have one, else by
     the a priori sigma0."""
     ok = {a: f for a, f in fits.items() if f.ok}
@@ -206,11 +229,18 @@ def _decide(fits: dict) -> tuple:
         best = min(ok, key=lambda a: ok[a].cv_mm)
         other = next(a for a in ok if a != best)
         d, se = paired_difference(ok[best].cross_validation, ok[other].cross_validation)
-        clearly = bool(np.isfinite(d) and np.isfinite(se) and d < -2 * se)
-        how = "by more than twice" if clearly else "within twice"
-        return best, clearly, f"lower cross-validated misfit, {how} the folds' scatter"
+        clearly = bool(np.isfinite(d) and np.isfinite(se) and d < -margins.margin * se)
+        how = "more than" if clearly else "within"
+        return (
+            best,
+            clearly,
+            (
+                f"lower cross-validated misfit, by {how} {margins.margin:g} standard errors of "
+                "the folds' paired difference"
+            ),
+        )
     best = min(ok, key=lambda a: ok[a].sigma0)
     other = next(a for a in ok if a != best)
     ratio = ok[other].sigma0 / ok[best].sigma0
-    clearly = bool(ratio > SIGMA0_RATIO)
+    clearly = bool(ratio > margins.sigma0_ratio)
     return best, clearly, f"lower a priori sigma0 (the other's is {ratio:.2f} times it)"

@@ -8,10 +8,11 @@ For a partition of the scans into folds F_k, each complement still determining t
    shapes, nothing recompiles; :meth:`tlsjax.Adjustment.run_estimable`). A target that the
    complement sees from fewer than two scans carries no information about anything else (its
    three coordinates absorb its observations): its rows get weight 0 too, and it is pinned
-   (:data:`._pipeline.PIN_SIGMA`) so that its block stays regular. Keep the complement's targets
+   (:data:`tlsjax._adjustment._calibrate.PIN_SIGMA`) so that its block stays regular. Keep the complement's targets
    X_k and APs a_k;
 2. correct each held-out scan's observations with a_k, ``l_c = l - Delta(l; a_k)`` (SPEC section
-   11, as ``tlsjax correct`` applies a calibration), convert them to scanner-space coordinates;
+   11, as ``tlsjax correct`` applies a calibration; one compiled program of the whole network's
+   observations, the same for every fold), convert them to scanner-space coordinates;
 3. place the scan on X_k by its own pose, fitted to the targets it shares with the complement:
    rigid (6 parameters, Horn 1987), or for a scan with tilt readings levelled (its vertical from
    the readings, the heading and position fitted: 4 parameters, as the scanner is used);
@@ -39,20 +40,23 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 from collections.abc import Sequence
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._adjustment._calibrate import Adjustment, analyze
+from .._adjustment._calibrate import PIN_SIGMA, Adjustment, analyze, spec_key
 from .._adjustment._config import CalibrationModel, SolverOptions
 from .._adjustment._diagnose import station_of_scans
 from .._adjustment._network import Network
+from .._adjustment._plan import initial_params
 from .._adjustment._result import CalibrationResult, assemble
+from .._jit import StoredProgram
 from .._model._aps import ap_corrections
 from .._model._geometry import cartesian_from_spherical, helmert_fit
-from .._summary import finite_or_none
-from ._pipeline import PIN_SIGMA, TestingContext, TestingState, constraint_weights, weights
+from .._summary import Settings, to_json_value
 
 AXES = ("xyz", "x", "y", "z")
 PLACEMENTS = ("auto", "rigid", "levelled")
@@ -93,8 +97,8 @@ _MESSAGES = {
 
 
 @dataclasses.dataclass(frozen=True)
-class CrossValidationOptions:
-    """``folds``: groups of scan names held out together (None: each scan alone where the rest
+class CrossValidationOptions(Settings):
+    """Cross-validation by scan groups (module docstring). ``folds``: groups of scan names held out together (None: each scan alone where the rest
     keeps two stations, module docstring); ``placement``: "auto" (levelled for scans with tilt
     readings, rigid otherwise), "rigid" or "levelled"; ``min_targets``: fewest targets a
     held-out scan must share with the complement to be placed (a rigid fit needs 3; more
@@ -140,7 +144,7 @@ class Fold:
         return "+".join(self.held_out)
 
     def to_dict(self) -> dict:
-        return finite_or_none(
+        return to_json_value(
             {
                 "held_out": list(self.held_out),
                 "ok": self.ok,
@@ -189,6 +193,7 @@ class CrossValidation:
         return np.array([f.sse / f.n if f.ok and f.n else np.nan for f in self.folds])
 
     def summary(self) -> str:
+        """The pooled misfit RMS with and without the APs, each fold's, and the verdict."""
         if not self.ok:
             skipped = "; ".join(f"{f.name}: {f.note}" for f in self.folds)
             return f"cross-validation: {self.message}" + (f" ({skipped})" if skipped else "")
@@ -215,7 +220,9 @@ class CrossValidation:
         return "\n".join(lines)
 
     def to_dict(self) -> dict:
-        return finite_or_none(
+        """Strict JSON: the code and message, the pooled RMS with and without the APs (mm),
+        the standard error between folds and every fold."""
+        return to_json_value(
             {
                 "method": "folds of held-out scans: the rest adjusted, the held-out scans "
                 "corrected with its APs and placed by their own pose on its targets; misfit "
@@ -271,8 +278,9 @@ def default_folds(net: Network, eops: np.ndarray) -> tuple[tuple, tuple]:
 
 
 @dataclasses.dataclass(frozen=True)
-class _Data:
-    """The weights in use (1/sigma, 0 = removed) and the warm start of one cross-validation."""
+class FoldData:
+    """The weights in use (1/sigma, 0 = removed) and the warm start of one cross-validation
+    (the pipeline's cross-validation step and stepwise selection build it from their state)."""
 
     weights: np.ndarray  # (n, 3)
     levelling: np.ndarray  # (s, 2)
@@ -287,7 +295,7 @@ class _Data:
     none_cache: dict | None = None
 
 
-def _fold(adj: Adjustment, data: _Data, held: Sequence[str], opts: CrossValidationOptions):
+def _fold(adj: Adjustment, data: FoldData, held: Sequence[str], opts: CrossValidationOptions):
     net, plan = adj.network, adj.plan
     out_scans = np.array([net.scans.index(s) for s in held])
     if plan.fixed_scan_index is not None and plan.fixed_scan_index in out_scans:
@@ -324,6 +332,8 @@ def _fold(adj: Adjustment, data: _Data, held: Sequence[str], opts: CrossValidati
     # The model, then no calibration: the same adjustment with every AP held at zero.
     n_ap = adj.plan.spec.n_aps
     cache = {} if data.none_cache is None else data.none_cache
+    start = adj.initial if data.params is None else data.params
+    start_aps = np.asarray(start.aps)
     for held_aps in (False, True) if n_ap else (False,):
         if held_aps and tuple(held) in cache:
             fits.append(cache[tuple(held)])
@@ -331,12 +341,11 @@ def _fold(adj: Adjustment, data: _Data, held: Sequence[str], opts: CrossValidati
         f = fixed.copy()
         if held_aps:
             f[len(f) - n_ap :] = True
-        params0 = adj.initial if data.params is None else data.params
-        # A held AP stays at its start value: zero (held at zero means absent).
-        params0 = dataclasses.replace(
-            params0, aps=jnp.where(jnp.asarray(f[len(f) - n_ap :]), 0.0, params0.aps)
-        )
-        fit = _fit(adj, dataclasses.replace(problem, fixed=jnp.asarray(f)), params0)
+        # A held AP stays at its start value: zero (held at zero means absent). Host arrays
+        # moved by a transfer: nothing is dispatched eagerly.
+        aps0 = np.where(f[len(f) - n_ap :], 0.0, start_aps)
+        params0 = dataclasses.replace(start, aps=jax.device_put(aps0))
+        fit = _fit(adj, dataclasses.replace(problem, fixed=jax.device_put(f)), params0)
         if isinstance(fit, str):
             return Fold(tuple(held), False, fit)
         if held_aps:
@@ -357,22 +366,46 @@ def _fit(adj: Adjustment, problem, params0):
     return res.target_xyz, np.asarray(state.params.aps)
 
 
+@functools.cache
+def _corrections_program(spec):
+    """``Delta(l; a)`` (n, 3) of every observation of the network with the AP vector ``a`` of
+    the model (each row with its instrument's terms): one compiled program for every fold
+    (the same shapes), stored traced like the adjustment."""
+
+    def corrections(l, instrument, aps):
+        out = jnp.zeros_like(l)
+        for i, (scanner, names) in enumerate(zip(spec.scanners, spec.ap_names)):
+            if names:
+                a, b = spec.ap_slices[i]
+                d = ap_corrections(aps[a:b], names, l, scanner)
+                out = jnp.where((instrument == i)[:, None], d, out)
+        return out
+
+    return StoredProgram(corrections, ("cross-validation corrections", spec_key(spec)))
+
+
+def _corrected(adj: Adjustment, aps: np.ndarray) -> np.ndarray:
+    """Every observation of the network corrected with the APs ``aps``, ``l - Delta(l; a)``."""
+    net = adj.network
+    l = np.asarray(net.observations, dtype=np.float64)
+    instrument = np.asarray(net.instrument_of_scan, dtype=np.int32)[net.scan_index]
+    delta = _corrections_program(adj.plan.spec)(l, instrument, np.asarray(aps, dtype=np.float64))
+    return l - np.asarray(jax.device_get(delta))
+
+
 def _place_fold(adj, fit, fit_none, held, out_scans, determined, data, opts):
     """Place every held-out scan on the complement's targets: corrected with its APs on the
     targets adjusted with them, uncorrected on the targets adjusted without APs."""
-    net, spec = adj.network, adj.plan.spec
+    net = adj.network
     (X_all, aps), (X0_all, _) = fit, fit_none
+    corrected_all = _corrected(adj, aps) if adj.plan.spec.n_aps else net.observations
     errs, errs_none, kinds, notes = [], [], [], []
     for j in out_scans:
         rows = np.flatnonzero((net.scan_index == j) & data.used_rows & determined[net.target_index])
         if len(rows) < opts.min_targets:
             notes.append(f"scan {net.scans[j]} shares {len(rows)} targets with the rest")
             continue
-        inst = int(net.instrument_of_scan[j])
-        scanner, names = spec.scanners[inst], spec.ap_names[inst]
-        a, b = spec.ap_slices[inst]
-        l = net.observations[rows]
-        corrected = l - np.asarray(ap_corrections(jnp.asarray(aps[a:b]), names, l, scanner))
+        l, corrected = net.observations[rows], corrected_all[rows]
         t = net.target_index[rows]
         kind = _placement(net, j, opts.placement)
         errs.append(_misfit(corrected, X_all[t], kind, net.levelling[j]))
@@ -450,7 +483,7 @@ def _rms(e) -> dict:
 
 
 def run_folds(
-    adj: Adjustment, data: _Data, opts: CrossValidationOptions, planned=None
+    adj: Adjustment, data: FoldData, opts: CrossValidationOptions, planned=None
 ) -> CrossValidation:
     """Every fold of ``opts`` on the analysed adjustment ``adj`` with the weights ``data``;
     ``planned``: the (folds, refused) of :func:`plan_folds`, if already chosen."""
@@ -476,7 +509,7 @@ def plan_folds(adj: Adjustment, eops, opts: CrossValidationOptions) -> tuple:
     return default_folds(net, eops)
 
 
-def _eops(adj: Adjustment, data: _Data) -> np.ndarray:
+def _eops(adj: Adjustment, data: FoldData) -> np.ndarray:
     params = adj.initial if data.params is None else data.params
     return np.asarray(params.eops)
 
@@ -523,23 +556,16 @@ def _finish(folds: tuple, labels: tuple, net: Network) -> CrossValidation:
     return CrossValidation(code, folds, rms, rms0, se, labels)
 
 
-def cross_validate(
+def validate(
     network: Network,
-    model: CalibrationModel | None = None,
-    options: CrossValidationOptions | None = None,
-    *,
-    solver: SolverOptions | None = None,
+    model: CalibrationModel | None,
+    options: CrossValidationOptions,
+    solver: SolverOptions,
     result: CalibrationResult | None = None,
 ) -> CrossValidation:
-    """Cross-validation of ``model`` on ``network`` by scan groups (module docstring; SPEC
-    section 7, "Prediction"): held-out scans corrected with the APs of the rest and placed on
-    its targets; the misfit RMS with the APs and with none, per fold and overall.
-
-    ``result``: a calibration of this network and model whose removed observations (``used``)
-    stay out (of the folds' adjustments and of the placement) and whose estimates warm-start the
-    folds; None: the network is calibrated first. The folds reuse one compiled adjustment.
-    """
-    options = options or CrossValidationOptions()
+    """Cross-validation of ``model`` on ``network`` by scan groups with the network's weights
+    (:func:`tlsjax.cross_validate`, module docstring); ``result``: a calibration whose removed
+    observations stay out and whose estimates warm-start the folds (None: calibrated here)."""
     adj = analyze(network, model, solver)
     eops = np.asarray(adj.initial.eops if result is None else result.eops)
     planned = plan_folds(adj, eops, options)
@@ -554,11 +580,9 @@ def cross_validate(
         used = np.asarray(result.used, dtype=bool)
     params = None
     if result.ok:
-        from .._adjustment._plan import initial_params
-
         params = initial_params(network, adj.plan, result.target_xyz, result.eops)
-        params = dataclasses.replace(params, aps=jnp.asarray(np.nan_to_num(result.ap_values)))
-    data = _Data(
+        params = dataclasses.replace(params, aps=jax.device_put(np.nan_to_num(result.ap_values)))
+    data = FoldData(
         np.where(used, 1.0 / network.sigmas, 0.0),
         np.where(np.isfinite(network.levelling_sigma), 1.0 / network.levelling_sigma, 0.0),
         {},
@@ -568,45 +592,3 @@ def cross_validate(
         used.all(axis=1),
     )
     return run_folds(adj, data, options, planned)
-
-
-def cross_validation_step(ctx: TestingContext, state: TestingState) -> TestingState:
-    """The pipeline step (``step(ctx, state) -> state``): cross-validation of the model at the
-    state's weights (variance factors, removals, pins) on the context's compiled adjustment,
-    warm-started at its estimates; the result in ``state.cross_validation`` and, where the
-    calibration does not improve prediction or no fold could be held out, a warning. Options from
-    ``ctx.options.cross_validation`` (a :class:`CrossValidationOptions`; False: skip) when the
-    options carry them, the defaults otherwise."""
-    opts = getattr(ctx.options, "cross_validation", None)
-    if opts is False or not state.ok:
-        return state
-    opts = opts if isinstance(opts, CrossValidationOptions) else CrossValidationOptions()
-    w, lw, _ = weights(ctx, state)
-    extra = {
-        {"heading_weight": "heading_weights", "ap_prior_weight": "ap_prior_weights"}[k]: v
-        for k, v in constraint_weights(ctx, state).items()
-    }
-    params, res = state.adjusted.solution.params, state.result
-    data = _Data(w, lw, extra, dict(state.pinned), params, res.target_xyz, state.mask.all(axis=1))
-    cv = run_folds(ctx.reweighter.adjustment, data, opts)
-    state = dataclasses.replace(state, cross_validation=cv)
-    if cv.code == CrossValidationCode.NO_FOLDS and cv.aps:
-        return dataclasses.replace(
-            state,
-            warnings=state.warnings
-            + (
-                "cross-validation: no scan could be held out (the rest would not determine the "
-                "APs), so whether this calibration improves the clouds is not checked: compare "
-                "with a reference survey (tlsjax check-targets) before applying it",
-            ),
-        )
-    if cv.code == CrossValidationCode.NOT_IMPROVED:
-        state = dataclasses.replace(
-            state,
-            warnings=state.warnings
-            + (
-                f"cross-validation: {cv.message} (held-out misfit {cv.rms_mm['xyz']:.3f} mm with "
-                f"the APs, {cv.rms_none_mm['xyz']:.3f} mm without)",
-            ),
-        )
-    return state

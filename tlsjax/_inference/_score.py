@@ -57,16 +57,17 @@ from __future__ import annotations
 import dataclasses
 import functools
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._adjustment._calibrate import analyze
+from .._adjustment._calibrate import analyze, spec_key
 from .._adjustment._config import CalibrationModel, SolverOptions
 from .._adjustment._diagnose import ABSORBED, is_scale, station_positions
 from .._adjustment._families import Params, PointFamily, on_grid
 from .._adjustment._network import Network
 from .._adjustment._normal import linearise_rows, linearised_cost, null_space, reduce, reduced_rhs
-from .._jit import jit
+from .._jit import StoredProgram
 from .._model._aps import PRESETS, get_ap, registered_aps
 from .._model._plausibility import ap_findings
 from .._model._scanner import Scanner
@@ -141,15 +142,15 @@ class ScoreTest:
 @dataclasses.dataclass(frozen=True)
 class ScoreTests:
     """Score tests of every candidate (:class:`ScoreTest`, largest statistic first), with the
-    misfit ``vtpv`` they share, the family-wise ``alpha`` and ``critical`` value (chi^2(1)
-    quantile at ``1 - alpha / k``, k testable candidates) and ``groups``: the groups of
+    misfit ``vtpv`` they share, the ``family_level`` of the tests and their ``critical`` value
+    (chi^2(1) quantile at ``1 - family_level / k``, k testable candidates) and ``groups``: the groups of
     alternatives (names, largest statistic first; module docstring), groups of one left out.
     ``variance_factor``: the s0^2 that significance is judged in (``T / s0^2 > critical``; 1:
     the a priori sigma0, the weights in use; stepwise selection judges in its fit's s0^2)."""
 
     tests: tuple
     vtpv: float
-    alpha: float
+    family_level: float
     critical: float
     groups: tuple = ()
     variance_factor: float = 1.0
@@ -182,7 +183,7 @@ class ScoreTests:
             else f"T / s0^2 (s0^2 = {self.variance_factor:.4g})"
         )
         head = (
-            f"missing terms (score tests of {n} candidate(s), family-wise alpha = {self.alpha:g}, "
+            f"missing terms (score tests of {n} candidate(s), family-wise alpha = {self.family_level:g}, "
             f"{stat} > {self.critical:.2f}):"
         )
         sig = self.significant
@@ -225,7 +226,7 @@ class ScoreTests:
             "T = (c^T P v)^2 / (c^T P Q_vv P c) ~ chi2(1); share = T / vTPv; candidates only "
             "where the design can estimate them; alternatives: |corr| > "
             f"{ALTERNATIVE_CORRELATION:g} between their whitened columns after the model",
-            "alpha": self.alpha,
+            "family_level": self.family_level,
             "critical_value": fin(self.critical),
             "variance_factor": fin(self.variance_factor),
             "vtpv": fin(self.vtpv),
@@ -234,8 +235,6 @@ class ScoreTests:
             "not_estimable": [{"name": t.name, "reason": t.note} for t in self.not_estimable],
             "candidates": [t.to_dict() for t in self.tests],
         }
-
-    as_json = to_dict
 
 
 def default_candidates(scanner: Scanner) -> tuple:
@@ -247,7 +246,16 @@ def default_candidates(scanner: Scanner) -> tuple:
     return tuple(a for a in (_NIST if nist else _CHOW) + own if a not in scanner.aps)
 
 
-@functools.partial(jit, static_argnums=(0,))
+@functools.cache
+def _score_program(spec, treedef):
+    """:func:`_score_system` compiled for one spec and argument structure, stored traced."""
+
+    def system(*leaves):
+        return _score_system(spec, *jax.tree.unflatten(treedef, leaves))
+
+    return StoredProgram(system, ("score tests", spec_key(spec), treedef))
+
+
 def _score_system(spec, problem, params, rank_tolerance, positions):
     """The reduced normal matrix K (poses + APs), the reduced right-hand side ``-J^T e`` and
     ``v^T P v`` at ``params``, the diagonal of the unreduced matrix (the scale of the engine's
@@ -310,7 +318,7 @@ class ScoreTester:
         adj = self.adjustment
         aps = np.zeros(adj.plan.spec.n_aps)
         aps[self.model_index] = np.asarray(params.aps)
-        wide = Params(params.prims, params.eops, jnp.asarray(aps))
+        wide = Params(params.prims, params.eops, jax.device_put(aps))
         problem = adj.problem(
             weights=weights,
             levelling_weights=levelling_weights,
@@ -327,8 +335,9 @@ def tests_in(adjustment, problem, params, names, alpha: float) -> ScoreTests:
     stepwise selection asks of its one wide adjustment, and :class:`ScoreTester` of its own."""
     spec, tol = adjustment.plan.spec, float(adjustment.options.rank_tolerance)
     labels = adjustment.plan.ap_labels
-    positions = jnp.asarray(station_positions(np.asarray(params.eops)))
-    out = _score_system(spec, problem, params, jnp.asarray(tol, dtype=jnp.float64), positions)
+    positions = station_positions(np.asarray(params.eops))
+    leaves, treedef = jax.tree.flatten((problem, params, np.float64(tol), positions))
+    out = jax.device_get(_score_program(spec, treedef)(*leaves))
     K, rhs, vtpv, nzz, K_d, nzz_d = (np.asarray(a) for a in out)
     free = ~np.asarray(problem.fixed)
     idx = np.array([labels.index(n) for n in names], dtype=int)
@@ -474,29 +483,3 @@ def _groups(tests: list) -> tuple:
             seen.update(group)
             groups.append(group)
     return tuple(groups)
-
-
-def score_tests(
-    network: Network,
-    model: CalibrationModel | None,
-    result,
-    *,
-    candidates=None,
-    alpha: float = 0.05,
-    solver: SolverOptions | None = None,
-) -> ScoreTests:
-    """Score tests of the terms missing from ``model`` at ``result`` (a
-    :class:`tlsjax.CalibrationResult` of ``network`` with the network's weights). ``candidates``:
-    names (default :func:`default_candidates`). See the module docstring."""
-    from .._adjustment._plan import initial_params
-
-    if network.has_planes:
-        raise ValueError(
-            f"{network.source}: score tests of missing terms are for target networks (the plane "
-            "conditions are not tested yet)"
-        )
-    model = model or CalibrationModel()
-    tester = ScoreTester(network, model, candidates, solver)
-    p = initial_params(network, tester.adjustment.plan, result.target_xyz, result.eops)
-    narrow = Params(p.prims, p.eops, jnp.asarray(result.ap_values))
-    return tester(narrow, alpha=alpha)

@@ -1,17 +1,17 @@
 """Stepwise selection of additional parameters that ends where prediction is best (SPEC
 section 7, "Prediction"; issue 41 item 3).
 
-First, with ``screening``, the start set is calibrated with the robust start and screening of
-:func:`tlsjax.calibrate_and_test` (no VCE, no snooping): the observations it removes stay out of
-every fit, so a blunder can neither pose as a term nor push one out (or pass ``screened``, a
-:class:`tlsjax.TestedCalibration` of the same network, to reuse its removals).
+It runs as the selection step of :func:`tlsjax.self_calibrate` (:mod:`._steps`), after the robust
+start and screening of the start set: the observations they removed stay out of every fit of
+the selection (the weights and pinned targets it is given), so a blunder can neither pose as a
+term nor push one out.
 
 **One statistic, one variance factor.** A term enters and leaves by the same measure: the
 reduction of ``v^T P v`` that it brings, in units of the current fit's variance factor
 ``s0^2`` (a posteriori). Entering, the score test ``T_c / s0^2`` (:mod:`._score`: no refit per
 candidate); leaving, the Wald statistic ``t^2 = (a / sigma_a)^2`` with the a posteriori sigma
 (the same quantity to first order for a term in the model). Both against one critical value,
-the chi^2(1) quantile at the family-wise level ``alpha`` (Bonferroni over the candidates), so a
+the chi^2(1) quantile at the family-wise level ``test_level`` (Bonferroni over the candidates), so a
 term cannot enter on its raw score and leave on a t value scaled by a large sigma0. A term the
 fit cannot estimate leaves first; a term that left is not tried again (no cycles).
 
@@ -25,14 +25,15 @@ held-out scans better by more than twice the standard error of the paired differ
 folds enters instead. (With a correct stochastic model the statistic is the more powerful
 judge; where the misfit holds what the model does not describe, prediction is the honest one.)
 
-**The end point by prediction.** Every model on the path is cross-validated (one compiled
-adjustment serves every fit and every fold). The selection ends where the tests end, provided
+**The end point by prediction.** Every model on the path is cross-validated with the folds of
+the calibration's ``cross_validation`` settings (one compiled adjustment serves every fit and
+every fold). The selection ends where the tests end, provided
 that model predicts held-out scans no worse than the start and not significantly worse than
 another model of the path; otherwise at the model with the fewest terms among those whose
 cross-validated misfit is within one standard error (paired over the folds) of the best,
 never worse than the start's: equal within the folds' scatter means the simpler model. Without
-a fold that can be held out (one station), the path's last model is kept and the result says
-that prediction was not checked.
+a fold that can be held out (one station), or with cross-validation off, the path's last model
+is kept and the result says that prediction was not checked.
 
 Every fit is recorded (the statistic by which it moved, sigma0, RMS residual per group, the
 cross-validated misfit), so a user can see why the final set was chosen.
@@ -51,37 +52,47 @@ from .._adjustment._result import CalibrationResult, assemble
 from .._model._aps import resolve_aps
 from .._model._scanner import Scanner
 from .._stats import chi2_quantile
-from .._summary import finite_or_none
+from .._summary import Settings, to_json_value
 from .._units import ARCSEC
-from ._crossval import CrossValidation, CrossValidationOptions, _Data, paired_difference, run_folds
+from ._crossval import (
+    CrossValidation,
+    CrossValidationOptions,
+    FoldData,
+    paired_difference,
+    run_folds,
+)
 from ._score import tests_in
 
 
 @dataclasses.dataclass(frozen=True)
-class SelectionOptions:
-    """``alpha``: family-wise level of the one statistic by which terms enter and leave (1 %:
-    each step tests many candidates); ``max_correlation``: a term entered with a larger
-    absolute correlation with another unknown is reported as such (it stays, since it explains
-    the misfit); ``max_steps``: bound on add/remove steps; ``screening``: select on the
-    observations that the robust start and screening keep; ``cross_validation``: the folds of
-    the prediction check (:class:`tlsjax.CrossValidationOptions`; None: no prediction check,
-    the path's last model is the end point)."""
+class SelectionOptions(Settings):
+    """Stepwise AP selection, starting from the model's APs (module docstring).
+    ``candidates``: the terms that may be added (names or presets); ``test_level``: family-wise
+    level of the one statistic by which terms enter and leave (1 %: each step tests many
+    candidates); ``max_correlation``: a term entered with a larger absolute correlation with
+    another unknown is reported as such (it stays, since it explains the misfit);
+    ``max_steps``: bound on add/remove steps. The prediction check of alternatives and of the
+    end point uses the folds of :attr:`tlsjax.CalibrationOptions.cross_validation` (None: not
+    checked, the path's last model is the end point)."""
 
-    alpha: float = 0.01
+    candidates: tuple = ("chow2013-noscale",)
+    test_level: float = 0.01
     max_correlation: float = 0.9
     max_steps: int = 30
-    screening: bool = True
-    cross_validation: CrossValidationOptions | None = dataclasses.field(
-        default_factory=CrossValidationOptions
-    )
 
     def __post_init__(self):
-        if not 0 < self.alpha < 1:
-            raise ValueError(f"alpha must be in (0, 1), got {self.alpha}")
+        if isinstance(self.candidates, str):
+            object.__setattr__(self, "candidates", tuple(self.candidates.replace(",", " ").split()))
+        if not 0 < self.test_level < 1:
+            raise ValueError(
+                f"SelectionOptions.test_level must be in (0, 1), got {self.test_level}"
+            )
         if not 0 < self.max_correlation <= 1:
-            raise ValueError(f"max_correlation must be in (0, 1], got {self.max_correlation}")
+            raise ValueError(
+                f"SelectionOptions.max_correlation must be in (0, 1], got {self.max_correlation}"
+            )
         if self.max_steps < 1:
-            raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
+            raise ValueError(f"SelectionOptions.max_steps must be >= 1, got {self.max_steps}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,7 +120,7 @@ class SelectionStep:
     cv_se_mm: float = float("nan")
 
     def to_dict(self) -> dict:
-        return finite_or_none(
+        return to_json_value(
             {
                 "action": self.action,
                 "term": self.term,
@@ -130,19 +141,20 @@ class SelectionStep:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class SelectionResult:
-    """``aps`` chosen, their ``calibration`` (on the screened observations), every step, the
-    number of distinct fits, the ``critical`` value of the one statistic, ``removed``: the
-    observations screening left out (their :class:`tlsjax.TestedCalibration` in
-    ``screened``), ``score_tests`` of the candidates left at the final set, the
-    ``cross_validation`` of the chosen set and of the start set (``start_cross_validation``);
-    ``end``: why the selection ended where it did."""
+    """``aps`` chosen, every step (the path, with the cross-validated misfit of each set), the
+    number of distinct fits, the ``critical`` value of the one statistic, ``screened``: the
+    removals (:class:`tlsjax.Removal`) of the robust start and screening before the selection
+    (left out of every fit), ``score_tests`` of the candidates left at the final set (judged in
+    the selection's units, ``T / s0^2``), the ``cross_validation`` of the chosen set and of the
+    start set (``start_cross_validation``) on the screened observations with a priori weights;
+    ``end``: why the selection ended where it did. The calibration of the chosen set is the
+    ``calibration`` of the :func:`tlsjax.self_calibrate` result that ran the selection."""
 
     aps: tuple
-    calibration: CalibrationResult
     steps: tuple
     n_fits: int
     critical: float
-    screened: object = None
+    screened: tuple = ()
     score_tests: object = None
     cross_validation: CrossValidation | None = None
     start_cross_validation: CrossValidation | None = None
@@ -153,12 +165,13 @@ class SelectionResult:
             f"final APs: {' '.join(self.aps) or '(none)'} after {self.n_fits} fits (terms enter "
             f"and leave at T / s0^2 > {self.critical:.2f}); {self.end}"
         ]
-        if self.screened is not None:
-            n = len(self.screened.outliers)
-            lines.append(f"  on the screened observations: {n} removed before selection")
+        if self.screened:
+            lines.append(
+                f"  on the screened observations: {len(self.screened)} removed before selection"
+            )
             lines += [
                 f"    scan {o.scan} target {o.target} {o.group}: v = {o.residual:.4g} {o.unit}"
-                for o in self.screened.outliers[:20]
+                for o in self.screened[:20]
             ]
         for s in self.steps:
             f = lambda x, spec: format(x, spec) if np.isfinite(x) else "n/a"  # never "nan"
@@ -170,19 +183,21 @@ class SelectionResult:
             )
         return "\n".join(lines)
 
-    report = summary
-
     def to_dict(self) -> dict:
-        cv = self.cross_validation
-        return finite_or_none(
+        """The result JSON's ``selection``: the chosen terms, the critical value, why it ended
+        there, every step with its statistic and cross-validated misfit, the removals before
+        it and the cross-validation of the chosen and the start set."""
+        cv, start = self.cross_validation, self.start_cross_validation
+        return to_json_value(
             {
                 "aps": list(self.aps),
                 "n_fits": self.n_fits,
                 "critical_value": self.critical,
                 "end": self.end,
                 "steps": [s.to_dict() for s in self.steps],
-                "n_screened": 0 if self.screened is None else len(self.screened.outliers),
+                "n_screened": len(self.screened),
                 "cross_validation": None if cv is None else cv.to_dict(),
+                "start_cross_validation": None if start is None else start.to_dict(),
             }
         )
 
@@ -274,7 +289,7 @@ class _Fits:
                 w = 1.0 / net.sigmas if w is None else w
                 lev = np.where(np.isfinite(net.levelling_sigma), 1.0 / net.levelling_sigma, 0.0)
                 control = self.data.get("control") or {}
-                data = _Data(
+                data = FoldData(
                     w,
                     lev,
                     {},
@@ -359,7 +374,7 @@ def _forward(fit, current, res, visited, unestimable, crit, options, steps):
     ]
     s2 = float(res.sigma0) ** 2 if np.isfinite(res.sigma0) and res.sigma0 > 0 else 1.0
     while left:
-        tests = fit.score(current, left, options.alpha)
+        tests = fit.score(current, left, options.test_level)
         z = {t.name: t.statistic / s2 for t in tests.tests if t.testable}
         best = tests.best()
         if best is None or not z[best.name] > crit:
@@ -448,32 +463,6 @@ def _in_units_of(tests, s2: float):
     return dataclasses.replace(tests, tests=out, variance_factor=s2)
 
 
-def _screened_data(network, model, start, solver, options, screened=None):
-    """The robust start and screening of the start set (no VCE, no snooping): the weights
-    (a priori, 0 where removed) and pinned targets of every fit, and the tested calibration
-    (``screened``: one given, of the same network)."""
-    from ._testing import TestingOptions, calibrate_and_test
-
-    if screened is None:
-        if not (options.screening and network.has_targets and not network.has_planes):
-            return {}, None
-        m = dataclasses.replace(model, scanner=dataclasses.replace(model.scanner, aps=start))
-        screened = calibrate_and_test(
-            network,
-            m,
-            solver,
-            TestingOptions(vce=False, snooping=False, score_tests=True),
-        )
-    if not screened.calibration.ok:
-        return {}, screened
-    w = np.where(screened.mask, 1.0 / np.asarray(network.sigmas), 0.0)
-    pins = {
-        network.targets.index(t): (screened.calibration.target_xyz[network.targets.index(t)], 1.0)
-        for t in screened.pinned_targets
-    }
-    return {"weights": w, "control": pins or None}, screened
-
-
 def _end_point(fit, path) -> tuple:
     """(set, reason): the path's last set (where the tests ended) unless it predicts held-out
     scans worse than the start set (by more than one standard error of the paired difference:
@@ -516,39 +505,31 @@ def _end_point(fit, path) -> tuple:
     return chosen, text + tail
 
 
-def select_aps(
+def select_terms(
     network: Network,
-    model: CalibrationModel | None = None,
-    *,
-    start=(),
-    candidates="chow2013-noscale",
-    options: SelectionOptions | None = None,
-    solver: SolverOptions | None = None,
-    screened=None,
+    model: CalibrationModel,
+    options: SelectionOptions,
+    solver: SolverOptions,
+    data: dict,
+    screened: tuple = (),
+    cross_validation: CrossValidationOptions | None = None,
 ) -> SelectionResult:
-    """Stepwise AP selection (forward with backward elimination) for one instrument, ending
-    where prediction on held-out scans is best (module docstring).
-
-    ``model.scanner`` gives the architecture and unit lengths (its ``aps`` are ignored);
-    ``start`` the initial set; ``candidates`` the terms that may be added (names or presets);
-    ``screened``: a :class:`tlsjax.TestedCalibration` of this network whose removals and pins
-    every fit keeps (None: the start set is screened here, with ``options.screening``).
-    Returns the selected set, its calibration and every step.
-    """
-    model = model or CalibrationModel()
-    options = options or SelectionOptions()
-    solver = solver or SolverOptions(full_covariance=False)
+    """Stepwise AP selection (forward with backward elimination) for one instrument, from
+    ``model.scanner.aps`` over ``options.candidates``, ending where prediction on held-out scans
+    is best (module docstring). Every fit with the weights and pinned targets ``data`` (keyword
+    arguments of :meth:`tlsjax.Adjustment.problem`; ``screened``: the removals they hold,
+    reported); ``cross_validation``: the folds of the prediction check (None: not checked).
+    Returns the selected set and every step."""
     if not isinstance(model.scanner, Scanner):
         raise ValueError(
             "model.scanner: stepwise selection works on one instrument; pass one Scanner"
         )
-    start = resolve_aps(start)
-    candidates = resolve_aps(candidates)
-    data, screened = _screened_data(network, model, start, solver, options, screened)
+    start = tuple(model.scanner.aps)
+    candidates = resolve_aps(options.candidates)
     universe = tuple(dict.fromkeys(start + candidates))
-    fit = _Fits(network, model, universe, solver, data, options.cross_validation)
+    fit = _Fits(network, model, universe, solver, data, cross_validation)
     k = max(len([c for c in candidates if c not in start]), 1)
-    crit = float(chi2_quantile(1 - options.alpha / k, 1.0))
+    crit = float(chi2_quantile(1 - options.test_level / k, 1.0))
     current = list(start)
     res = fit(current)
     steps = [_record("start", "", current, res, "initial set", fit.cv(current))]
@@ -575,20 +556,14 @@ def select_aps(
     final_tests = None
     if left and res.ok:
         # In the selection's own units: significant where T / s0^2 passes the critical value.
-        final_tests = _in_units_of(fit.score(current, left, options.alpha), res.sigma0**2)
+        final_tests = _in_units_of(fit.score(current, left, options.test_level), res.sigma0**2)
     steps.append(_record("final", "", current, res, end, fit.cv(current)))
-    # The chosen set once more as a model of its own, so the result carries only its terms.
-    final_model = dataclasses.replace(
-        model, scanner=dataclasses.replace(model.scanner, aps=tuple(current))
-    )
-    final = analyze(network, final_model, solver).solve(**data)
     return SelectionResult(
         tuple(current),
-        final,
         tuple(steps),
         len(fit.cache),
         crit,
-        screened,
+        tuple(screened),
         final_tests,
         fit.cv(current),
         fit.cv(path[0]),

@@ -157,9 +157,11 @@ def _finish(raw: RawScan, source: str, architecture: str, pose_given) -> PointCl
     )
 
 
-def _numeric_block(lines, first_line: int, source: str, skip_comments: bool = False) -> np.ndarray:
-    """First three numbers of each line of ``lines`` (list of str; the first is file line
-    ``first_line``) as (n, 3). Errors name the file and the line."""
+def _numeric_block(
+    lines, first_line: int, source: str, skip_comments: bool = False, usecols=(0, 1, 2)
+) -> np.ndarray:
+    """Numbers ``usecols`` (default the first three) of each line of ``lines`` (list of str;
+    the first is file line ``first_line``) as (n, 3). Errors name the file and the line."""
     comments = ("#", "//") if skip_comments else None
     try:
         # One C-level parse of the whole block; commas count as blanks.
@@ -169,7 +171,7 @@ def _numeric_block(lines, first_line: int, source: str, skip_comments: bool = Fa
             )  # "input contained no data": checked by the caller
             arr = np.loadtxt(
                 io.StringIO("\n".join(lines).replace(",", " ")),
-                usecols=(0, 1, 2),
+                usecols=tuple(usecols),
                 ndmin=2,
                 dtype=np.float64,
                 comments=comments,
@@ -185,17 +187,140 @@ def _numeric_block(lines, first_line: int, source: str, skip_comments: bool = Fa
             continue
         fields = text.split()
         where = f"{source}, line {first_line + k}"
-        if len(fields) < 3:
+        if len(fields) <= max(usecols):
             raise ValueError(
-                f"{where}: expected at least 3 numbers, found {len(fields)}: {ln.strip()!r}"
+                f"{where}: expected at least {max(usecols) + 1} numbers, found {len(fields)}: "
+                f"{ln.strip()!r}"
             )
         try:
-            vals = [float(f) for f in fields[:3]]
+            vals = [float(fields[c]) for c in usecols]
         except ValueError:
             raise ValueError(f"{where}: not a number in {ln.strip()!r}") from None
         if not all(np.isfinite(vals)):
             raise ValueError(f"{where}: non-finite coordinate in {ln.strip()!r}")
     raise ValueError(f"{source}: could not read the coordinates")  # pragma: no cover
+
+
+#: Header names of the intensity column, most specific first (CloudCompare "Intensity" and
+#: "Scalar field", RiSCAN PRO "Reflectance" and "Amplitude", PCL "intensity", "I").
+INTENSITY_NAMES = ("intensity", "scalar_intensity", "reflectance", "amplitude", "i", "inten")
+_COORDINATE_NAMES = {"x": 0, "y": 1, "z": 2, "//x": 0}
+
+
+@dataclasses.dataclass(frozen=True)
+class TextLayout:
+    """Where the numbers of a text point file are: ``skip`` lines before the data (header,
+    a PTS point count), ``usecols`` (x, y, z[, intensity]) of each data line, ``how``: how the
+    columns were told (named by the header, by ``columns``, or by the format)."""
+
+    skip: int
+    usecols: tuple
+    how: str
+
+    @property
+    def has_intensity(self) -> bool:
+        return len(self.usecols) == 4
+
+
+def _tokens(line: str) -> list:
+    return [
+        t.strip().strip('"').strip("'") for t in line.replace(",", " ").replace(";", " ").split()
+    ]
+
+
+def _is_number(t: str) -> bool:
+    try:
+        float(t)
+        return True
+    except ValueError:
+        return False
+
+
+def _name(t: str) -> str:
+    """A header name without comment marks, units ("X[m]", "Reflectance(dB)") and case."""
+    t = t.lower().lstrip("/#").strip()
+    for mark in ("[", "("):
+        t = t.split(mark)[0]
+    t = t.strip()
+    return t[len("scalar_") :] if t.startswith("scalar_") and t != "scalar_intensity" else t
+
+
+def parse_columns(columns: str, source: str, n: int | None = None) -> tuple:
+    """``columns`` ("x,y,z,r,g,b,intensity"; any name other than x, y, z, intensity is
+    skipped) as usecols (x, y, z[, intensity])."""
+    names = [c.strip().lower() for c in str(columns).split(",")]
+    if n is not None and len(names) != n:
+        raise ValueError(
+            f"{source}: --columns names {len(names)} columns, the file's lines have {n}"
+        )
+    try:
+        cols = [names.index(k) for k in ("x", "y", "z")]
+    except ValueError:
+        raise ValueError(
+            f"{source}: --columns {columns!r} must name x, y and z (e.g. 'x,y,z,r,g,b,intensity')"
+        ) from None
+    if "intensity" in names:
+        cols.append(names.index("intensity"))
+    return tuple(cols)
+
+
+def text_layout(lines, source: str, *, pts: bool = False, columns=None, need_intensity=True):
+    """The :class:`TextLayout` of a text point file from its first lines (list of str).
+
+    A header line (``//X Y Z R G B Intensity`` of CloudCompare, ``X,Y,Z,Intensity``, ``# x y z
+    reflectance``, RiSCAN's ``X[m] Y[m] Z[m] Reflectance[dB]``) names the columns: x, y and z,
+    and the intensity by name (:data:`INTENSITY_NAMES`; red, green and blue are never taken
+    for it). Without names: 3 columns are x y z; 4 are x y z intensity; a PTS file (Leica
+    Cyclone: a point count, then ``x y z intensity [r g b]``) is read by its format; any other
+    count of unnamed columns cannot be told apart (x y z r g b intensity? x y z intensity r g
+    b? normals?) and is refused with the fix, ``columns`` (CLI ``--columns``), unless
+    ``need_intensity`` is False (then only x y z, the first three in every convention)."""
+    k = 0
+    header = None
+    while k < len(lines):
+        t = lines[k].strip()
+        if not t:
+            k += 1
+            continue
+        toks = _tokens(t)
+        if t.startswith(("#", "//")) or not all(_is_number(x) for x in toks):
+            names = [_name(x) for x in toks if _name(x)]
+            if {"x", "y", "z"} <= set(names):
+                header = names
+            elif not t.startswith(("#", "//")):
+                raise ValueError(
+                    f"{source}, line {k + 1}: neither numbers nor a header naming x, y and z: "
+                    f"{t[:80]!r}"
+                )
+            k += 1
+            continue
+        if pts and len(toks) == 1 and header is None and k + 1 < len(lines):
+            k += 1  # the PTS point count
+            continue
+        break
+    if k >= len(lines):
+        raise ValueError(f"{source}: no points")
+    n = len(_tokens(lines[k]))
+    if columns is not None:
+        return TextLayout(k, parse_columns(columns, source, n), "as given by --columns")
+    if header is not None:
+        if len(header) != n:
+            raise ValueError(
+                f"{source}, line {k + 1}: the header names {len(header)} columns, the data lines "
+                f"have {n}; give them with --columns (e.g. 'x,y,z,r,g,b,intensity')"
+            )
+        cols = [header.index(c) for c in ("x", "y", "z")]
+        inten = next((header.index(c) for c in INTENSITY_NAMES if c in header), None)
+        return TextLayout(k, tuple(cols + ([inten] if inten is not None else [])), "by the header")
+    if n == 3 or (n == 4 and not pts) or (pts and n in (4, 7)):
+        return TextLayout(k, tuple(range(min(n, 4))), "by the column count")
+    if not need_intensity:
+        return TextLayout(k, (0, 1, 2), "x y z: the first three columns")
+    raise ValueError(
+        f"{source}: {n} unnamed columns: which holds the intensity cannot be told (x y z r g b "
+        "intensity? x y z intensity r g b?); name them, e.g. --columns x,y,z,r,g,b,intensity "
+        "(columns='...' in Python), or export the file with a header line"
+    )
 
 
 def _read_text(path, source):
@@ -208,7 +333,13 @@ def _read_text(path, source):
 
 def _read_xyz(path, source, stem):
     lines = _read_text(path, source)
-    pts = _numeric_block(lines, 1, source, skip_comments=True) if lines else np.zeros((0, 3))
+    if not lines:
+        raise ValueError(f"{source}: no points")
+    pts_format = source.lower().endswith(".pts")
+    layout = text_layout(lines[:1000], source, pts=pts_format, need_intensity=False)
+    first = layout.skip
+    block = [ln.replace(";", " ") for ln in lines[first:]]
+    pts = _numeric_block(block, first + 1, source, skip_comments=True, usecols=layout.usecols[:3])
     if len(pts) == 0:
         raise ValueError(f"{source}: no points")
     return [RawScan(stem, pts)]
@@ -284,6 +415,9 @@ _FORMATS = {
     ".pcd": "pcd",
     ".xyz": "xyz",
     ".txt": "xyz",
+    ".pts": "xyz",
+    ".asc": "xyz",
+    ".csv": "xyz",
     ".ptx": "ptx",
     ".e57": "e57",
     ".las": "las",

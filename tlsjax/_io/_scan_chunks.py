@@ -10,9 +10,12 @@ are dropped here too and counted.
 
 Streamed: E57 (libE57 reads in chunks), LAS/LAZ (laspy's chunk iterator), PLY (memory-mapped),
 PTX and XYZ/TXT (text, a chunk of lines at a time). PCD files are read whole by the reader (no
-intensity). Intensity fields: E57 ``intensity``; LAS ``intensity``; PTX the fourth column; XYZ
-the fourth column when every line has one; PLY ``intensity``, ``scalar_intensity``,
-``reflectance`` (any case).
+intensity). Intensity fields, by name wherever the file names them: E57 ``intensity``; LAS
+``intensity``; PLY ``intensity``, ``scalar_intensity``, ``reflectance`` (any case); text files
+(XYZ, TXT, ASC, CSV, PTS) the column their header names so
+(:func:`~tlsjax._io._point_clouds.text_layout`), else the fourth of four unnamed columns or of
+a PTS file (its format); PTX the fourth column (its format). Unnamed text columns beyond that
+are refused with the fix (``columns``), never guessed.
 """
 
 from __future__ import annotations
@@ -187,13 +190,15 @@ def _ply_scans(source, stem):
 
 
 def _text_block(lines, first_line, source, ncols):
-    """Columns 0..ncols-1 of text lines as float64 (m, ncols); errors name the line."""
+    """Columns ``ncols`` (a count: 0..ncols-1, or a tuple of indices) of text lines as float64
+    (m, k); errors name the line."""
+    cols = tuple(range(ncols)) if isinstance(ncols, int) else tuple(ncols)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
             arr = np.loadtxt(
                 io.StringIO("".join(lines).replace(",", " ")),
-                usecols=range(ncols),
+                usecols=cols,
                 ndmin=2,
                 dtype=np.float64,
             )
@@ -204,19 +209,19 @@ def _text_block(lines, first_line, source, ncols):
     for k, ln in enumerate(lines):
         fields = ln.replace(",", " ").split()
         try:
-            [float(f) for f in fields[:ncols]]
-            ok = len(fields) >= ncols
+            ok = len(fields) > max(cols) and all(np.isfinite([float(fields[c]) for c in cols]))
         except ValueError:
             ok = False
         if not ok:
             raise ValueError(
-                f"{source}, line {first_line + k}: expected {ncols} numbers, got {ln.strip()!r}"
+                f"{source}, line {first_line + k}: expected numbers in columns "
+                f"{', '.join(str(c + 1) for c in cols)}, got {ln.strip()!r}"
             )
     raise ValueError(f"{source}: could not read the points")  # pragma: no cover
 
 
 def _ptx_scans(source, stem):
-    from ._point_clouds import _pose_from_transform
+    from ._raw_scan import pose_from_transform as _pose_from_transform
 
     scans = []
     with open(source, encoding="utf-8") as fh:
@@ -278,20 +283,21 @@ def _ptx_scans(source, stem):
     ]
 
 
-def _xyz_scans(source, stem):
+def _xyz_scans(source, stem, columns=None):
+    """A text point file (XYZ, TXT, ASC, CSV, PTS): columns by the header's names, the format
+    or ``columns`` (:func:`~tlsjax._io._point_clouds.text_layout`)."""
+    from ._point_clouds import text_layout
+
+    with open(source, encoding="utf-8") as fh:
+        head = list(itertools.islice(fh, 1000))
+    layout = text_layout(head, source, pts=source.lower().endswith(".pts"), columns=columns)
+    cols = layout.usecols
+
     def data_lines(fh):
         for no, ln in enumerate(fh, 1):
             t = ln.strip()
-            if t and not t.startswith(("#", "//")):
-                yield no, ln
-
-    with open(source, encoding="utf-8") as fh:
-        counts = {
-            len(ln.replace(",", " ").split()) for _, ln in itertools.islice(data_lines(fh), 1000)
-        }
-    if not counts:
-        raise ValueError(f"{source}: no points")
-    ncols = 4 if min(counts) >= 4 else 3
+            if no > layout.skip and t and not t.startswith(("#", "//")):
+                yield no, ln.replace(";", " ")
 
     def read(size):
         with open(source, encoding="utf-8") as fh:
@@ -300,10 +306,10 @@ def _xyz_scans(source, stem):
                 block = list(itertools.islice(it, size))
                 if not block:
                     return
-                arr = _text_block([ln for _, ln in block], block[0][0], source, ncols)
-                yield arr[:, :3], arr[:, 3] if ncols == 4 else None, None
+                arr = _text_block([ln for _, ln in block], block[0][0], source, cols)
+                yield arr[:, :3], arr[:, 3] if layout.has_intensity else None, None
 
-    return [ScanChunks(stem, source, None, None, ncols == 4, False, read)]
+    return [ScanChunks(stem, source, None, None, layout.has_intensity, False, read)]
 
 
 def _whole_file_scans(source):
@@ -315,18 +321,21 @@ def _whole_file_scans(source):
     return [scan_from_arrays(s.name, s.points) for s in scans]
 
 
-def open_scans(path, *, poses=None) -> list[ScanChunks]:
+def open_scans(path, *, poses=None, columns=None) -> list[ScanChunks]:
     """The scans of a point-cloud file as :class:`ScanChunks` (by extension, as
-    :func:`~tlsjax.read_point_clouds`); ``poses`` (scan name -> pose) replace the file's."""
+    :func:`~tlsjax.read_point_clouds`); ``poses`` (scan name -> pose) replace the file's;
+    ``columns`` names the columns of a text file ("x,y,z,r,g,b,intensity")."""
     source, kind, stem = checked_source(path)
     try:
-        scans = {
-            "e57": _e57_scans,
-            "las": _las_scans,
-            "ply": _ply_scans,
-            "ptx": _ptx_scans,
-            "xyz": _xyz_scans,
-        }.get(kind, lambda s, _: _whole_file_scans(s))(source, stem)
+        if kind == "xyz":
+            scans = _xyz_scans(source, stem, columns)
+        else:
+            scans = {
+                "e57": _e57_scans,
+                "las": _las_scans,
+                "ply": _ply_scans,
+                "ptx": _ptx_scans,
+            }.get(kind, lambda s, _: _whole_file_scans(s))(source, stem)
     except UnicodeDecodeError as err:
         raise ValueError(f"{source}: not a text file ({err.reason} at byte {err.start})") from None
     except OSError as err:

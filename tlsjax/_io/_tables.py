@@ -60,13 +60,17 @@ def _check_directions(row, cells, line, loc) -> None:
 
 
 _ARCH_KEY = re.compile(r"architecture\s*[=:]\s*([A-Za-z]+)")
+#: What the comment adds where the architecture was declared, not measured (:data:`DECLARED`).
+DECLARED = "declared for Cartesian target lists"
 
 
-def recorded_architecture(path) -> str | None:
+def recorded_architecture(path) -> tuple[str | None, bool]:
     """The scanner architecture recorded in the comment lines before the header of an
-    observation CSV (``# tlsjax ...: architecture=panoramic``), or None."""
+    observation CSV (``# tlsjax ...: architecture=panoramic``), or None; and whether it was
+    declared when Cartesian target lists were converted (:data:`DECLARED`: the lists do not
+    record it, so only the fit can tell)."""
     source = os.fspath(path)
-    found = None
+    found, declared = None, False
     with open_text(source) as fh:
         try:
             for line in fh:
@@ -78,19 +82,21 @@ def recorded_architecture(path) -> str | None:
                 m = _ARCH_KEY.search(text)
                 if m:
                     found = m.group(1).lower()
+                    declared = DECLARED.lower() in text.lower()
         except UnicodeDecodeError:
             return None  # not text: the reader says so, with the line
     if found is not None and found not in ARCHITECTURES:
         raise ValueError(
             f"{source}: the recorded scanner architecture {found!r} is not one of {ARCHITECTURES}"
         )
-    return found
+    return found, declared
 
 
-def architecture_comment(kind: str, architecture: str) -> str:
+def architecture_comment(kind: str, architecture: str, declared: bool = False) -> str:
     """The comment line that records the architecture (read back by
-    :func:`recorded_architecture`)."""
-    return f"# tlsjax {kind} observations: architecture={architecture}"
+    :func:`recorded_architecture`), saying where it was only declared."""
+    tail = f" ({DECLARED}, not measured)" if declared else ""
+    return f"# tlsjax {kind} observations: architecture={architecture}{tail}"
 
 
 def _observation_kind(seen, header_line, loc, data) -> str:
@@ -161,7 +167,7 @@ def read_observations(path) -> ObservationTable:
     _check_path(path, "path")
     source = os.fspath(path)
     loc = Located(source)
-    architecture = recorded_architecture(source)
+    architecture, declared = recorded_architecture(source)
     header_line, names, data = read_rows(path, loc)
     columns, seen = parse_header(names, header_line, loc, _OBS_TEXT, _OBS_NUMERIC)
     kind = _observation_kind(seen, header_line, loc, data)
@@ -188,6 +194,8 @@ def read_observations(path) -> ObservationTable:
         if "instrument" in cells:
             instruments.append(cells["instrument"][0])
         lines.append(line)
+    if kind == "plane":
+        _refuse_repeated_points(scans, prims, obs, lines, loc)
     hz = np.mod(obs[:, 1], _TWO_PI)
     # np.mod returns 2pi itself for tiny negative inputs; the contract is the half-open interval.
     obs[:, 1] = np.where(hz >= _TWO_PI, 0.0, hz)
@@ -202,7 +210,29 @@ def read_observations(path) -> ObservationTable:
         instruments=tuple(instruments) if "instrument" in seen else None,
         rows=np.asarray(lines, dtype=np.int64),
         architecture=architecture,
+        architecture_declared=declared,
     )
+
+
+def _refuse_repeated_points(scans, planes, obs, lines, loc) -> None:
+    """A plane has many points per scan, but one row repeated would count one observation
+    twice (and thinning would hide it): the first repeated (scan, plane, range, hz, el) row is
+    refused with both lines. Sorted, not hashed row by row: files hold millions of points."""
+    if len(scans) < 2:
+        return
+    codes = [np.unique(np.asarray(a), return_inverse=True)[1] for a in (scans, planes)]
+    keys = np.column_stack([*codes, obs])
+    order = np.lexsort(keys.T[::-1])
+    same = np.all(keys[order[1:]] == keys[order[:-1]], axis=1)
+    if same.any():
+        k = int(np.argmax(same))
+        a, b = sorted((int(order[k]), int(order[k + 1])))
+        raise loc.error(
+            f"duplicate point of plane '{planes[b]}' in scan '{scans[b]}' (lines {lines[a]} and "
+            f"{lines[b]}: the same observation twice)",
+            lines[b],
+            None,
+        )
 
 
 def read_scans(path) -> dict[str, dict[str, float]]:
@@ -359,7 +389,10 @@ def write_observations(path, table: ObservationTable, *, length_unit="m", angle_
 
     with atomic_output(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
         if table.architecture is not None:
-            fh.write(architecture_comment(table.kind, table.architecture) + "\n")
+            comment = architecture_comment(
+                table.kind, table.architecture, table.architecture_declared
+            )
+            fh.write(comment + "\n")
         writer = csv.writer(fh, delimiter=",", lineterminator="\n")
         writer.writerow(header)
         for i in range(n):
@@ -432,6 +465,19 @@ def levelling_of_network(net) -> dict:
     return out
 
 
+def write_network(
+    path, network, *, scans_path=None, architecture=None, length_unit="m", angle_unit="deg"
+) -> None:
+    """Write the target observations of ``network`` as the CSV ``tlsjax calibrate`` reads
+    (:func:`write_observations`; sigmas as used, ``architecture`` recorded in the file), and
+    with ``scans_path`` its tilt readings and headings as the scans CSV (:func:`write_scans`):
+    what ``tlsjax simulate`` writes of a simulated network."""
+    table = table_from_network(network, architecture)
+    write_observations(path, table, length_unit=length_unit, angle_unit=angle_unit)
+    if scans_path is not None:
+        write_scans(scans_path, levelling_of_network(network))
+
+
 def _check_path(value, name: str) -> None:
     if not isinstance(value, (str, os.PathLike)):
         raise TypeError(
@@ -448,9 +494,9 @@ def read_planes(path) -> ObservationTable:
     if os.path.isdir(source):
         raise ValueError(f"{source}: is a directory, not a plane file (.csv or .npz)")
     if source.lower().endswith(".npz"):
-        from ._plane_files import load_planes
+        from ._plane_files import read_extracted_planes
 
-        planes = load_planes(source)
+        planes = read_extracted_planes(source)
         if planes.planes is None:
             raise ValueError(
                 f"{source}: the planes are not matched across scans (no scan poses at extraction); "

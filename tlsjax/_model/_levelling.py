@@ -8,8 +8,9 @@ import jax.numpy as jnp
 from ._geometry import rotation_matrix
 
 
-def compensator_reading(eop):
-    """Tilt readings (omega_c, phi_c) of a dual-axis compensator in the scanner frame [rad].
+def compensator_reading(eop, xp=jnp):
+    """Tilt readings (omega_c, phi_c) of a dual-axis compensator in the scanner frame [rad];
+    ``eop`` (..., 6), jax or numpy (``xp``: the host computes it in numpy, every scan at once).
 
     The compensator senses the object-space vertical in scanner space, ``g = R_j e3``:
     ``omega_c = asin(g_y)``, ``phi_c = asin(-g_x / sqrt(1 - g_y^2))``. For kappa = 0 these are
@@ -19,11 +20,11 @@ def compensator_reading(eop):
     so rotation about Z stays an exact null vector of the normal equations and the free-network
     solution does not depend on the datum.
     """
-    g = rotation_matrix(eop[3], eop[4], eop[5])[:, 2]
-    gy = jnp.clip(g[1], -1.0, 1.0)
-    omega = jnp.arcsin(gy)
-    phi = jnp.arcsin(jnp.clip(-g[0] / jnp.sqrt(1.0 - gy * gy), -1.0, 1.0))
-    return jnp.stack([omega, phi])
+    g = rotation_matrix(eop[..., 3], eop[..., 4], eop[..., 5], xp)[:, 2]
+    gy = xp.clip(g[1], -1.0, 1.0)
+    omega = xp.arcsin(gy)
+    phi = xp.arcsin(xp.clip(-g[0] / xp.sqrt(1.0 - gy * gy), -1.0, 1.0))
+    return xp.stack([omega, phi], axis=-1)
 
 
 def orientation_reading(eop):

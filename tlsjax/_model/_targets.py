@@ -22,13 +22,16 @@ from __future__ import annotations
 import jax.numpy as jnp
 import jax.scipy.special as jss
 import numpy as np
-import scipy.special as sps
 
 PATTERNS = ("checkerboard", "circle")
 
 
 def _erf(xp):
-    return jss.erf if xp is jnp else sps.erf
+    if xp is jnp:
+        return jss.erf
+    from scipy.special import erf  # at first use: scipy is slow to import
+
+    return erf
 
 
 def checkerboard_white(u, v, blur, xp=jnp):

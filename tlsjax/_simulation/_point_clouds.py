@@ -265,7 +265,10 @@ class CloudDesign:
     target (None: the room grid only). Intensity: ``reflectance`` of the room's faces and
     boards, the footprint ``beam_width`` [m] + ``beam_divergence`` [rad] x range (standard
     deviation of the spot), ``intensity_noise`` (standard deviation, in reflectance units),
-    ``dark_range_bias`` [m] added to the range of the dark share of a target's footprint.
+    ``dark_range_bias`` [m] added to the range of the dark share of a target's footprint;
+    ``dark_noise_factor``: the range noise of a footprint wholly on a target's dark print is
+    this many times ``sigma_range`` (a phase scanner's range noise grows as the returned power
+    falls: 3-5 times on black paper), interpolated by the dark share.
     ``correlated_sigma_range`` [m] and ``correlation_length`` [m]: the spatially correlated
     range noise of the module docstring (0: independent noise only).
     ``scans`` (s, 6): the scan poses (X, Y, Z [m], omega, phi, kappa [rad]); None: those of
@@ -296,6 +299,7 @@ class CloudDesign:
     beam_divergence: float = 0.2e-3
     intensity_noise: float = 0.01
     dark_range_bias: float = 0.0
+    dark_noise_factor: float = 1.0
     correlated_sigma_range: float = 0.0
     correlation_length: float = 0.02
     scans: tuple | None = None
@@ -307,13 +311,13 @@ class CloudDesign:
         :class:`Board` s, scanner, APs and true APs, sigmas, levelling, field of view and
         largest incidence; noise on when ``noise_scale`` > 0. ``cloud_settings``: the fields
         of the scanning itself (``angular_step``, targets, intensity, ...). The design's
-        infinite planes (:class:`~tlsjax.DesignPlane`) and its targets have no point-cloud
+        infinite planes (:class:`~tlsjax.RoomPlane`) and its targets have no point-cloud
         counterpart and are refused; a ``noise_scale`` or ``sigma_scale`` other than 1 (or 0)
         too (the clouds draw the nominal noise)."""
         if any(not isinstance(p, Board) for p in design.planes) or design.n_free_targets:
             raise ValueError(
                 "CloudDesign.from_design: only Board planes have a point-cloud counterpart "
-                "(no DesignPlane, no free-standing targets)"
+                "(no RoomPlane, no free-standing targets)"
             )
         settings = dict(
             room=Room.from_design(design, n_targets=max(design.n_targets, 12)),
@@ -360,6 +364,8 @@ class CloudDesign:
             raise ValueError(f"correlation_length must be > 0, got {self.correlation_length}")
         if not np.isfinite(self.dark_range_bias):
             raise ValueError(f"dark_range_bias must be finite, got {self.dark_range_bias}")
+        if not (np.isfinite(self.dark_noise_factor) and self.dark_noise_factor >= 1.0):
+            raise ValueError(f"dark_noise_factor must be >= 1, got {self.dark_noise_factor}")
         if not (0.0 < self.angular_step <= 10.0 * DEG):
             raise ValueError(
                 f"angular_step must be in (0, 10 deg], got {self.angular_step / DEG:g} deg"
@@ -841,7 +847,9 @@ def _observe_scan(design, eop, hits, rng, coeffs, scanner, names, rng_c=None):
     face2 = second_face(hyb[:, 1], design.architecture)
     sig = np.stack(
         [
-            design.sigma_range / np.cos(hits["incidence"]),
+            design.sigma_range
+            * (1.0 + (design.dark_noise_factor - 1.0) * (1.0 - hits["white"]))
+            / np.cos(hits["incidence"]),
             np.full(m, design.sigma_angle),
             np.full(m, design.sigma_angle),
         ],

@@ -154,7 +154,7 @@ def simulated_orientation(
     for j, e in enumerate(np.asarray(eops)):
         scan, d = f"S{j + 1}", {}
         if sigma_tilt is not None and scan not in levelled:
-            tilt = np.asarray(compensator_reading(jnp.asarray(e)))
+            tilt = compensator_reading(e, np)
             tilt = tilt + (rng.standard_normal(2) * sigma_tilt if noise else 0.0)
             d.update(omega=tilt[0], phi=tilt[1], sigma_omega=sigma_tilt, sigma_phi=sigma_tilt)
         if sigma_heading is not None:
