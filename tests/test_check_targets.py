@@ -119,7 +119,15 @@ def test_every_result_json_keeps_the_architecture(tmp_path):
     out = tmp_path / "cal.json"
     assert (
         main(
-            ["calibrate", str(obs), "--scans", str(tmp_path / "pan_scans.csv"), "--json", str(out)]
+            [
+                "calibrate",
+                "--no-cross-validation",
+                str(obs),
+                "--scans",
+                str(tmp_path / "pan_scans.csv"),
+                "--json",
+                str(out),
+            ]
         )
         == 0
     )
@@ -173,7 +181,16 @@ def test_check_targets_cli_calibrate_targets_out_and_held_out_scans(tmp_path, ca
     # calibrate writes the targets (JSON and CSV); its own scans placed with its own APs give
     # its targets back: the cross-validation of held-out scans runs on the same command.
     cal, tg = tmp_path / "cal.json", tmp_path / "targets.csv"
-    argv = ["calibrate", str(obs), "--scans", str(scans), "--aps", APS, "--no-vce"]
+    argv = [
+        "calibrate",
+        "--no-cross-validation",
+        str(obs),
+        "--scans",
+        str(scans),
+        "--aps",
+        APS,
+        "--no-vce",
+    ]
     assert main(argv + ["--json", str(cal), "--targets-out", str(tg)]) == 0
     t_json = load_strict(cal)["targets"]
     t_csv = tj.read_reference(tg)

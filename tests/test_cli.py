@@ -67,6 +67,7 @@ def test_calibrate_json_matches_the_api(simulated, capsys):
         main(
             [
                 "calibrate",
+                "--no-cross-validation",
                 str(obs),
                 "--scans",
                 str(scans),
@@ -122,6 +123,7 @@ def test_vce_and_snooping_through_the_cli(simulated, tmp_path, capsys):
         main(
             [
                 "calibrate",
+                "--no-cross-validation",
                 str(bad),
                 "--scans",
                 str(scans),
@@ -156,8 +158,34 @@ def test_units_do_not_change_the_result(simulated, tmp_path, length_unit, angle_
     assert comment == "# tlsjax target observations: architecture=hybrid"  # recorded, read back
     assert f"range_{length_unit}" in header
     a, b = tmp_path / "a.json", tmp_path / "b.json"
-    assert main(["calibrate", str(obs), "--scans", str(scans), "--json", str(a)]) == 0
-    assert main(["calibrate", str(other), "--scans", str(scans), "--json", str(b)]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--no-cross-validation",
+                str(obs),
+                "--scans",
+                str(scans),
+                "--json",
+                str(a),
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "calibrate",
+                "--no-cross-validation",
+                str(other),
+                "--scans",
+                str(scans),
+                "--json",
+                str(b),
+            ]
+        )
+        == 0
+    )
     ja, jb = json.loads(a.read_text()), json.loads(b.read_text())
     for name in ja["aps"]:
         assert (
@@ -174,6 +202,7 @@ def test_not_estimable_scale_is_named_not_numbered(simulated, tmp_path):
         main(
             [
                 "calibrate",
+                "--no-cross-validation",
                 str(obs),
                 "--scans",
                 str(scans),
@@ -195,10 +224,10 @@ def test_not_estimable_scale_is_named_not_numbered(simulated, tmp_path):
 def test_bad_input_names_file_and_line(tmp_path, capsys):
     bad = tmp_path / "bad.csv"
     bad.write_text("scan,target,range_m,hz_deg,el_furlong\nS1,T1,5,10,3\n")
-    assert main(["calibrate", str(bad)]) == 2
+    assert main(["calibrate", "--no-cross-validation", str(bad)]) == 2
     err = capsys.readouterr().err
     assert "bad.csv" in err and "el_furlong" in err
-    assert main(["calibrate", str(tmp_path / "missing.csv")]) == 2
+    assert main(["calibrate", "--no-cross-validation", str(tmp_path / "missing.csv")]) == 2
     assert "missing.csv" in capsys.readouterr().err
 
 
@@ -211,9 +240,21 @@ def test_target_seen_once_is_refused_then_dropped_on_request(simulated, tmp_path
     ]
     f = tmp_path / "once.csv"
     f.write_text("\n".join(keep) + "\n")
-    assert main(["calibrate", str(f), "--scans", str(scans)]) == 2
+    assert main(["calibrate", "--no-cross-validation", str(f), "--scans", str(scans)]) == 2
     assert "T001" in capsys.readouterr().err
-    assert main(["calibrate", str(f), "--scans", str(scans), "--drop-single-targets"]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--no-cross-validation",
+                str(f),
+                "--scans",
+                str(scans),
+                "--drop-single-targets",
+            ]
+        )
+        == 0
+    )
     assert "dropped 1 target(s) seen in one scan only: T001" in capsys.readouterr().out
 
 
@@ -278,7 +319,9 @@ def test_default_calibrate_finds_gross_errors(simulated, tmp_path, capsys):
         },
     )
     out = tmp_path / "res.json"
-    code = main(["calibrate", str(bad), "--scans", str(scans), "--json", str(out)])
+    code = main(
+        ["calibrate", "--no-cross-validation", str(bad), "--scans", str(scans), "--json", str(out)]
+    )
     printed = capsys.readouterr().out
     assert code == 0
     js = load_strict(out)
@@ -312,7 +355,16 @@ def test_implausible_input_is_refused_with_one_line(simulated, tmp_path, capsys)
     }
     for name, (edits, message) in cases.items():
         assert (
-            main(["calibrate", str(_edit(obs, tmp_path / name, edits)), "--scans", str(scans)]) == 2
+            main(
+                [
+                    "calibrate",
+                    "--no-cross-validation",
+                    str(_edit(obs, tmp_path / name, edits)),
+                    "--scans",
+                    str(scans),
+                ]
+            )
+            == 2
         )
         err = capsys.readouterr().err
         assert len(err.strip().splitlines()) == 1 and re.search(
@@ -320,11 +372,11 @@ def test_implausible_input_is_refused_with_one_line(simulated, tmp_path, capsys)
         ), err
     rad = tmp_path / "rad.csv"
     rad.write_text(obs.read_text().replace("hz_deg,el_deg", "hz_rad,el_rad", 1))
-    assert main(["calibrate", str(rad)]) == 2
+    assert main(["calibrate", "--no-cross-validation", str(rad)]) == 2
     assert "column hz_rad" in capsys.readouterr().err
     nosig = tmp_path / "scans_nosig.csv"
     nosig.write_text("scan,omega_arcsec,phi_arcsec\nS1,1,2\n")
-    assert main(["calibrate", str(obs), "--scans", str(nosig)]) == 2
+    assert main(["calibrate", "--no-cross-validation", str(obs), "--scans", str(nosig)]) == 2
     assert "no sigma columns" in capsys.readouterr().err
 
 
@@ -341,7 +393,7 @@ def test_file_system_failures_are_one_line_before_any_work(simulated, tmp_path, 
         ([str(obs), "--plots", str(afile / "p")], "--plots .*afile is a file"),
     ]
     for args, message in cases:
-        assert main(["calibrate", *args]) == 2, args
+        assert main(["calibrate", "--no-cross-validation", *args]) == 2, args
         captured = capsys.readouterr()
         assert "scans," not in captured.out  # refused before the network was even read
         assert len(captured.err.strip().splitlines()) == 1 and re.search(message, captured.err)
@@ -364,7 +416,7 @@ def test_drop_single_targets_that_empty_a_scan_is_a_message(simulated, tmp_path,
     ]
     f = tmp_path / "lonely.csv"
     f.write_text("\n".join(kept) + "\n")
-    assert main(["calibrate", str(f), "--drop-single-targets"]) == 2
+    assert main(["calibrate", "--no-cross-validation", str(f), "--drop-single-targets"]) == 2
     err = capsys.readouterr().err
     assert "scan(s) S6 observe only targets seen in no other scan" in err and "Traceback" not in err
 
@@ -389,13 +441,35 @@ def test_screening_without_vce_and_score_tests_on_every_path(simulated, tmp_path
     bad = _edit(obs, tmp_path / "bad.csv", {(20, 2): lambda v: repr(float(v) + 2.0)})
     row = obs.read_text().splitlines()[20].split(",")
     on, off = tmp_path / "on.json", tmp_path / "off.json"
-    assert main(["calibrate", str(bad), "--scans", str(scans), "--no-vce", "--json", str(on)]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--no-cross-validation",
+                str(bad),
+                "--scans",
+                str(scans),
+                "--no-vce",
+                "--json",
+                str(on),
+            ]
+        )
+        == 0
+    )
     js = load_strict(on)
     assert [(o["scan"], o["target"], o["group"]) for o in js["outliers"]] == [
         (row[0], row[1], "range")
     ]
     assert js["screening"]["enabled"] and "score_tests" in js
-    args = ["calibrate", str(bad), "--scans", str(scans), "--no-vce", "--no-screen"]
+    args = [
+        "calibrate",
+        "--no-cross-validation",
+        str(bad),
+        "--scans",
+        str(scans),
+        "--no-vce",
+        "--no-screen",
+    ]
     main([*args, "--json", str(off)])
     printed = capsys.readouterr().out
     js = load_strict(off)
@@ -409,7 +483,16 @@ def test_select_with_a_gross_error_ends_as_on_the_clean_file(simulated, tmp_path
     chosen = []
     for name, path in (("clean", obs), ("bad", bad)):
         out = tmp_path / f"{name}.json"
-        args = ["calibrate", str(path), "--scans", str(scans), "--aps", "A0 B6 C0", "--select"]
+        args = [
+            "calibrate",
+            "--no-cross-validation",
+            str(path),
+            "--scans",
+            str(scans),
+            "--aps",
+            "A0 B6 C0",
+            "--select",
+        ]
         assert main([*args, "--select-candidates", "A3 B7 C2", "--json", str(out)]) == 0
         js = load_strict(out)
         chosen.append(set(js["selection"]["aps"]))
@@ -436,14 +519,32 @@ def _cli_and_api(obs, scans, out, capsys, cli_args, model, options):
     [
         ([], tj.CalibrationOptions()),
         (
-            ["--no-vce", "--snoop", "--bonferroni", "--snoop-alpha", "0.05"],
+            [
+                "--no-vce",
+                "--snoop",
+                "--bonferroni",
+                "--snoop-alpha",
+                "0.05",
+                "--no-cross-validation",
+            ],
             tj.CalibrationOptions(
-                vce=None, snooping=tj.SnoopingOptions(w_test_level=0.05, bonferroni=True)
+                vce=None,
+                snooping=tj.SnoopingOptions(w_test_level=0.05, bonferroni=True),
+                cross_validation=None,
             ),
         ),
         (
-            ["--aps", "A0 B6 C0", "--select", "--select-candidates", "A3 B7 C2"],
-            tj.CalibrationOptions(selection=tj.SelectionOptions(candidates="A3 B7 C2")),
+            [
+                "--aps",
+                "A0 B6 C0",
+                "--select",
+                "--select-candidates",
+                "A3 B7 C2",
+                "--no-cross-validation",
+            ],
+            tj.CalibrationOptions(
+                selection=tj.SelectionOptions(candidates="A3 B7 C2"), cross_validation=None
+            ),
         ),
     ],
     ids=["defaults", "snooping", "selection"],
@@ -475,7 +576,13 @@ def test_cli_prints_and_writes_the_self_calibration_of_a_drawn_network(tmp_path,
     tj.write_network(obs, sim.network, scans_path=scans, architecture=sim.scanner.architecture)
     model = tj.CalibrationModel(tj.Scanner(architecture=sim.scanner.architecture))
     code, printed, doc, result = _cli_and_api(
-        obs, scans, tmp_path / "r.json", capsys, [], model, tj.CalibrationOptions()
+        obs,
+        scans,
+        tmp_path / "r.json",
+        capsys,
+        ["--no-cross-validation"],
+        model,
+        tj.CalibrationOptions(cross_validation=None),
     )
     assert code == (0 if result.ok else 1)
     same_run(doc, result.to_dict())
@@ -488,7 +595,21 @@ def test_from_json_reruns_the_recorded_calibration(simulated, tmp_path, capsys):
     d, obs, scans, _ = simulated
     first, again = tmp_path / "first.json", tmp_path / "again.json"
     given = ["--aps", "A0 B6 B7 C0", "--no-vce", "--snoop", "--sigma-range-mm", "0.6"]
-    assert main(["calibrate", str(obs), "--scans", str(scans), *given, "--json", str(first)]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--no-cross-validation",
+                str(obs),
+                "--scans",
+                str(scans),
+                *given,
+                "--json",
+                str(first),
+            ]
+        )
+        == 0
+    )
     assert main(["calibrate", "--from-json", str(first), "--json", str(again)]) == 0
     a, b = load_strict(first), load_strict(again)
     same_run(a, b)
@@ -506,7 +627,7 @@ def test_from_json_reruns_the_recorded_calibration(simulated, tmp_path, capsys):
     truth = d / "truth.json"
     assert main(["calibrate", "--from-json", str(truth)]) == 2
     assert "the truth of a simulation" in capsys.readouterr().err
-    assert main(["calibrate", str(obs), "--ap-priors", str(truth)]) == 2
+    assert main(["calibrate", "--no-cross-validation", str(obs), "--ap-priors", str(truth)]) == 2
     assert "the truth of a simulation" in capsys.readouterr().err
 
 

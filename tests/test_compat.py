@@ -406,7 +406,21 @@ def _strict(path):
 def test_cli_compare_calibrate_json_and_ap_set_json(tmp_path, capsys):
     obs, scans, cal = tmp_path / "obs.csv", tmp_path / "scans.csv", tmp_path / "cal.json"
     assert main(["simulate", "--out", str(obs), "--scans-out", str(scans), "--seed", "1"]) == 0
-    assert main(["calibrate", str(obs), "--scans", str(scans), "--json", str(cal), "--no-vce"]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--no-cross-validation",
+                str(obs),
+                "--scans",
+                str(scans),
+                "--json",
+                str(cal),
+                "--no-vce",
+            ]
+        )
+        == 0
+    )
     doc = _strict(cal)
     assert doc["ap_covariance_names"] and doc["scanner"]["architecture"] == "hybrid"
     fast = ["--runs", "20", "--draws", "2000", "--no-progress", "--devices", "1"]
