@@ -60,9 +60,7 @@ def test_a_second_solve_runs_one_compiled_program(network):
 
 @pytest.mark.parametrize("snooping", [False, True])
 def test_a_second_self_calibrate_dispatches_nothing_eagerly(network, snooping):
-    options = tj.CalibrationOptions(
-        cross_validation=None, snooping=tj.SnoopingOptions() if snooping else None
-    )
+    options = tj.CalibrationOptions(snooping=tj.SnoopingOptions() if snooping else None)
     first = tj.self_calibrate(network, None, options)
     with compiled_programs() as compiled, executed_programs() as counts:
         again = tj.self_calibrate(network, None, options)
