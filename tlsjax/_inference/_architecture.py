@@ -200,10 +200,15 @@ def compare_architectures(
     warning = ""
     if clearly and best != given:
         f, g = fits[best], fits[given]
+        why = (
+            f"sigma0 {f.sigma0:.3f} against {g.sigma0:.3f}; held-out misfit {_mm(f.cv_mm)} "
+            f"against {_mm(g.cv_mm)}"
+            if g.ok
+            else f"sigma0 {f.sigma0:.3f}; as {given} the calibration failed: {g.message}"
+        )
         warning = (
             f"the data were read as {given}, but {best} explains them clearly better "
-            f"(sigma0 {f.sigma0:.3f} against {g.sigma0:.3f}; held-out misfit "
-            f"{_mm(f.cv_mm)} against {_mm(g.cv_mm)}): the instrument probably measures "
+            f"({why}): the instrument probably measures "
             f"{'in two faces' if best == 'panoramic' else 'in one face over the full turn'}; "
             f"read the target lists with architecture '{best}' (--architecture {best}), or the "
             "APs will be wrong"
