@@ -266,10 +266,16 @@ class Adjustment:
         problem = self.plan.problem if problem is None else problem
         params0 = self.initial if params0 is None else params0
         absent, n6 = (), 6 * self.plan.spec.n_scans
+        previous = None
         # Each pass can only add held columns; an AP found in pass k is held in pass k + 1.
         for _ in range(self.plan.spec.n_aps + 1):
             # One transfer of every output to the host.
             state, q = jax.device_get(self.run(problem, params0, options))
+            if previous is not None and not bool(state.converged):
+                # A design that barely determines the other unknowns (more APs than targets)
+                # may not converge from the start again; from the last pass's solution with
+                # the APs at zero it reaches the same minimum of the model without them.
+                state, q = jax.device_get(self.run(problem, previous, options))
             plan = dataclasses.replace(self.plan, problem=problem)
             dep = np.asarray(q.dependent)[n6:] & ~np.asarray(problem.fixed)[n6:]
             if not dep.any() or not bool(state.finite):
@@ -279,6 +285,9 @@ class Adjustment:
             fixed[n6:] |= dep
             problem = _replace(problem, fixed=_to_device(fixed))
             params0 = _replace(params0, aps=_to_device(np.where(dep, 0.0, np.asarray(params0.aps))))
+            previous = _replace(
+                state.params, aps=_to_device(np.where(dep, 0.0, np.asarray(state.params.aps)))
+            )
         return plan, state, q, absent
 
     def solve(self, *, initial=None, **weights) -> CalibrationResult:
