@@ -306,7 +306,9 @@ def run(case: Case, sim=None):
     model = tj.CalibrationModel(sim.scanner)
     if case.testing:
         tested = tj.self_calibrate(
-            sim.network, model, tj.CalibrationOptions(snooping=tj.SnoopingOptions())
+            sim.network,
+            model,
+            tj.CalibrationOptions(cross_validation=None, snooping=tj.SnoopingOptions()),
         )
         return sim, tested.calibration, tested
     return sim, tj.calibrate(sim.network, model), None

@@ -53,6 +53,10 @@ PARTS = {
     "CheckpointReport",
     "TargetMatching",
     "APSet",
+    "ScoreTest",
+    "CrossValidation",
+    "ArchitectureComparison",
+    "ArchitectureFit",
 }
 #: Names of the variants the convention replaced.
 OLD_VARIANTS = (

@@ -119,7 +119,15 @@ def test_every_result_json_keeps_the_architecture(tmp_path):
     out = tmp_path / "cal.json"
     assert (
         main(
-            ["calibrate", str(obs), "--scans", str(tmp_path / "pan_scans.csv"), "--json", str(out)]
+            [
+                "calibrate",
+                "--no-cross-validation",
+                str(obs),
+                "--scans",
+                str(tmp_path / "pan_scans.csv"),
+                "--json",
+                str(out),
+            ]
         )
         == 0
     )
@@ -173,7 +181,16 @@ def test_check_targets_cli_calibrate_targets_out_and_held_out_scans(tmp_path, ca
     # calibrate writes the targets (JSON and CSV); its own scans placed with its own APs give
     # its targets back: the cross-validation of held-out scans runs on the same command.
     cal, tg = tmp_path / "cal.json", tmp_path / "targets.csv"
-    argv = ["calibrate", str(obs), "--scans", str(scans), "--aps", APS, "--no-vce"]
+    argv = [
+        "calibrate",
+        "--no-cross-validation",
+        str(obs),
+        "--scans",
+        str(scans),
+        "--aps",
+        APS,
+        "--no-vce",
+    ]
     assert main(argv + ["--json", str(cal), "--targets-out", str(tg)]) == 0
     t_json = load_strict(cal)["targets"]
     t_csv = tj.read_reference(tg)
@@ -184,6 +201,11 @@ def test_check_targets_cli_calibrate_targets_out_and_held_out_scans(tmp_path, ca
     argv = ["check-targets", str(cal), str(obs), "--reference", str(cal), "--scans", str(scans)]
     assert main(argv + ["--json", str(out2)]) == 0
     assert load_strict(out2)["network"]["with"]["rms"]["xyz_mm"] < 1e-4
+    # A survey with a preamble, read with --columns (issue 41.6).
+    pre = tmp_path / "survey_preamble.txt"
+    pre.write_text("Job 2019-05-03 TS30\noperator 7\n" + (tmp_path / "survey.csv").read_text())
+    argv = ["check-targets", str(truth), str(obs), "--reference", str(pre), "--scans", str(scans)]
+    assert main(argv + ["--columns", "name,x,y,z", "--transform", "7-parameter"]) == 0
     # A reference in millimetres declared as metres is refused in one line with the fix.
     capsys.readouterr()
     plain = tmp_path / "survey_no_units.csv"
@@ -194,3 +216,50 @@ def test_check_targets_cli_calibrate_targets_out_and_held_out_scans(tmp_path, ca
     assert "true APs of a simulation" in err[0]  # the truth given as the calibration, named
     assert "unit mix-up" in err[-1] and len(err) == 2
     assert json.loads(cal.read_text())["scanner"]["architecture"] == "hybrid"
+
+
+def test_gross_errors_are_left_out_of_the_placement(room):
+    """A target observed in the wrong place in one scan (issue 41.6: 'warns of a 16.8 m
+    inconsistent correspondence and then places the target with it'): the observations the
+    registration finds inconsistent are left out of both placements and of the per-scan fits,
+    and the check is that of the clean scans."""
+    noisy, _, cal = room
+    net = noisy.network
+    ref = _reference(noisy, REF_NOISE)
+    rows = np.flatnonzero(net.scan_index == 2)
+    obs = net.observations.copy()
+    obs[rows[4]] = obs[rows[60]]  # T005 in S3 observed where T061 is: metres off
+    bad = tj.check_targets(net.with_observations(obs), cal, ref)
+    clean = tj.check_targets(net, cal, ref)
+    assert any("left out of the placement" in n and "T005 in S3" in n for n in bad.notes)
+    for case in ("without", "with"):
+        a, b = bad.network[case]["rms"]["xyz_mm"], clean.network[case]["rms"]["xyz_mm"]
+        assert abs(a - b) < 0.05 * b, (case, a, b)
+    assert bad.per_scan.with_correction["xyz_mm"] < 1.2 * clean.per_scan.with_correction["xyz_mm"]
+
+
+def test_a_survey_with_a_preamble_and_columns(tmp_path):
+    """A reference survey with title, instrument and date lines (digits in them) before its
+    header: the preamble is skipped and named; ``columns`` gives the layout explicitly."""
+    text = (
+        "Project: calibration room 2019\nInstrument TS30 serial 362514\nDate 2019-05-03\n"
+        "Point,East,North,Height,Code\n"
+        + "".join(f"T{i:03d},{10 + i}.125,{20 - i}.5,{1 + i / 10:.3f},7\n" for i in range(1, 9))
+    )
+    path = tmp_path / "survey.txt"
+    path.write_text(text)
+    ref = tj.read_reference(path)
+    assert sorted(ref) == [f"T{i:03d}" for i in range(1, 9)]
+    np.testing.assert_allclose(ref["T002"], [12.125, 18.5, 1.2])
+    cols = tj.read_reference(path, columns="name,x,y,z,-")
+    np.testing.assert_array_equal(cols["T008"], ref["T008"])
+    # A block layout: keywords before, comment lines, and keywords after the points.
+    block = tmp_path / "op.txt"
+    block.write_text(
+        "OPDSCR = survey of 23-Oct-2018 21:21:08\nOPSTRT\n% id X /m Y /m Z /m std /m\n"
+        + "".join(f"  {i}  {i}.5  {2 * i}.25  1.{i}  0.0  0.0  0.0\n" for i in range(1, 6))
+        + "OP_END\nVCSTRT\nVC_END\n"
+    )
+    op = tj.read_reference(block)
+    assert sorted(op) == ["1", "2", "3", "4", "5"]
+    np.testing.assert_allclose(op["3"], [3.5, 6.25, 1.3])

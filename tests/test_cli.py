@@ -67,6 +67,7 @@ def test_calibrate_json_matches_the_api(simulated, capsys):
         main(
             [
                 "calibrate",
+                "--no-cross-validation",
                 str(obs),
                 "--scans",
                 str(scans),
@@ -122,6 +123,7 @@ def test_vce_and_snooping_through_the_cli(simulated, tmp_path, capsys):
         main(
             [
                 "calibrate",
+                "--no-cross-validation",
                 str(bad),
                 "--scans",
                 str(scans),
@@ -156,8 +158,34 @@ def test_units_do_not_change_the_result(simulated, tmp_path, length_unit, angle_
     assert comment == "# tlsjax target observations: architecture=hybrid"  # recorded, read back
     assert f"range_{length_unit}" in header
     a, b = tmp_path / "a.json", tmp_path / "b.json"
-    assert main(["calibrate", str(obs), "--scans", str(scans), "--json", str(a)]) == 0
-    assert main(["calibrate", str(other), "--scans", str(scans), "--json", str(b)]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--no-cross-validation",
+                str(obs),
+                "--scans",
+                str(scans),
+                "--json",
+                str(a),
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "calibrate",
+                "--no-cross-validation",
+                str(other),
+                "--scans",
+                str(scans),
+                "--json",
+                str(b),
+            ]
+        )
+        == 0
+    )
     ja, jb = json.loads(a.read_text()), json.loads(b.read_text())
     for name in ja["aps"]:
         assert (
@@ -174,6 +202,7 @@ def test_not_estimable_scale_is_named_not_numbered(simulated, tmp_path):
         main(
             [
                 "calibrate",
+                "--no-cross-validation",
                 str(obs),
                 "--scans",
                 str(scans),
@@ -195,10 +224,10 @@ def test_not_estimable_scale_is_named_not_numbered(simulated, tmp_path):
 def test_bad_input_names_file_and_line(tmp_path, capsys):
     bad = tmp_path / "bad.csv"
     bad.write_text("scan,target,range_m,hz_deg,el_furlong\nS1,T1,5,10,3\n")
-    assert main(["calibrate", str(bad)]) == 2
+    assert main(["calibrate", "--no-cross-validation", str(bad)]) == 2
     err = capsys.readouterr().err
     assert "bad.csv" in err and "el_furlong" in err
-    assert main(["calibrate", str(tmp_path / "missing.csv")]) == 2
+    assert main(["calibrate", "--no-cross-validation", str(tmp_path / "missing.csv")]) == 2
     assert "missing.csv" in capsys.readouterr().err
 
 
@@ -211,9 +240,21 @@ def test_target_seen_once_is_refused_then_dropped_on_request(simulated, tmp_path
     ]
     f = tmp_path / "once.csv"
     f.write_text("\n".join(keep) + "\n")
-    assert main(["calibrate", str(f), "--scans", str(scans)]) == 2
+    assert main(["calibrate", "--no-cross-validation", str(f), "--scans", str(scans)]) == 2
     assert "T001" in capsys.readouterr().err
-    assert main(["calibrate", str(f), "--scans", str(scans), "--drop-single-targets"]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--no-cross-validation",
+                str(f),
+                "--scans",
+                str(scans),
+                "--drop-single-targets",
+            ]
+        )
+        == 0
+    )
     assert "dropped 1 target(s) seen in one scan only: T001" in capsys.readouterr().out
 
 
@@ -278,7 +319,9 @@ def test_default_calibrate_finds_gross_errors(simulated, tmp_path, capsys):
         },
     )
     out = tmp_path / "res.json"
-    code = main(["calibrate", str(bad), "--scans", str(scans), "--json", str(out)])
+    code = main(
+        ["calibrate", "--no-cross-validation", str(bad), "--scans", str(scans), "--json", str(out)]
+    )
     printed = capsys.readouterr().out
     assert code == 0
     js = load_strict(out)
@@ -312,7 +355,16 @@ def test_implausible_input_is_refused_with_one_line(simulated, tmp_path, capsys)
     }
     for name, (edits, message) in cases.items():
         assert (
-            main(["calibrate", str(_edit(obs, tmp_path / name, edits)), "--scans", str(scans)]) == 2
+            main(
+                [
+                    "calibrate",
+                    "--no-cross-validation",
+                    str(_edit(obs, tmp_path / name, edits)),
+                    "--scans",
+                    str(scans),
+                ]
+            )
+            == 2
         )
         err = capsys.readouterr().err
         assert len(err.strip().splitlines()) == 1 and re.search(
@@ -320,11 +372,11 @@ def test_implausible_input_is_refused_with_one_line(simulated, tmp_path, capsys)
         ), err
     rad = tmp_path / "rad.csv"
     rad.write_text(obs.read_text().replace("hz_deg,el_deg", "hz_rad,el_rad", 1))
-    assert main(["calibrate", str(rad)]) == 2
+    assert main(["calibrate", "--no-cross-validation", str(rad)]) == 2
     assert "column hz_rad" in capsys.readouterr().err
     nosig = tmp_path / "scans_nosig.csv"
     nosig.write_text("scan,omega_arcsec,phi_arcsec\nS1,1,2\n")
-    assert main(["calibrate", str(obs), "--scans", str(nosig)]) == 2
+    assert main(["calibrate", "--no-cross-validation", str(obs), "--scans", str(nosig)]) == 2
     assert "no sigma columns" in capsys.readouterr().err
 
 
@@ -341,7 +393,7 @@ def test_file_system_failures_are_one_line_before_any_work(simulated, tmp_path, 
         ([str(obs), "--plots", str(afile / "p")], "--plots .*afile is a file"),
     ]
     for args, message in cases:
-        assert main(["calibrate", *args]) == 2, args
+        assert main(["calibrate", "--no-cross-validation", *args]) == 2, args
         captured = capsys.readouterr()
         assert "scans," not in captured.out  # refused before the network was even read
         assert len(captured.err.strip().splitlines()) == 1 and re.search(message, captured.err)
@@ -364,7 +416,7 @@ def test_drop_single_targets_that_empty_a_scan_is_a_message(simulated, tmp_path,
     ]
     f = tmp_path / "lonely.csv"
     f.write_text("\n".join(kept) + "\n")
-    assert main(["calibrate", str(f), "--drop-single-targets"]) == 2
+    assert main(["calibrate", "--no-cross-validation", str(f), "--drop-single-targets"]) == 2
     err = capsys.readouterr().err
     assert "scan(s) S6 observe only targets seen in no other scan" in err and "Traceback" not in err
 
@@ -389,13 +441,35 @@ def test_screening_without_vce_and_score_tests_on_every_path(simulated, tmp_path
     bad = _edit(obs, tmp_path / "bad.csv", {(20, 2): lambda v: repr(float(v) + 2.0)})
     row = obs.read_text().splitlines()[20].split(",")
     on, off = tmp_path / "on.json", tmp_path / "off.json"
-    assert main(["calibrate", str(bad), "--scans", str(scans), "--no-vce", "--json", str(on)]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--no-cross-validation",
+                str(bad),
+                "--scans",
+                str(scans),
+                "--no-vce",
+                "--json",
+                str(on),
+            ]
+        )
+        == 0
+    )
     js = load_strict(on)
     assert [(o["scan"], o["target"], o["group"]) for o in js["outliers"]] == [
         (row[0], row[1], "range")
     ]
     assert js["screening"]["enabled"] and "score_tests" in js
-    args = ["calibrate", str(bad), "--scans", str(scans), "--no-vce", "--no-screen"]
+    args = [
+        "calibrate",
+        "--no-cross-validation",
+        str(bad),
+        "--scans",
+        str(scans),
+        "--no-vce",
+        "--no-screen",
+    ]
     main([*args, "--json", str(off)])
     printed = capsys.readouterr().out
     js = load_strict(off)
@@ -409,7 +483,16 @@ def test_select_with_a_gross_error_ends_as_on_the_clean_file(simulated, tmp_path
     chosen = []
     for name, path in (("clean", obs), ("bad", bad)):
         out = tmp_path / f"{name}.json"
-        args = ["calibrate", str(path), "--scans", str(scans), "--aps", "A0 B6 C0", "--select"]
+        args = [
+            "calibrate",
+            "--no-cross-validation",
+            str(path),
+            "--scans",
+            str(scans),
+            "--aps",
+            "A0 B6 C0",
+            "--select",
+        ]
         assert main([*args, "--select-candidates", "A3 B7 C2", "--json", str(out)]) == 0
         js = load_strict(out)
         chosen.append(set(js["selection"]["aps"]))
@@ -436,14 +519,32 @@ def _cli_and_api(obs, scans, out, capsys, cli_args, model, options):
     [
         ([], tj.CalibrationOptions()),
         (
-            ["--no-vce", "--snoop", "--bonferroni", "--snoop-alpha", "0.05"],
+            [
+                "--no-vce",
+                "--snoop",
+                "--bonferroni",
+                "--snoop-alpha",
+                "0.05",
+                "--no-cross-validation",
+            ],
             tj.CalibrationOptions(
-                vce=None, snooping=tj.SnoopingOptions(w_test_level=0.05, bonferroni=True)
+                vce=None,
+                snooping=tj.SnoopingOptions(w_test_level=0.05, bonferroni=True),
+                cross_validation=None,
             ),
         ),
         (
-            ["--aps", "A0 B6 C0", "--select", "--select-candidates", "A3 B7 C2"],
-            tj.CalibrationOptions(selection=tj.SelectionOptions(candidates="A3 B7 C2")),
+            [
+                "--aps",
+                "A0 B6 C0",
+                "--select",
+                "--select-candidates",
+                "A3 B7 C2",
+                "--no-cross-validation",
+            ],
+            tj.CalibrationOptions(
+                selection=tj.SelectionOptions(candidates="A3 B7 C2"), cross_validation=None
+            ),
         ),
     ],
     ids=["defaults", "snooping", "selection"],
@@ -475,7 +576,13 @@ def test_cli_prints_and_writes_the_self_calibration_of_a_drawn_network(tmp_path,
     tj.write_network(obs, sim.network, scans_path=scans, architecture=sim.scanner.architecture)
     model = tj.CalibrationModel(tj.Scanner(architecture=sim.scanner.architecture))
     code, printed, doc, result = _cli_and_api(
-        obs, scans, tmp_path / "r.json", capsys, [], model, tj.CalibrationOptions()
+        obs,
+        scans,
+        tmp_path / "r.json",
+        capsys,
+        ["--no-cross-validation"],
+        model,
+        tj.CalibrationOptions(cross_validation=None),
     )
     assert code == (0 if result.ok else 1)
     same_run(doc, result.to_dict())
@@ -488,7 +595,21 @@ def test_from_json_reruns_the_recorded_calibration(simulated, tmp_path, capsys):
     d, obs, scans, _ = simulated
     first, again = tmp_path / "first.json", tmp_path / "again.json"
     given = ["--aps", "A0 B6 B7 C0", "--no-vce", "--snoop", "--sigma-range-mm", "0.6"]
-    assert main(["calibrate", str(obs), "--scans", str(scans), *given, "--json", str(first)]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--no-cross-validation",
+                str(obs),
+                "--scans",
+                str(scans),
+                *given,
+                "--json",
+                str(first),
+            ]
+        )
+        == 0
+    )
     assert main(["calibrate", "--from-json", str(first), "--json", str(again)]) == 0
     a, b = load_strict(first), load_strict(again)
     same_run(a, b)
@@ -506,5 +627,113 @@ def test_from_json_reruns_the_recorded_calibration(simulated, tmp_path, capsys):
     truth = d / "truth.json"
     assert main(["calibrate", "--from-json", str(truth)]) == 2
     assert "the truth of a simulation" in capsys.readouterr().err
-    assert main(["calibrate", str(obs), "--ap-priors", str(truth)]) == 2
+    assert main(["calibrate", "--no-cross-validation", str(obs), "--ap-priors", str(truth)]) == 2
     assert "the truth of a simulation" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------------------------
+# Issue 41: prediction judges the calibration; the architecture of Cartesian lists from the data
+
+#: The room of tests/test_identification.py (its compiled programs serve both).
+SMALL_ROOM = tj.Room(n_targets=24)
+
+
+def _cartesian_lists(net, folder):
+    """One vendor-style list per scan (name x y z in the scanner's frame, no header)."""
+    x = np.asarray(tj.cartesian_from_spherical(net.observations))
+    paths = []
+    for j, scan in enumerate(net.scans):
+        path = folder / f"{scan}.txt"
+        rows = np.flatnonzero(net.scan_index == j)
+        path.write_text(
+            "".join(
+                f"{net.targets[net.target_index[i]]} {x[i, 0]:.7f} {x[i, 1]:.7f} {x[i, 2]:.7f}\n"
+                for i in rows
+            )
+        )
+        paths.append(str(path))
+    return paths
+
+
+def test_a_calibration_no_better_than_none_exits_4_and_says_so(tmp_path, capsys):
+    """Data without systematic errors: the physical model's APs fit noise, and its held-out
+    scans are placed worse with them than without (seed 0): the command writes the result,
+    prints the warning and exits 4 (a script that applies what exits 0 does not apply it);
+    --no-cross-validation runs no folds and exits 0."""
+    sim = tj.simulate(SMALL_ROOM, seed=0, aps=())
+    obs, scans, out = tmp_path / "obs.csv", tmp_path / "scans.csv", tmp_path / "r.json"
+    tj.write_network(obs, sim.network, scans_path=scans, architecture="hybrid")
+    args = ["calibrate", str(obs), "--scans", str(scans), "--no-vce", "--quiet"]
+    assert main([*args, "--json", str(out)]) == 4
+    printed = capsys.readouterr().out
+    cv = load_strict(out)["cross_validation"]
+    assert cv["code"] == int(tj.CrossValidationCode.NOT_IMPROVED) and not cv["improves"]
+    assert cv["rms_mm"]["xyz"] > cv["rms_none_mm"]["xyz"]
+    assert "warning: cross-validation: the calibration does not improve" in printed
+    assert f"{cv['rms_mm']['xyz']:.3f} mm with the APs" in printed
+    assert "architecture_check" not in load_strict(out)  # the file records it: no check
+    assert main([*args, "--no-cross-validation", "--json", str(out)]) == 0
+    assert "cross_validation" not in load_strict(out)
+
+
+def test_cartesian_lists_imported_as_the_wrong_architecture_are_named(tmp_path, capsys):
+    """A hybrid scanner's Cartesian lists with the physical errors, imported as panoramic:
+    the imported file says the architecture was only declared, so calibrate fits both
+    (default on for such files) and warns naming hybrid, in the output and the JSON."""
+    sim = tj.simulate(SMALL_ROOM, seed=0, aps="A0 B6 B7 C0")
+    _, scans, _ = tj.write_network(
+        tmp_path / "o.csv", sim.network, scans_path=tmp_path / "s.csv"
+    ) or (None, tmp_path / "s.csv", None)
+    imported, out = tmp_path / "imported.csv", tmp_path / "r.json"
+    lists = _cartesian_lists(sim.network, tmp_path)
+    assert (
+        main(["import-targets", *lists, "--architecture", "panoramic", "--out", str(imported)]) == 0
+    )
+    assert "declared for Cartesian target lists" in imported.read_text().splitlines()[0]
+    capsys.readouterr()
+    code = main(
+        [
+            "calibrate",
+            str(imported),
+            "--scans",
+            str(scans),
+            "--no-vce",
+            "--quiet",
+            "--json",
+            str(out),
+        ]
+    )
+    printed = capsys.readouterr().out
+    check = load_strict(out)["architecture_check"]
+    assert check["given"] == "panoramic" and check["best"] == "hybrid" and check["clearly"]
+    assert "read as panoramic, but hybrid explains them clearly better" in printed
+    assert check["warning"] in load_strict(out)["warnings"]
+    assert code in (0, 4)
+    # Given explicitly, the architecture is the user's: no check.
+    assert (
+        main(
+            [
+                "calibrate",
+                str(imported),
+                "--scans",
+                str(scans),
+                "--no-vce",
+                "--quiet",
+                "--architecture",
+                "panoramic",
+                "--no-cross-validation",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
+    assert "architecture_check" not in load_strict(out)
+
+
+def test_calibrate_help_names_the_recommended_path(capsys):
+    with pytest.raises(SystemExit):
+        main(["calibrate", "--help"])
+    text = capsys.readouterr().out
+    assert "recommended path for a scanner owner" in text and "--select" in text
+    assert "exit 4" in text and "--no-cross-validation" in text

@@ -330,6 +330,17 @@ def test_from_result_uses_the_full_ap_covariance(cal4):
     assert s.noise is not None and s.noise[1] > 0 and s.scanner.architecture == "hybrid"
 
 
+def test_from_result_keeps_the_calibrations_scanner(cal4):
+    """A panoramic calibration's set is compared as panoramic (issue 41.6): the scanner comes
+    from the result's model unless one is given."""
+    _, res = cal4
+    scanner = tj.Scanner(architecture="panoramic", unit_length=0.9)
+    pano = dataclasses.replace(res, model=tj.CalibrationModel(scanner))
+    s = tj.APSet.from_result(pano)
+    assert s.scanner.architecture == "panoramic" and s.scanner.unit_length == 0.9
+    assert tj.APSet.from_result(pano, scanner=tj.Scanner()).scanner.architecture == "hybrid"
+
+
 def test_from_result_refuses_a_failed_calibration(cal4):
     _, res = cal4
     failed = dataclasses.replace(res, converged=False, result=1, message="no convergence")
@@ -395,7 +406,21 @@ def _strict(path):
 def test_cli_compare_calibrate_json_and_ap_set_json(tmp_path, capsys):
     obs, scans, cal = tmp_path / "obs.csv", tmp_path / "scans.csv", tmp_path / "cal.json"
     assert main(["simulate", "--out", str(obs), "--scans-out", str(scans), "--seed", "1"]) == 0
-    assert main(["calibrate", str(obs), "--scans", str(scans), "--json", str(cal), "--no-vce"]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--no-cross-validation",
+                str(obs),
+                "--scans",
+                str(scans),
+                "--json",
+                str(cal),
+                "--no-vce",
+            ]
+        )
+        == 0
+    )
     doc = _strict(cal)
     assert doc["ap_covariance_names"] and doc["scanner"]["architecture"] == "hybrid"
     fast = ["--runs", "20", "--draws", "2000", "--no-progress", "--devices", "1"]

@@ -244,6 +244,7 @@ def test_from_a_target_calibration_end_to_end(tmp_path, capsys):
     cal = tmp_path / "cal.json"
     args = [
         "calibrate",
+        "--no-cross-validation",
         str(obs),
         "--scans",
         str(tmp_path / "sc.csv"),

@@ -208,7 +208,12 @@ def test_cli_thins_by_default_and_shows_its_phases_on_stderr(tmp_path, capsys):
     path, out = tmp_path / "planes.csv", tmp_path / "r.json"
     tj.write_observations(path, pc.to_table())
     n = len(pc.to_table())
-    assert main(["calibrate", str(path), "--aps", "A0 C0", "--json", str(out)]) == 0
+    assert (
+        main(
+            ["calibrate", "--no-cross-validation", str(path), "--aps", "A0 C0", "--json", str(out)]
+        )
+        == 0
+    )
     printed = capsys.readouterr()
     kept = len(tj.thin_planes(pc.to_table(), tj.DEFAULT_PLANE_SPACING))
     assert kept < n and f"{kept} of {n} kept" in printed.out
@@ -216,11 +221,14 @@ def test_cli_thins_by_default_and_shows_its_phases_on_stderr(tmp_path, capsys):
     for phase in ("reading", "thinning", "screening the plane points", "adjusted:"):
         assert phase in printed.err, printed.err
     assert "iterations" in printed.err and " s]" in printed.err
-    assert main(["calibrate", "--planes", str(path), "--aps", "A0 C0", "--quiet", "--no-screen",
+    assert main(["calibrate", "--no-cross-validation", "--planes", str(path), "--aps", "A0 C0", "--quiet", "--no-screen",
                  "--plane-spacing", "0", "--json", str(out)]) == 0  # fmt: skip
     printed = capsys.readouterr()
     assert printed.err == "" and json_points(out) == n
-    assert main(["calibrate", "--planes", str(path), "--plane-spacing", "-1"]) == 2
+    assert (
+        main(["calibrate", "--no-cross-validation", "--planes", str(path), "--plane-spacing", "-1"])
+        == 2
+    )
     assert "spacing" in capsys.readouterr().err
 
 

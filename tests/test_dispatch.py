@@ -12,9 +12,10 @@ from dispatch import compiled_programs, executed_programs
 
 import tlsjax as tj
 
-#: The compiled programs of the engine: the adjustment with its quality (``run``) and the
-#: score tests' reduced system (``system``).
-ENGINE = {"jit(run)", "jit(system)"}
+#: The compiled programs of the engine: the adjustment with its quality (``run``), the score
+#: tests' reduced system (``system``) and the held-out scans' corrections of the
+#: cross-validation (``corrections``, one run per fold).
+ENGINE = {"jit(run)", "jit(system)", "jit(corrections)"}
 
 
 @pytest.fixture(scope="module")
@@ -61,9 +62,13 @@ def test_a_second_solve_runs_one_compiled_program(network):
 def test_a_second_self_calibrate_dispatches_nothing_eagerly(network, snooping):
     options = tj.CalibrationOptions(snooping=tj.SnoopingOptions() if snooping else None)
     first = tj.self_calibrate(network, None, options)
-    with executed_programs() as counts:
+    with compiled_programs() as compiled, executed_programs() as counts:
         again = tj.self_calibrate(network, None, options)
     assert _eager(counts) == {}, dict(counts)
-    # It ran: one adjustment per step it took, as many as the first time.
-    assert counts["jit(run)"] >= 2
+    assert compiled == {}, dict(compiled)  # every fold reuses the compiled adjustment
+    # It ran: one adjustment per step it took, as many as the first time, and the
+    # cross-validation (on by default) two per fold.
+    folds = [f for f in again.cross_validation.folds if f.ok]
+    assert len(folds) == len(network.scans) and counts["jit(corrections)"] == len(folds)
+    assert counts["jit(run)"] >= 2 + 2 * len(folds)
     np.testing.assert_allclose(again.calibration.ap_values, first.calibration.ap_values, rtol=1e-12)

@@ -155,7 +155,7 @@ def test_one_engine_behind_every_entry_point():
     again = tj.analyze(net, model, tj.SolverOptions(full_covariance=True)).solve(
         weights=1.0 / net.sigmas
     )
-    nothing = tj.CalibrationOptions(vce=None, screening=None)
+    nothing = tj.CalibrationOptions(cross_validation=None, vce=None, screening=None)
     tested = tj.self_calibrate(net, model, nothing).calibration
     for other in (again, tested):
         np.testing.assert_allclose(other.ap_values, res.ap_values, rtol=1e-10, atol=1e-15)

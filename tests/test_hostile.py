@@ -51,7 +51,14 @@ def base(tmp_path_factory):
     argv = ["simulate", "--out", str(d / "obs.csv"), "--scans-out", str(d / "scans.csv")]
     argv += ["--truth", str(d / "truth.json"), "--targets", str(N_TARGETS), "--seed", "4"]
     assert main(argv) == 0
-    argv = ["calibrate", str(d / "obs.csv"), "--scans", str(d / "scans.csv"), "--no-vce"]
+    argv = [
+        "calibrate",
+        "--no-cross-validation",
+        str(d / "obs.csv"),
+        "--scans",
+        str(d / "scans.csv"),
+        "--no-vce",
+    ]
     assert main(argv + ["--json", str(d / "cal.json")]) == 0
     with open(d / "obs.csv", newline="") as fh:  # without the "# tlsjax ..." comment line
         rows = [r for r in csv.reader(fh) if r and not r[0].startswith("#")]
@@ -282,7 +289,14 @@ def test_missing_parent_folders_are_created_by_every_command(work, capsys):
     assert (d / "c/d/r.html").read_text().startswith("<!DOCTYPE html>")
     argv = ["correct", d / "cal.json", d / "scan.xyz", "--out", d / "e/f"]
     assert run(argv, capsys)[0] == 0 and (d / "e/f/scan.xyz").is_file()
-    argv = ["calibrate", d / "obs.csv", "--no-vce", "--json", d / "g/h/c.json"]
+    argv = [
+        "calibrate",
+        "--no-cross-validation",
+        d / "obs.csv",
+        "--no-vce",
+        "--json",
+        d / "g/h/c.json",
+    ]
     code, _, _ = run(argv + ["--plots", d / "i/j", "--report", d / "k/r.html"], capsys)
     assert code == 0
     for p in ("g/h/c.json", "i/j/residuals.png", "i/j/ap_correlations.png", "k/r.html"):
@@ -294,7 +308,15 @@ def test_implausible_and_ignored_values_are_warned_about(work, capsys):
     d = work
     before = _digest(d)
     code, out, err = run(
-        ["calibrate", d / "obs.csv", "--no-vce", "--sigma-range-mm", "0.3"], capsys
+        [
+            "calibrate",
+            "--no-cross-validation",
+            d / "obs.csv",
+            "--no-vce",
+            "--sigma-range-mm",
+            "0.3",
+        ],
+        capsys,
     )
     assert code == 0
     assert "warning: --sigma-range-mm 0.3 mm is ignored: every row of" in err
@@ -310,7 +332,15 @@ def test_a_not_estimable_ap_is_said_in_words(work, capsys):
     """A1 without scale (not estimable): no "nan" anywhere, no t, the JSON null with its
     reason."""
     d = work
-    argv = ["calibrate", d / "obs.csv", "--scans", d / "scans.csv", "--aps", "A0 A1 B6"]
+    argv = [
+        "calibrate",
+        "--no-cross-validation",
+        d / "obs.csv",
+        "--scans",
+        d / "scans.csv",
+        "--aps",
+        "A0 A1 B6",
+    ]
     code, out, err = run(argv + ["--json", d / "a1.json"], capsys)
     assert code == 0 and "nan" not in (out + err).lower()
     assert re.search(r"A1: not estimable \(scale is undefined.*\): no t", out)
@@ -325,7 +355,15 @@ def test_weakly_determined_aps_get_no_verdict(work, capsys):
     """23 APs from 5 targets (|corr| near 1): no "nan" anywhere, no "significant" for a weakly
     determined AP, the reason in the JSON and the likely cause named."""
     d = work
-    argv = ["calibrate", d / "obs5.csv", "--aps", "chow2013-noscale", "--json", d / "c5.json"]
+    argv = [
+        "calibrate",
+        "--no-cross-validation",
+        d / "obs5.csv",
+        "--aps",
+        "chow2013-noscale",
+        "--json",
+        d / "c5.json",
+    ]
     code, out, err = run(argv, capsys)
     doc = load_strict(d / "c5.json")
     weak = {w["name"] for w in doc["weakly_determined"]}
@@ -357,7 +395,15 @@ def test_a_run_whose_vce_failed_writes_no_estimates(work, capsys, monkeypatch):
 
     monkeypatch.setattr(_steps, "group_statistics", alternating)
     d = work
-    argv = ["calibrate", d / "obs.csv", "--scans", d / "scans.csv", "--json", d / "v.json"]
+    argv = [
+        "calibrate",
+        "--no-cross-validation",
+        d / "obs.csv",
+        "--scans",
+        d / "scans.csv",
+        "--json",
+        d / "v.json",
+    ]
     code, out, err = run(argv + ["--report", d / "v.html"], capsys)
     assert code == 1
     assert "no estimates: the variance components failed" in out
@@ -374,7 +420,14 @@ def test_a_run_whose_vce_failed_writes_no_estimates(work, capsys, monkeypatch):
 def test_single_scan_planes_and_too_few_targets_are_named(work, capsys):
     d = work
     # The AP set of test_weakly_determined_aps_get_no_verdict: one compiled adjustment.
-    argv = ["calibrate", d / "obs5.csv", "--no-vce", "--aps", "chow2013-noscale"]
+    argv = [
+        "calibrate",
+        "--no-cross-validation",
+        d / "obs5.csv",
+        "--no-vce",
+        "--aps",
+        "chow2013-noscale",
+    ]
     code, out, err = run(argv, capsys)
     assert code in (0, 1)
     assert "warning: 5 targets for 23 APs: fewer primitives than APs" in err
@@ -396,7 +449,10 @@ def test_single_scan_planes_and_too_few_targets_are_named(work, capsys):
             rows=np.arange(len(one)),
         ),
     )
-    code, out, err = run(["calibrate", "--planes", d / "planes1.csv", "--aps", "physical"], capsys)
+    code, out, err = run(
+        ["calibrate", "--no-cross-validation", "--planes", d / "planes1.csv", "--aps", "physical"],
+        capsys,
+    )
     assert "warning: 1 scan for 4 AP(s)" in err
     assert code in (0, 1) and "nan" not in out.lower()
 
@@ -556,5 +612,7 @@ def test_ctrl_c_exits_130(work, capsys, monkeypatch):
         raise KeyboardInterrupt
 
     monkeypatch.setattr(tj, "read_network", interrupted)  # what tlsjax calibrate calls
-    code, out, err = run(["calibrate", work / "obs.csv", "--json", work / "c.json"], capsys)
+    code, out, err = run(
+        ["calibrate", "--no-cross-validation", work / "obs.csv", "--json", work / "c.json"], capsys
+    )
     assert code == 130 and "interrupted" in err and not (work / "c.json").exists()

@@ -50,7 +50,19 @@ def files(tmp_path_factory):
     d.mkdir()
     argv = ["simulate", "--out", d / "obs.csv", "--scans-out", d / "scans.csv", "--targets"]
     assert main([str(a) for a in argv + [N_TARGETS, "--seed", "3"]]) == 0
-    assert main(["calibrate", str(d / "obs.csv"), "--no-vce", "--json", str(d / "cal.json")]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                "--no-cross-validation",
+                str(d / "obs.csv"),
+                "--no-vce",
+                "--json",
+                str(d / "cal.json"),
+            ]
+        )
+        == 0
+    )
     rng = np.random.default_rng(1)
     x = rng.normal(size=(60, 3)) * 3.0 + [5.0, 1.0, 0.5]
     write_xyz(d / "c.xyz", x)
@@ -159,7 +171,16 @@ def test_malformed_tables_at_the_reader(files, data):
 def test_malformed_tables_at_calibrate(files, data):
     text = data.draw(mutated_table((files / "obs.csv").read_text()))
     with _table_file(text) as (d, path):
-        code, err = _cli(["calibrate", path, "--no-vce", "--json", os.path.join(d, "c.json")])
+        code, err = _cli(
+            [
+                "calibrate",
+                "--no-cross-validation",
+                path,
+                "--no-vce",
+                "--json",
+                os.path.join(d, "c.json"),
+            ]
+        )
         _assert_outcome(code, err, "calibrate")
 
 
@@ -266,7 +287,10 @@ def test_malformed_plane_files(files, data):
             tj.read_planes(path)
         except Exception as exc:  # noqa: BLE001
             _assert_clear(exc, path)
-        _assert_outcome(*_cli(["calibrate", "--planes", path, "--no-screen"]), "calibrate")
+        _assert_outcome(
+            *_cli(["calibrate", "--no-cross-validation", "--planes", path, "--no-screen"]),
+            "calibrate",
+        )
 
 
 @settings(max_examples=25)

@@ -112,3 +112,93 @@ def test_full_collimation_with_levelled_hybrid_scans_is_weak_not_missing():
     res_t = tj.calibrate(tilted.network, tj.CalibrationModel(tj.Scanner(aps="A0 B6full B7 C0")))
     i = res_t.ap_names.index("B6full")
     assert res_t.ap_max_abs_corr[i] < corr
+
+
+def _one_station_network(pair=("S1", "S5")):
+    """Two scans from one station, one levelled and one rolled by 45 deg: the tilt separates
+    B6, B7 and C0, but no scan from elsewhere separates A0 from the targets' distances.
+    ``pair=("S1", "S2")``: two levelled scans, 60 deg apart in kappa."""
+    room = tj.Room(n_targets=30, stations=((4.5, 4.0, 1.6), (4.5, 4.0, 1.6)))
+    net = tj.simulate(room, seed=3, tilted=True, aps="A0 B6 B7 C0").network
+    keep = np.isin(np.asarray(net.scans)[net.scan_index], pair)
+    lev = {
+        s: dict(omega=net.levelling[j, 0], phi=net.levelling[j, 1], sigma_omega=net.levelling_sigma[j, 0], sigma_phi=net.levelling_sigma[j, 1])
+        for j, s in enumerate(net.scans) if s in pair and np.isfinite(net.levelling_sigma[j, 0])
+    }  # fmt: skip
+    return tj.make_network(
+        list(np.asarray(net.scans)[net.scan_index][keep]),
+        list(np.asarray(net.targets)[net.target_index][keep]),
+        net.observations[keep],
+        levelling=lev,
+    )
+
+
+def test_an_ap_held_at_zero_is_absent_from_the_solution():
+    """SPEC 7, "held at zero means absent" (issue 41.4): every output of the default model on
+    a one-station design equals that of the model without the non-estimable A0, and the
+    targets lie at their observed ranges to the residual level. The start is the approximate
+    values with the scan positions moved by decimetres, as a real network's may be: the first
+    iterations then see A0 weakly separated and move it, and the targets carried that value."""
+    net = _one_station_network()
+    start = tj.analyze(net).initial
+    eops = np.asarray(start.eops).copy()
+    eops[:, :3] += np.random.default_rng(1).normal(0, 0.3, (2, 3))
+    initial = (np.asarray(start.prims[0]), eops)
+    res = tj.calibrate(net, initial=initial)
+    assert res.result == 2 and [n for n, *_ in res.not_estimable] == ["A0"]
+    assert np.isnan(res.ap_values[0]) and np.isnan(res.ap_sigmas[0]) and res.ap_fixed == ()
+    ref = tj.calibrate(net, tj.CalibrationModel(tj.Scanner(aps="B6 B7 C0")), initial=initial)
+    assert ref.result == 0, ref.message
+    assert res.dof == ref.dof and res.n_unknowns == ref.n_unknowns
+    np.testing.assert_allclose(res.sigma0, ref.sigma0, rtol=1e-6)
+    np.testing.assert_allclose(res.ap_values[1:], ref.ap_values, rtol=1e-6)
+    np.testing.assert_allclose(res.ap_sigmas[1:], ref.ap_sigmas, rtol=1e-6)
+    for field in ("target_xyz", "eops", "residuals", "redundancy"):
+        np.testing.assert_allclose(getattr(res, field), getattr(ref, field), atol=1e-8)
+    for field in ("target_sigmas", "eop_sigmas"):
+        np.testing.assert_allclose(getattr(res, field), getattr(ref, field), rtol=1e-5)
+    # The adjusted targets lie at the observed ranges: the mean misfit is far below the range
+    # noise (0.5 mm), not the tens of millimetres of an A0 carried by the targets.
+    d = (
+        np.linalg.norm(res.target_xyz[net.target_index] - res.eops[net.scan_index, :3], axis=1)
+        - net.observations[:, 0]
+    )
+    np.testing.assert_allclose(d, res.residuals[:, 0], atol=1e-9)
+    assert abs(d.mean()) < 0.1e-3
+
+
+def test_removals_that_leave_a_target_undetermined_pin_it():
+    """Two levelled scans from one station and a range 5 cm off: the residuals of the two
+    ranges of that target are equal and opposite, both are removed, and its angles alone (from
+    one point) do not fix its distance, though they are four observations from two scans. The
+    target is pinned (its other observations removed, reported without a w-test) and the
+    adjustment converges instead of running into the iteration limit with a singular block."""
+    net = _one_station_network(("S1", "S2"))
+    obs = net.observations.copy()
+    row = int(np.flatnonzero(net.target_index == 5)[0])
+    obs[row, 0] += 0.05
+    options = tj.CalibrationOptions(
+        vce=None, tests=tj.TestOptions(score_tests=False), cross_validation=None
+    )
+    tested = tj.self_calibrate(net.with_observations(obs), None, options)
+    assert tested.calibration.converged and tested.calibration.ok
+    name = net.targets[5]
+    assert name in tested.pinned_targets
+    gone = [o for o in tested.outliers if o.target == name]
+    assert {o.group for o in gone} == {"range", "hz", "el"}
+    assert "no w-test" in tested.summary()
+
+
+def test_no_range_term_is_proposed_from_one_station():
+    """From one station with two levelled scans a range term of range and elevation is a
+    change of the targets' distances: none is a candidate, even the short-period cyclic ones
+    that the noise between the two scans' estimated positions would let pass a rank test (the
+    design's scans are placed at their station, tlsjax._inference._score). A range term of the
+    horizontal direction (A7, A8) is separated by the scans' 60 deg turn and stays one."""
+    net = _one_station_network(("S1", "S2"))
+    none = tj.CalibrationModel(tj.Scanner(aps="none"))
+    tests = tj.score_tests(net, none, tj.calibrate(net, none))
+    for name in ("A0", "A1", "A2", "A3", "A4", "A5", "A6"):
+        t = tests.test(name)
+        assert not t.testable and "absorbed by the target" in t.note, (t.name, t.note)
+    assert tests.test("A7").testable and tests.test("A8").testable

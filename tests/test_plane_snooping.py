@@ -31,7 +31,7 @@ def planted():
     obs[bad, 0] += error
     bnet = dataclasses.replace(net, plane_observations=obs)
     model = tj.CalibrationModel(pc.scanner)
-    snooping = tj.CalibrationOptions(snooping=tj.SnoopingOptions())
+    snooping = tj.CalibrationOptions(cross_validation=None, snooping=tj.SnoopingOptions())
     return pc, net, bnet, bad, model, tj.self_calibrate(bnet, model, snooping)
 
 
@@ -90,7 +90,7 @@ def test_plane_w_squared_is_the_drop_of_vtpv_without_the_point(planted):
     ``w_i^2`` equals the reduction of ``v^T P v`` when point i is left out (exact in the
     linear model; to 1e-3 here, the Gauss-Helmert conditions are slightly nonlinear)."""
     _, net, _, _, model, _ = planted
-    options = tj.CalibrationOptions(screening=None, plane_screening=None)
+    options = tj.CalibrationOptions(cross_validation=None, screening=None, plane_screening=None)
     tested = tj.self_calibrate(net, model, options)
     res = tested.calibration
     omega = res.sigma0**2 * res.dof

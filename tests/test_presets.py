@@ -179,6 +179,6 @@ def test_none_calibrates_planes_and_selection_starts_from_it():
     sel = tj.self_calibrate(
         sim.network,
         tj.CalibrationModel(tj.Scanner(aps="none")),
-        tj.CalibrationOptions(vce=None, selection=selection),
+        tj.CalibrationOptions(cross_validation=None, vce=None, selection=selection),
     ).selection
     assert set(sel.aps) >= {"A0", "B7"}, sel.aps

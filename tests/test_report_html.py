@@ -25,10 +25,27 @@ def calibrated(tmp_path_factory):
     d = tmp_path_factory.mktemp("report")
     obs, scans = d / "obs.csv", d / "scans.csv"
     assert main(["simulate", "--out", str(obs), "--scans-out", str(scans), "--seed", "4"]) == 0
-    args = ["calibrate", str(obs), "--scans", str(scans), "--aps", "A0 A1 B6 B7 C0", "--snoop"]
+    args = [
+        "calibrate",
+        "--no-cross-validation",
+        str(obs),
+        "--scans",
+        str(scans),
+        "--aps",
+        "A0 A1 B6 B7 C0",
+        "--snoop",
+    ]
     args += ["--json", str(d / "cal.json"), "--report", str(d / "report.html")]
     assert main(args) == 0
-    plain = ["calibrate", str(obs), "--scans", str(scans), "--no-vce", "--no-screen"]
+    plain = [
+        "calibrate",
+        "--no-cross-validation",
+        str(obs),
+        "--scans",
+        str(scans),
+        "--no-vce",
+        "--no-screen",
+    ]
     plain += ["--json", str(d / "p.json")]
     assert main(plain) == 0
     return d

@@ -54,6 +54,7 @@ def run(tmp_path_factory):
     rc = main(
         [
             "calibrate",
+            "--no-cross-validation",
             str(obs),
             "--scans",
             str(scans),

@@ -87,7 +87,19 @@ def test_cli_screens_plane_points_by_default(clouds, tmp_path, capsys):
     path, out = tmp_path / "planes.csv", tmp_path / "r.json"
     write_observations(path, table)
     assert (
-        main(["calibrate", "--planes", str(path), "--plane-spacing", "0", "--json", str(out)]) == 0
+        main(
+            [
+                "calibrate",
+                "--no-cross-validation",
+                "--planes",
+                str(path),
+                "--plane-spacing",
+                "0",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
     )
     printed = capsys.readouterr().out
     assert "plane outlier screening" in printed
@@ -96,7 +108,9 @@ def test_cli_screens_plane_points_by_default(clouds, tmp_path, capsys):
     assert js["n_plane_points"] == len(net.plane_index) - js["plane_screening"]["n_removed"]
     # What the command printed and wrote is the entry's result (plane networks: no VCE).
     result = tj.self_calibrate(
-        tj.read_network(planes=str(path)), tj.CalibrationModel(), tj.CalibrationOptions(vce=None)
+        tj.read_network(planes=str(path)),
+        tj.CalibrationModel(),
+        tj.CalibrationOptions(cross_validation=None, vce=None),
     )
     same_run(js, result.to_dict())
     printed_is_summary(printed, result.summary())

@@ -54,7 +54,7 @@ def _removed(tested):
 def test_planted_blunders_found_on_their_observations_only(seed, aps):
     net, gross, changed = _plant_blunders(_room(seed).network, seed)
     model = tj.CalibrationModel(tj.Scanner(aps=aps))
-    r = tj.self_calibrate(net, model)
+    r = tj.self_calibrate(net, model, Opts(cross_validation=None))
     assert r.ok and r.calibration.ok
     removed = _removed(r)
     assert gross <= removed  # every gross error found ...
@@ -64,11 +64,11 @@ def test_planted_blunders_found_on_their_observations_only(seed, aps):
 
 def test_screening_runs_without_vce_and_only_its_own_flag_turns_it_off():
     net, gross, changed = _plant_blunders(_room(4).network, 4)
-    on = tj.self_calibrate(net, MODEL, Opts(vce=None))
+    on = tj.self_calibrate(net, MODEL, Opts(cross_validation=None, vce=None))
     assert on.calibration.ok and gross <= _removed(on) <= changed
     assert all(vc.factor == 1.0 for vc in on.variance_components)  # a priori weights kept
     assert on.to_dict()["screening"]["enabled"]
-    off = tj.self_calibrate(net, MODEL, Opts(vce=None, screening=None))
+    off = tj.self_calibrate(net, MODEL, Opts(cross_validation=None, vce=None, screening=None))
     assert not off.outliers
 
 
@@ -76,7 +76,9 @@ def test_one_dominant_blunder_is_named_not_a_unit_mix_up():
     net = _room(5).network
     obs = net.observations.copy()
     obs[7, 0] += 2.0
-    r = tj.self_calibrate(net.with_observations(obs), MODEL, Opts(screening=None))
+    r = tj.self_calibrate(
+        net.with_observations(obs), MODEL, Opts(cross_validation=None, screening=None)
+    )
     text = " ".join(r.warnings)
     assert "unit mix-up" not in text
     assert "one observation holds" in text and net.targets[net.target_index[7]] in text
@@ -141,7 +143,9 @@ def test_score_test_power_at_five_sigma_and_size_under_the_null():
 def test_selection_with_a_gross_error_ends_where_it_ends_on_the_clean_file():
     s = tj.simulate(ROOM, seed=1, aps="A0 B6 B7 C0 C4")
     net = s.network
-    options = Opts(vce=None, selection=tj.SelectionOptions(candidates="A3 B8 C2 C4 C9"))
+    options = Opts(
+        cross_validation=None, vce=None, selection=tj.SelectionOptions(candidates="A3 B8 C2 C4 C9")
+    )
     clean = tj.self_calibrate(net, MODEL, options).selection
     obs = net.observations.copy()
     obs[11, 0] += 2.0

@@ -53,7 +53,9 @@ def test_mdb_and_external_reliability_by_direct_readjustment(sim):
     from tlsjax._stats import non_centrality
 
     net = sim.network
-    base = tj.self_calibrate(net, MODEL, tj.CalibrationOptions(screening=None, vce=None))
+    base = tj.self_calibrate(
+        net, MODEL, tj.CalibrationOptions(cross_validation=None, screening=None, vce=None)
+    )
     delta0 = non_centrality()
     for i, g in ((5, 0), (40, 1), (77, 2)):
         obs = net.observations.copy()
@@ -61,7 +63,7 @@ def test_mdb_and_external_reliability_by_direct_readjustment(sim):
         r2 = tj.self_calibrate(
             net.with_observations(obs),
             MODEL,
-            tj.CalibrationOptions(screening=None, vce=None),
+            tj.CalibrationOptions(cross_validation=None, screening=None, vce=None),
         )
         assert np.isclose(abs(r2.w[i, g] - base.w[i, g]), delta0, rtol=2e-3)
         s0 = base.calibration.sigma0
@@ -75,7 +77,11 @@ def test_mdb_and_external_reliability_by_direct_readjustment(sim):
 def test_vce_fixed_point_and_recovery(sim):
     net = sim.network
     wrong = dataclasses.replace(net, sigmas=net.sigmas * np.array([2.0, 0.5, 1.0]))
-    r = tj.self_calibrate(wrong, MODEL, tj.CalibrationOptions(vce=tj.VCEOptions(tolerance=1e-4)))
+    r = tj.self_calibrate(
+        wrong,
+        MODEL,
+        tj.CalibrationOptions(cross_validation=None, vce=tj.VCEOptions(tolerance=1e-4)),
+    )
     res = r.calibration
     # Fixed point: with the re-estimated sigmas every group's v^T P v / r_g is 1.
     for g, name in enumerate(("range", "hz", "el")):
@@ -94,11 +100,15 @@ def test_reweighting_and_masking_do_not_recompile(sim):
     obs[50, 2] -= 30 * net.sigmas[50, 2]
     bad = net.with_observations(obs)
     tj.self_calibrate(
-        bad, MODEL, tj.CalibrationOptions(snooping=tj.SnoopingOptions())
+        bad, MODEL, tj.CalibrationOptions(cross_validation=None, snooping=tj.SnoopingOptions())
     )  # compiles this (spec, shapes) once
     with compiled_programs() as compiled:
         r = tj.self_calibrate(
-            bad, MODEL, tj.CalibrationOptions(snooping=tj.SnoopingOptions(w_test_level=0.0001))
+            bad,
+            MODEL,
+            tj.CalibrationOptions(
+                cross_validation=None, snooping=tj.SnoopingOptions(w_test_level=0.0001)
+            ),
         )
     assert r.n_adjustments > 3  # VCE iterations and removals all ran the compiled adjustment
     assert sum(compiled.values()) == 0, dict(compiled)
@@ -133,7 +143,9 @@ def test_snooping_finds_blunders_without_false_removals(seed):
     r = tj.self_calibrate(
         net.with_observations(obs),
         MODEL,
-        tj.CalibrationOptions(snooping=tj.SnoopingOptions(w_test_level=0.05, bonferroni=True)),
+        tj.CalibrationOptions(
+            cross_validation=None, snooping=tj.SnoopingOptions(w_test_level=0.05, bonferroni=True)
+        ),
     )
     removed = {(o.row, ("range", "hz", "el").index(o.group)) for o in r.outliers}
     assert removed == set(zip(rows.tolist(), cols.tolist()))
@@ -166,7 +178,7 @@ def test_target_removal_and_undetermined_target(sim):
 
 def test_ap_t_tests_and_insignificant_term():
     s = tj.simulate(tj.Room(n_targets=36), seed=4, aps="A0 B7 C0")
-    r = tj.self_calibrate(s.network, MODEL, tj.CalibrationOptions(vce=None))
+    r = tj.self_calibrate(s.network, MODEL, tj.CalibrationOptions(cross_validation=None, vce=None))
     t = {a.name: a for a in r.ap_tests}
     assert t["A0"].significant and t["B7"].significant and t["C0"].significant
     assert not t["B6"].significant  # B6 is not in the data
@@ -205,7 +217,8 @@ def test_testing_fields_are_strict_json(sim):
         net.with_observations(obs),
         MODEL,
         tj.CalibrationOptions(
-            snooping=tj.SnoopingOptions(removal="target", w_test_level=0.05, bonferroni=True)
+            cross_validation=None,
+            snooping=tj.SnoopingOptions(removal="target", w_test_level=0.05, bonferroni=True),
         ),
     )
     d = r.testing_fields()
@@ -221,7 +234,7 @@ def test_stepwise_selection_adds_the_true_term_and_rejects_a_spurious_one():
     sel = tj.self_calibrate(
         s.network,
         tj.CalibrationModel(tj.Scanner(aps=())),
-        tj.CalibrationOptions(vce=None, selection=selection),
+        tj.CalibrationOptions(cross_validation=None, vce=None, selection=selection),
     ).selection
     assert sel.aps == ("A0",)
     actions = [(st.action, st.term) for st in sel.steps if st.action != "try"]
@@ -271,7 +284,9 @@ def test_removed_observation_is_left_out_of_the_redundancy_means():
         net.with_observations(obs),
         tj.CalibrationModel(sim.scanner),
         tj.CalibrationOptions(
-            vce=None, snooping=tj.SnoopingOptions(bonferroni=True, w_test_level=0.05)
+            cross_validation=None,
+            vce=None,
+            snooping=tj.SnoopingOptions(bonferroni=True, w_test_level=0.05),
         ),
     )
     res = tested.calibration

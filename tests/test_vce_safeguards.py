@@ -18,7 +18,7 @@ from tlsjax import VCEResult
 
 APS = "A0 B6 B7 C0"
 MODEL = tj.CalibrationModel(tj.Scanner(aps=APS))
-NO_SNOOP = tj.CalibrationOptions()
+NO_SNOOP = tj.CalibrationOptions(cross_validation=None)
 
 
 @pytest.fixture(scope="module")
@@ -46,7 +46,9 @@ def test_blunders_are_screened_out_before_vce(sim):
     for (i, g), e in bad.items():
         obs[i, g] += e
     # Screening itself, without the robust start before it (tests/test_robust_start.py).
-    no_robust_start = tj.CalibrationOptions(screening=tj.ScreeningOptions(robust_start=False))
+    no_robust_start = tj.CalibrationOptions(
+        cross_validation=None, screening=tj.ScreeningOptions(robust_start=False)
+    )
     r = tj.self_calibrate(net.with_observations(obs), MODEL, no_robust_start)
     assert {(o.row, ("range", "hz", "el").index(o.group)) for o in r.outliers} == set(bad)
     assert all(o.reason.startswith("screening before VCE") for o in r.outliers)
@@ -70,7 +72,11 @@ def test_without_screening_the_inflated_factors_are_named(sim):
     net = sim.network
     obs = net.observations.copy()
     obs[10, 0] += 1.0
-    r = tj.self_calibrate(net.with_observations(obs), MODEL, tj.CalibrationOptions(screening=None))
+    r = tj.self_calibrate(
+        net.with_observations(obs),
+        MODEL,
+        tj.CalibrationOptions(cross_validation=None, screening=None),
+    )
     assert r.outliers == () and r.a_priori_tests[0]["groups"]["range"]["accepted"] is False
     f = {vc.group: vc.factor for vc in r.variance_components}
     assert f["range"] > 25  # VCE absorbed the blunder ...
@@ -112,7 +118,11 @@ def test_unit_mixups_are_named(sim):
 
 def test_noise_free_data_stop_vce_with_a_reason():
     s = tj.simulate(tj.Room(n_targets=36), seed=11, aps=APS, noise=False)
-    r = tj.self_calibrate(s.network, MODEL, tj.CalibrationOptions(snooping=tj.SnoopingOptions()))
+    r = tj.self_calibrate(
+        s.network,
+        MODEL,
+        tj.CalibrationOptions(cross_validation=None, snooping=tj.SnoopingOptions()),
+    )
     assert r.vce_result == VCEResult.NOISE_FREE and r.ok
     assert all(vc.factor == 1.0 and not vc.estimated for vc in r.variance_components)
     assert r.outliers == ()
@@ -125,7 +135,9 @@ def test_noise_free_data_stop_vce_with_a_reason():
 
 def test_sigmas_far_too_small_are_named_not_nan(sim):
     r = tj.self_calibrate(
-        _scaled(sim.network, 1e-6), MODEL, tj.CalibrationOptions(snooping=tj.SnoopingOptions())
+        _scaled(sim.network, 1e-6),
+        MODEL,
+        tj.CalibrationOptions(cross_validation=None, snooping=tj.SnoopingOptions()),
     )
     d = _strict(r)
     assert any("1e+06 times too small" in w or "1.0" in w and "too small" in w for w in r.warnings)
@@ -139,15 +151,23 @@ def test_safeguards_stop_with_their_codes(sim, monkeypatch):
     from tlsjax._inference import _steps
 
     net = sim.network
-    r = tj.self_calibrate(net, MODEL, tj.CalibrationOptions(vce=tj.VCEOptions(min_redundancy=1e6)))
+    r = tj.self_calibrate(
+        net,
+        MODEL,
+        tj.CalibrationOptions(cross_validation=None, vce=tj.VCEOptions(min_redundancy=1e6)),
+    )
     assert r.vce_result == VCEResult.NO_REDUNDANCY and r.ok
     assert all("redundancy" in vc.note for vc in r.variance_components)
     r = tj.self_calibrate(
-        _scaled(net, 2.0), MODEL, tj.CalibrationOptions(vce=tj.VCEOptions(max_iterations=1))
+        _scaled(net, 2.0),
+        MODEL,
+        tj.CalibrationOptions(cross_validation=None, vce=tj.VCEOptions(max_iterations=1)),
     )
     assert r.vce_result == VCEResult.MAX_ITERATIONS and not r.ok and r.calibration.ok
     monkeypatch.setattr(_steps, "VCE_FACTOR_LIMIT", 100.0)
-    r = tj.self_calibrate(_scaled(net, 1 / 40), MODEL, tj.CalibrationOptions(screening=None))
+    r = tj.self_calibrate(
+        _scaled(net, 1 / 40), MODEL, tj.CalibrationOptions(cross_validation=None, screening=None)
+    )
     assert r.vce_result == VCEResult.FACTOR_LIMIT and "beyond" in " ".join(r.warnings)
     assert all(vc.factor == 1.0 for vc in r.variance_components)
     _strict(r)
@@ -171,7 +191,9 @@ def test_oscillating_factors_are_damped_and_reported(sim, monkeypatch):
     r = tj.self_calibrate(
         sim.network,
         MODEL,
-        tj.CalibrationOptions(screening=None, vce=tj.VCEOptions(max_iterations=8)),
+        tj.CalibrationOptions(
+            cross_validation=None, screening=None, vce=tj.VCEOptions(max_iterations=8)
+        ),
     )
     assert r.vce_result == VCEResult.OSCILLATING
     f = np.array([h["factors"][:3] for h in r.history if "vce_iteration" in h])

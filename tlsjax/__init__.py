@@ -79,6 +79,9 @@ from ._design._optimize import DesignOptimisation as DesignOptimisation
 from ._design._optimize import DesignSpace as DesignSpace
 from ._design._optimize import optimize_design as optimize_design
 from ._inference._apset import APSet as APSet
+from ._inference._architecture import ArchitectureComparison as ArchitectureComparison
+from ._inference._architecture import ArchitectureFit as ArchitectureFit
+from ._inference._architecture import compare_architectures as compare_architectures
 from ._inference._checkpoints import CheckpointReport as CheckpointReport
 from ._inference._checkpoints import TargetCheck as TargetCheck
 from ._inference._checkpoints import assess_checkpoints as assess_checkpoints
@@ -88,6 +91,10 @@ from ._inference._compatibility import CompatibilityResult as CompatibilityResul
 from ._inference._compatibility import compatibility_batch as compatibility_batch
 from ._inference._compatibility import compatibility_statistic as compatibility_statistic
 from ._inference._compatibility import compatibility_test as compatibility_test
+from ._inference._crossval import CrossValidation as CrossValidation
+from ._inference._crossval import CrossValidationCode as CrossValidationCode
+from ._inference._crossval import CrossValidationOptions as CrossValidationOptions
+from ._inference._options import ArchitectureCheckOptions as ArchitectureCheckOptions
 from ._inference._options import CalibrationOptions as CalibrationOptions
 from ._inference._options import ScreeningOptions as ScreeningOptions
 from ._inference._options import SnoopingOptions as SnoopingOptions
@@ -98,6 +105,7 @@ from ._inference._outcome import VarianceComponent as VarianceComponent
 from ._inference._outcome import VCEResult as VCEResult
 from ._inference._robust import PlaneScreening as PlaneScreening
 from ._inference._robust import PlaneScreeningOptions as PlaneScreeningOptions
+from ._inference._run import cross_validate as cross_validate
 from ._inference._run import score_tests as score_tests
 from ._inference._score import ScoreTest as ScoreTest
 from ._inference._score import ScoreTests as ScoreTests

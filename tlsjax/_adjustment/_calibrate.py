@@ -28,7 +28,7 @@ from ._families import Params, grid_layout, on_grid
 from ._network import Network, check_calibration_arguments, network_design_warnings
 from ._plan import build_plan, initial_params
 from ._quality import quality_from, summary_from
-from ._result import CalibrationResult, assemble, result_code_of
+from ._result import CalibrationResult, assemble, not_estimable_aps, result_code_of
 from ._solver import adjust_linearised
 
 
@@ -94,6 +94,12 @@ def _to_device(a: np.ndarray):
 def _replace(module, **changes):
     """``dataclasses.replace`` for an ``eqx.Module`` (a dataclass)."""
     return dataclasses.replace(module, **changes)
+
+
+#: Pseudo-observation sigma [m] that holds a target at an estimate (``control`` of
+#: :meth:`Adjustment.problem`) where it has no observations left to determine it (removed as
+#: gross errors, or held out of a fold): it carries no information about anything else.
+PIN_SIGMA = 1.0
 
 
 class Adjustment:
@@ -241,16 +247,58 @@ class Adjustment:
             leaves, treedef = jax.tree.flatten(args)
         return _flat_run(self.plan.spec, treedef, self.options.full_covariance)(*leaves)
 
+    def run_estimable(self, problem=None, params0=None, options=None):
+        """The compiled adjustment with every AP it finds not estimable removed from the
+        unknowns (SPEC section 7, "held at zero means absent"): where the final factorisation
+        finds an AP dependent, it is diagnosed (what it is confounded with), added to the
+        problem's held parameters and the adjustment runs again from ``params0`` with that AP
+        at zero. Early iterations may still move such an AP (approximate poses can separate
+        it a little) and the other unknowns would carry that value; the re-run is exactly the
+        model without it (the held column is the identity in the factorisation), so every
+        estimate and output equals that model's to rounding. Costs one more run only when an
+        AP is not estimable; same shapes, nothing recompiles. ``options``: other solver
+        arrays (:meth:`SolverOptions.arrays`; None: this adjustment's).
+
+        Returns (plan with the problem solved, solver state, quality, absent) on the host,
+        ``absent`` the ``(name, confounded_with, reason)`` of the removed APs for
+        :func:`._result.assemble`.
+        """
+        problem = self.plan.problem if problem is None else problem
+        params0 = self.initial if params0 is None else params0
+        absent, n6 = (), 6 * self.plan.spec.n_scans
+        previous = None
+        # Each pass can only add held columns; an AP found in pass k is held in pass k + 1.
+        for _ in range(self.plan.spec.n_aps + 1):
+            # One transfer of every output to the host.
+            state, q = jax.device_get(self.run(problem, params0, options))
+            if previous is not None and not bool(state.converged):
+                # A design that barely determines the other unknowns (more APs than targets)
+                # may not converge from the start again; from the last pass's solution with
+                # the APs at zero it reaches the same minimum of the model without them.
+                state, q = jax.device_get(self.run(problem, previous, options))
+            plan = dataclasses.replace(self.plan, problem=problem)
+            dep = np.asarray(q.dependent)[n6:] & ~np.asarray(problem.fixed)[n6:]
+            if not dep.any() or not bool(state.finite):
+                break
+            absent += not_estimable_aps(plan, q, state, np.flatnonzero(dep))
+            fixed = np.asarray(problem.fixed).copy()
+            fixed[n6:] |= dep
+            problem = _replace(problem, fixed=_to_device(fixed))
+            params0 = _replace(params0, aps=_to_device(np.where(dep, 0.0, np.asarray(params0.aps))))
+            previous = _replace(
+                state.params, aps=_to_device(np.where(dep, 0.0, np.asarray(state.params.aps)))
+            )
+        return plan, state, q, absent
+
     def solve(self, *, initial=None, **weights) -> CalibrationResult:
         """Adjust (with the weights of :meth:`problem`, if given) and return the result.
-        ``initial``: (targets (t, 3), eops (s, 6)[, planes (k, 4)]) or a ``Params`` to start from."""
+        ``initial``: (targets (t, 3), eops (s, 6)[, planes (k, 4)]) or a ``Params`` to start
+        from. A not-estimable AP is absent from the solution (:meth:`run_estimable`)."""
         problem = self.problem(**weights) if weights else None
         if initial is not None and not isinstance(initial, Params):
             initial = initial_params(self.network, self.plan, *initial)
-        # One transfer of every output to the host.
-        state, q = jax.device_get(self.run(problem, initial))
-        plan = self.plan if problem is None else dataclasses.replace(self.plan, problem=problem)
-        return assemble(self.network, self.model, plan, state, q)
+        plan, state, q, absent = self.run_estimable(problem, initial)
+        return assemble(self.network, self.model, plan, state, q, absent)
 
 
 def analyze(

@@ -89,7 +89,7 @@ def confounded_partners(
         v[idx] = Q[jj] / d[idx]
         if k_over_n is not None and k_over_n[j] < ABSORBED:
             kind = "primitives"
-        elif _is_scale(v, params, ns):
+        elif is_scale(v, params, ns):
             kind = "scale"
         else:
             kind = "parameter"
@@ -97,7 +97,7 @@ def confounded_partners(
     return out
 
 
-def _is_scale(v, params, ns) -> bool:
+def is_scale(v, params, ns) -> bool:
     """True when the scan-position part of the null direction is a radial expansion."""
     S = np.asarray(params.eops)[:, :3]
     radial = (S - S.mean(axis=0)).reshape(-1)
@@ -105,6 +105,35 @@ def _is_scale(v, params, ns) -> bool:
     pos = pos - np.tile(pos.reshape(ns, 3).mean(axis=0), ns)
     den = np.linalg.norm(pos) * np.linalg.norm(radial)
     return bool(den > 0 and abs(pos @ radial) / den > 0.9)
+
+
+#: Scan positions closer than this [m] are one station of the design.
+STATION_TOLERANCE = 0.05
+
+
+def station_of_scans(eops, tolerance: float = STATION_TOLERANCE) -> np.ndarray:
+    """Station index of every scan (s,): scans whose positions are within ``tolerance`` of a
+    station's first scan share it (two scans of one set-up differ by the noise of their
+    estimated positions, which separates nothing that the design does not)."""
+    out, centres = np.zeros(len(eops), dtype=int), []
+    for j, x in enumerate(np.asarray(eops)[:, :3]):
+        for k, c in enumerate(centres):
+            if np.linalg.norm(x - c) < tolerance:
+                out[j] = k
+                break
+        else:
+            out[j] = len(centres)
+            centres.append(x)
+    return out
+
+
+def station_positions(eops, tolerance: float = STATION_TOLERANCE) -> np.ndarray:
+    """Every scan's position replaced by the mean position of its station (s, 3): the design
+    as set up, for estimability judged from the design rather than from noise."""
+    pos = np.asarray(eops)[:, :3]
+    st = station_of_scans(pos, tolerance)
+    means = np.stack([pos[st == k].mean(axis=0) for k in range(st.max() + 1)])
+    return means[st]
 
 
 #: Plane points of one scan whose mean distance from the adjusted plane exceeds this [m], and

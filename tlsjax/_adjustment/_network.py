@@ -31,8 +31,10 @@ class ObservationTable:
     ``sigmas`` is None when the file has no sigma column; a sigma column or cell that is absent
     is NaN (the caller fills the defaults). ``rows`` holds the 1-based line number of each row.
     ``architecture``: the scanner architecture the observations are expressed in (SPEC section
-    1), when the file records it (None: not recorded); ``notes``: what a reader decided (layout,
-    units and the rule that chose them) for the user to check.
+    1), when the file records it (None: not recorded); ``architecture_declared``: it was declared
+    when Cartesian target lists (which do not record it) were converted, not measured, so only
+    the fit can tell (``tlsjax calibrate`` compares both architectures then); ``notes``: what a
+    reader decided (layout, units and the rule that chose them) for the user to check.
     """
 
     kind: str
@@ -46,6 +48,7 @@ class ObservationTable:
     rows: np.ndarray
     architecture: str | None = None
     notes: tuple = ()
+    architecture_declared: bool = False
 
     def __len__(self) -> int:
         return len(self.scans)

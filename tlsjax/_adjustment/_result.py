@@ -288,15 +288,18 @@ def _n_stations(eops, tolerance: float = 0.05) -> int | None:
     return len(stations)
 
 
-def _ap_estimates(plan: Plan, q, state, s0sq):
+def _ap_estimates(plan: Plan, q, state, s0sq, absent=()):
     """AP values, a posteriori sigmas, t, the dependent (non-estimable) and fixed masks and the
-    AP covariance; non-estimable APs are NaN, never numbers."""
+    AP covariance; non-estimable APs are NaN, never numbers. ``absent``: AP indices an earlier
+    pass found not estimable and removed (held in this one; reported as not estimable)."""
     ns, na = plan.spec.n_scans, plan.spec.n_aps
     dep = np.asarray(q.dependent)
-    fixed = np.asarray(plan.problem.fixed)
+    fixed = np.asarray(plan.problem.fixed).copy()
     ap_idx = 6 * ns + np.arange(na)
-    ap_dep = dep[ap_idx] & ~fixed[ap_idx]
-    ap_fixed = fixed[ap_idx]
+    gone = np.zeros(na, dtype=bool)
+    gone[list(absent)] = True
+    ap_dep = (dep[ap_idx] & ~fixed[ap_idx]) | gone
+    ap_fixed = fixed[ap_idx] & ~gone
     Qzz = np.asarray(q.Qzz)
     values = np.asarray(state.params.aps).copy()
     sig = np.sqrt(np.clip(np.diag(Qzz)[ap_idx] * s0sq, 0, None))
@@ -409,9 +412,11 @@ def _observation_arrays(net: Network, plan: Plan, q, state, s0sq):
     return resid, redund, used, txyz, tsig, tcov, planes
 
 
-def assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
+def assemble(net, model, plan: Plan, state, q, absent: tuple = ()) -> CalibrationResult:
     """The arrays of one adjustment (state, quality) as a :class:`CalibrationResult` with
-    names, units, result code and message.
+    names, units, result code and message. ``absent``: the ``(name, confounded_with, reason)``
+    of the APs that earlier passes found not estimable and removed from the unknowns
+    (:meth:`tlsjax.Adjustment.run_estimable`): held in this pass, reported as not estimable.
 
     Long because a result holds some forty named fields, set here in one place; the computations
     are the helpers of this module.
@@ -421,7 +426,8 @@ def assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
     dof = float(q.dof)
     s0sq = float(q.vtpv) / dof if dof > 0 else np.nan
     s0sq_scale = s0sq if np.isfinite(s0sq) else 1.0
-    values, sig, tstat, ap_dep, ap_fixed, ap_cov = _ap_estimates(plan, q, state, s0sq)
+    gone = [plan.ap_labels.index(n) for n, *_ in absent]
+    values, sig, tstat, ap_dep, ap_fixed, ap_cov = _ap_estimates(plan, q, state, s0sq, gone)
     max_corr, partner = _max_correlations(plan, q, ap_dep | ap_fixed)
     dep = np.asarray(q.dependent)
     fixed = np.asarray(plan.problem.fixed)
@@ -429,7 +435,9 @@ def assemble(net, model, plan: Plan, state, q) -> CalibrationResult:
     names = plan.parameter_names
     eop_dep = dep[: 6 * ns] & ~fixed[: 6 * ns]
     rank_def = tuple(names[n_p + j] for j in np.flatnonzero(eop_dep))
-    not_est = _diagnose(plan, q, state, np.flatnonzero(ap_dep)) if ap_dep.any() else ()
+    new = np.flatnonzero(ap_dep & ~np.isin(np.arange(spec.n_aps), gone))
+    not_est = tuple(absent) + (not_estimable_aps(plan, q, state, new) if new.size else ())
+    not_est = tuple(sorted(not_est, key=lambda t: plan.ap_labels.index(t[0])))
     weak = tuple(
         (plan.ap_labels[i], partner[i], float(max_corr[i]))
         for i in range(spec.n_aps)
@@ -550,9 +558,10 @@ def _name_nearly_absorbed(plan: Plan, q, held, diagnosis: dict) -> None:
     diagnosis["summary"] = text + (f"; {diagnosis['summary']}" if diagnosis.get("summary") else "")
 
 
-def _diagnose(plan: Plan, q, state, columns):
-    """Name what each non-estimable AP (reduced indices ``6s + j``) is confounded with, in the
-    inner-constraint datum on the primitives (:mod:`._diagnose`)."""
+def not_estimable_aps(plan: Plan, q, state, columns) -> tuple:
+    """``(name, confounded_with, reason)`` of each non-estimable AP (``columns``: indices among
+    the APs): what it is confounded with, in the inner-constraint datum on the primitives
+    (:mod:`._diagnose`)."""
     ns = plan.spec.n_scans
     n_p = sum(int(np.prod(P.shape)) for P in state.params.prims)
     cols = [6 * ns + j for j in columns]

@@ -20,13 +20,41 @@ import numpy as np
 import tlsjax as tj
 
 from ._checks import correlation, positive_float, positive_int, probability, refuse_unless, warn
-from ._common import EXIT_FAILED, EXIT_OK, scanner_args
+from ._common import EXIT_FAILED, EXIT_NOT_IMPROVED, EXIT_OK, scanner_args
+
+#: The recommended path for a scanner owner, at the end of ``tlsjax calibrate --help``.
+RECOMMENDED_PATH = """\
+recommended path for a scanner owner (targets):
+  1. vendor target lists: tlsjax import-targets S*.txt --architecture hybrid --out obs.csv
+     (the lists do not record the architecture: calibrate then fits hybrid and panoramic
+     and warns when the other explains the data clearly better)
+  2. tlsjax calibrate obs.csv --scans scans.csv --select --json cal.json --report cal.html
+     gross errors out (robust start, screening); stepwise selection from the physical
+     model (A0 B6 B7 C0): terms enter and leave by one statistic, alternatives and the end
+     point are decided by the prediction of held-out scans; variance components; score
+     tests of the terms still missing (groups of alternatives, terms the design cannot
+     estimate); cross-validation of the result (held-out scans with the APs and without)
+  3. read the verdict: exit 0: a calibration (the cross-validation lines say whether it
+     improves held-out scans significantly); exit 4: it does not improve them: do not
+     apply it; exit 1: no calibration
+  4. with a reference survey: tlsjax check-targets cal.json obs.csv --reference survey.txt
+  5. apply it: tlsjax correct cal.json SCAN... --out corrected/
+"""
 
 
 def add_calibrate_parser(sub):
     """The options of ``tlsjax calibrate``, declared one after another (long because there are many
     of them; there is no logic here)."""
-    c = sub.add_parser("calibrate", help="self-calibrate from target and/or plane observations")
+    c = sub.add_parser(
+        "calibrate",
+        help="self-calibrate from target and/or plane observations",
+        description="Self-calibration: robust start and screening, VCE, score tests of missing "
+        "terms, optional stepwise selection, and cross-validation of held-out scans (tlsjax."
+        "self_calibrate). Exit codes: 0 a calibration, 1 none (failed, or implausible), 2 bad "
+        "input, 4 a calibration that does not improve the prediction of held-out scans.",
+        epilog=RECOMMENDED_PATH,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     c.add_argument(
         "observations",
         nargs="?",
@@ -191,7 +219,8 @@ def add_calibrate_parser(sub):
         "--select-alpha",
         type=probability,
         default=None,
-        help="significance level of the selection t-tests (default 0.01)",
+        help="family-wise level of the one statistic by which terms enter and leave the "
+        "selection (T / s0^2 and t^2; default 0.01)",
     )
     c.add_argument(
         "--max-correlation",
@@ -199,6 +228,25 @@ def add_calibrate_parser(sub):
         default=None,
         help="a term entered with a larger correlation with another unknown is reported as "
         "such in its selection step (default 0.9)",
+    )
+    c.add_argument(
+        "--cross-validation",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="cross-validation by scan groups: each scan held out where the rest keeps two "
+        "stations, the rest calibrated, the held-out scan corrected with its APs and placed "
+        "on its targets, the misfit with and without the APs (and with --select: the judge of "
+        "alternatives and of the end point). Default on; --no-cross-validation skips it (a "
+        "few adjustments per scan)",
+    )
+    c.add_argument(
+        "--check-architecture",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="fit hybrid and panoramic two-face, compare their sigma0 and cross-validated "
+        "misfit, warn when the one calibrated is clearly worse (two more calibrations). "
+        "Default: on for target observations whose file does not record the architecture or "
+        "only declares it (import-targets of vendor Cartesian lists), and no --architecture",
     )
     c.add_argument(
         "--targets-out",
@@ -377,7 +425,7 @@ def _read(args):
     observations, planes = read_tables(
         args.observations, args.planes, args.plane_spacing, args.phases
     )
-    args.architecture = _architecture(args.architecture, observations, planes)
+    args.architecture, known = _architecture(args.architecture, observations, planes)
     net = tj.read_network(
         observations,
         args.scans,
@@ -390,6 +438,8 @@ def _read(args):
     )
     if args.vce is None:
         args.vce = not net.has_planes
+    if args.check_architecture is None:
+        args.check_architecture = not known and net.has_targets and not net.has_planes
     if net.has_planes and args.vce:
         raise ValueError(
             "--vce is for target networks; with planes the weights are held fixed (SPEC section "
@@ -411,16 +461,23 @@ def _read(args):
     return net
 
 
-def _architecture(given, *tables) -> str:
-    """``given``, else the architecture recorded in the first table whose file records one
-    (files tlsjax writes), else hybrid; a mismatch is refused by ``read_network``."""
+def _architecture(given, *tables) -> tuple[str, bool]:
+    """(architecture, known): ``given``, else the architecture recorded in the first table
+    whose file records one (files tlsjax writes), else hybrid; a mismatch is refused by
+    ``read_network``. Not known where no file records it or a file only declares it (converted
+    from Cartesian target lists, which do not record it): the fit must tell."""
     if given is not None:
-        return given
+        return given, True
     for t in tables:
         if t is not None and t.architecture is not None:
-            print(f"{t.source}: {t.architecture} scanner (recorded in the file)")
-            return t.architecture
-    return "hybrid"
+            how = (
+                "declared when its Cartesian lists were imported"
+                if t.architecture_declared
+                else "recorded in the file"
+            )
+            print(f"{t.source}: {t.architecture} scanner ({how})")
+            return t.architecture, not t.architecture_declared
+    return "hybrid", False
 
 
 def _model(args, net) -> tj.CalibrationModel:
@@ -462,6 +519,8 @@ def _options(args) -> tj.CalibrationOptions:
             if args.select
             else None
         ),
+        cross_validation=tj.CrossValidationOptions() if args.cross_validation else None,
+        architecture_check=tj.ArchitectureCheckOptions() if args.check_architecture else None,
     )
 
 
@@ -510,7 +569,11 @@ def _calibrate(args) -> int:
         warn(note)
     print(result.summary())
     _write(result, args)
-    return EXIT_OK if result.ok else EXIT_FAILED
+    if not result.ok:
+        return EXIT_FAILED
+    # A calibration that predicts held-out scans no better than none is written (to be read)
+    # but not passed as one: a script that applies what exits 0 must not apply it.
+    return EXIT_NOT_IMPROVED if result.not_improved else EXIT_OK
 
 
 def _adjusting(net, options) -> str:
@@ -520,6 +583,8 @@ def _adjusting(net, options) -> str:
         what = "screening the plane points (IGG-III reweighting, one adjustment per round)"
     elif options.vce is not None or options.snooping is not None:
         what = "adjusting and testing (screening, VCE, snooping: one adjustment per step)"
+    if options.cross_validation is not None and net.has_targets:
+        what += ", then cross-validating (two adjustments per held-out scan)"
     counts = []
     if net.has_targets:
         counts.append(f"{net.observations.shape[0]} target observations")

@@ -7,6 +7,8 @@ import os
 from ._checks import positive_float, positive_int
 
 EXIT_OK, EXIT_FAILED, EXIT_BAD_INPUT, EXIT_INTERNAL = 0, 1, 2, 3
+#: ``tlsjax calibrate``: a calibration that does not improve the prediction of held-out scans.
+EXIT_NOT_IMPROVED = 4
 
 
 def scanner_args(p, default="hybrid", default_help="hybrid"):

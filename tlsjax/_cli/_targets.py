@@ -119,6 +119,11 @@ def add_check_targets_parser(sub):
         help="unit of the reference list (default: header, or detected from its spread)",
     )
     p.add_argument(
+        "--columns",
+        help="columns of the reference list in order, e.g. 'name,x,y,z' or 'name,-,x,y,z' "
+        "('-' a column to ignore; default: from its header or its numbers)",
+    )
+    p.add_argument(
         "--exclude", nargs="+", default=(), metavar="TARGET", help="targets to leave out"
     )
     p.add_argument(
@@ -160,7 +165,7 @@ def _check_targets(args) -> int:
             f"{args.observations}: recorded for a {table.architecture} scanner, but "
             f"{args.calibration} calibrates a {arch} scanner"
         )
-    reference = read_reference(args.reference, length_unit=args.length_unit)
+    reference = read_reference(args.reference, length_unit=args.length_unit, columns=args.columns)
     levelling = read_scans(args.scans) if args.scans else None
     chk = check_targets(
         table,

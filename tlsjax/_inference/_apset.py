@@ -159,8 +159,9 @@ class APSet:
         """From a converged :class:`tlsjax.CalibrationResult`: its values and its full AP
         covariance ``result.ap_covariance`` (a posteriori), the noise of its data (median a
         priori sigma per observation group times sigma0). ``scanner``: the settings it was
-        calibrated with (architecture, unit lengths; default hybrid). ``instrument``: the AP
-        block of one instrument of a network with several."""
+        calibrated with (architecture, unit lengths; default: the calibration's own, from
+        ``result.model``, so a panoramic calibration is compared as panoramic). ``instrument``:
+        the AP block of one instrument of a network with several."""
         if not bool(result.converged) or not result.ok:
             raise ValueError(
                 f"the calibration did not succeed (result {int(result.result)}: "
@@ -172,6 +173,8 @@ class APSet:
         if result.ap_covariance is None:
             raise ValueError("result has no AP covariance (ap_covariance is None)")
         idx, names = _instrument_block(tuple(result.ap_names), instrument, "<CalibrationResult>")
+        if scanner is None:
+            scanner = _result_scanner(result, instrument)
         C = np.asarray(result.ap_covariance, dtype=np.float64)[np.ix_(idx, idx)]
         return cls(
             names,
@@ -415,3 +418,19 @@ def _from_result_doc(cls, doc, source, instrument, architecture):
         notes.append(f"{source}: no 'ap_covariance' in the file: the APs are taken as uncorrelated")
     scanner, more = _scanner_of(doc, source, names, architecture)
     return cls(names, np.array(values), C, source, scanner, None, tuple(notes + more))
+
+
+def _result_scanner(result, instrument) -> Scanner | None:
+    """The Scanner a calibration was made with (its ``model``), for one instrument; None where
+    the result does not record it."""
+    model = getattr(result, "model", None)
+    scanner = getattr(model, "scanner", None)
+    if isinstance(scanner, Scanner) or scanner is None:
+        return scanner
+    instruments = tuple(result.network.instruments) if result.network is not None else ()
+    name = (
+        instrument
+        if instrument is not None
+        else (instruments[0] if len(instruments) == 1 else None)
+    )
+    return scanner.get(name) if name is not None else None

@@ -324,10 +324,49 @@ def _network_of(obs, architecture, levelling, notes):
     return net
 
 
-def _place(net, calibration, solver):
+def _gross_errors(net) -> np.ndarray:
+    """(n,) True for the target observations whose (scan, target) correspondence disagrees with
+    the other scans at the registered poses (:attr:`Approximation.target_inlier`: a target
+    metres off, a swapped name, a target in the wrong scan): gross errors that must not place a
+    target or a scan."""
+    from .._adjustment._approx._approximate import approximate
+
+    inlier = approximate(net).target_inlier
+    return np.zeros(len(net.observations), bool) if inlier is None else ~np.asarray(inlier)
+
+
+def _without_gross_errors(net, gross, notes: list) -> np.ndarray:
+    """The targets (t,) still seen in two scans once the observations ``gross`` are left out
+    (the others are not compared: one scan, or one of two disagreeing scans, places them); the
+    notes say what was left out."""
+    if not gross.any():
+        return np.ones(len(net.targets), dtype=bool)
+    keep = ~gross
+    pairs = np.unique(np.stack([net.target_index[keep], net.scan_index[keep]]), axis=1)
+    placed = np.bincount(pairs[0], minlength=len(net.targets)) >= 2
+    what = sorted(
+        {
+            f"{net.targets[net.target_index[i]]} in {net.scans[net.scan_index[i]]}"
+            for i in np.flatnonzero(gross)
+        }
+    )
+    notes.append(
+        f"{int(gross.sum())} observation(s) left out of the placement: inconsistent with the "
+        f"other scans (gross errors): {', '.join(what[:10])}"
+        + (
+            ""
+            if placed[np.unique(net.target_index[gross])].all()
+            else "; the target(s) they leave in one scan only are not compared"
+        )
+    )
+    return placed
+
+
+def _place(net, calibration, solver, gross=None):
     """Target coordinates of ``net`` adjusted with the APs held at zero, on the raw and on the
-    corrected observations ``l - Delta(l)``: {"without": result, "with": result}."""
-    from .._adjustment._calibrate import calibrate
+    corrected observations ``l - Delta(l)``: {"without": result, "with": result}. ``gross``:
+    observations left out (weight 0)."""
+    from .._adjustment._calibrate import analyze
     from .._adjustment._config import CalibrationModel
 
     names = tuple(calibration.scanner.aps) or ("A0",)
@@ -343,8 +382,14 @@ def _place(net, calibration, solver):
     model = CalibrationModel(scanner, fixed_aps=names)
     l = np.asarray(net.observations, dtype=np.float64)
     delta = np.asarray(ap_corrections(values, names, l, scanner))
+    weights = None
+    if gross is not None and gross.any():
+        weights = np.where(gross[:, None], 0.0, 1.0 / np.asarray(net.sigmas))
+    adj = analyze(net, model, solver)
     return {
-        case: calibrate(net.with_observations(obs), model, solver)
+        case: adj.solve(weights=weights)
+        if obs is l
+        else analyze(net.with_observations(obs), model, solver).solve(weights=weights)
         for case, obs in (("without", l), ("with", l - delta))
     }
 
@@ -418,8 +463,11 @@ def check_targets(
     net = _network_of(observations, calibration.scanner.architecture, levelling, notes)
     network = {c: {"rms": None, "message": "", "differences": {}} for c in ("without", "with")}
     names = ()
+    gross = None
     if net is not None:
-        common = [t for t in net.targets if t in ref]
+        gross = _gross_errors(net)
+        placed = _without_gross_errors(net, gross, notes)
+        common = [t for k, t in enumerate(net.targets) if t in ref and placed[k]]
         if len(common) < 3:
             raise ValueError(
                 f"{net.source}: {len(common)} target(s) in common with the reference; a "
@@ -428,7 +476,7 @@ def check_targets(
         names = tuple(common)
         idx = np.array([net.targets.index(t) for t in common])
         X_ref = np.stack([ref[t] for t in common])
-        for case, res in _place(net, calibration, options).items():
+        for case, res in _place(net, calibration, options, gross).items():
             entry = network[case]
             entry["message"] = res.message
             if not res.ok:
@@ -439,6 +487,25 @@ def check_targets(
             entry.update(rms=rms, scale_ppm=ppm, sigma0=float(res.sigma0))
             entry["differences"] = {t: d[k].tolist() for k, t in enumerate(common)}
     view = _index_view(observations)
+    if gross is not None and gross.any():  # the per-scan fits leave them out too
+        bad = {
+            (net.scans[net.scan_index[i]], net.targets[net.target_index[i]])
+            for i in np.flatnonzero(gross)
+        }
+        keep = np.array(
+            [
+                (view.scans[j], view.targets[t]) not in bad
+                for j, t in zip(view.scan_index, view.target_index)
+            ],
+            dtype=bool,
+        )
+        view = types.SimpleNamespace(
+            scans=view.scans,
+            targets=view.targets,
+            scan_index=view.scan_index[keep],
+            target_index=view.target_index[keep],
+            observations=view.observations[keep],
+        )
     try:
         per_scan = assess_checkpoints(
             view,

@@ -11,6 +11,10 @@ and 7), and :class:`CalibrationOptions`, which holds one of each.
   score tests of missing terms) and the reliability measures (the level and power an MDB is
   for);
 * :class:`tlsjax.SelectionOptions` (:mod:`._selection`): stepwise AP selection;
+* :class:`tlsjax.CrossValidationOptions` (:mod:`._crossval`): the prediction of held-out scans
+  that judges the calibration (and the alternatives and end point of a selection);
+* :class:`ArchitectureCheckOptions`: hybrid and panoramic fitted to the data and compared
+  (:mod:`._architecture`);
 * :class:`tlsjax.SolverOptions`: the adjustment itself.
 
 A concern set to None does not run (``CalibrationOptions(vce=None)``: no VCE). Every level is
@@ -24,6 +28,7 @@ import dataclasses
 from .._adjustment._config import SolverOptions
 from .._stats import ALPHA0, POWER, non_centrality
 from .._summary import Settings
+from ._crossval import CrossValidationOptions
 from ._robust import PlaneScreeningOptions
 from ._selection import SelectionOptions
 
@@ -162,6 +167,28 @@ class TestOptions(Settings):
         return non_centrality(self.mdb_level, self.mdb_power)
 
 
+@dataclasses.dataclass(frozen=True)
+class ArchitectureCheckOptions(Settings):
+    """The architecture from the data (:func:`tlsjax.compare_architectures`): hybrid and
+    panoramic two-face each calibrated with the robust start and screening and the a priori
+    weights, and cross-validated. One is clearly better when its cross-validated misfit is
+    lower by more than ``margin`` standard errors of the paired difference over the folds
+    (without folds: when the other's a priori sigma0 is more than ``sigma0_ratio`` times its
+    own). Costs two calibrations and their folds: for networks read from files that do not
+    record the architecture (vendor target lists, a CSV without it)."""
+
+    margin: float = 2.0
+    sigma0_ratio: float = 1.2
+
+    def __post_init__(self):
+        if not self.margin > 0:
+            raise ValueError(f"ArchitectureCheckOptions.margin must be positive, got {self.margin}")
+        if not self.sigma0_ratio > 1:
+            raise ValueError(
+                f"ArchitectureCheckOptions.sigma0_ratio must be > 1, got {self.sigma0_ratio}"
+            )
+
+
 #: The concerns of :class:`CalibrationOptions` and their types (None: the concern does not run).
 _CONCERNS = {
     "solver": SolverOptions,
@@ -171,6 +198,8 @@ _CONCERNS = {
     "snooping": SnoopingOptions,
     "tests": TestOptions,
     "selection": SelectionOptions,
+    "cross_validation": CrossValidationOptions,
+    "architecture_check": ArchitectureCheckOptions,
 }
 #: Concerns that always run (they cannot be None).
 _ALWAYS = ("solver", "tests")
@@ -188,7 +217,12 @@ class CalibrationOptions(Settings):
     held fixed); ``snooping`` (:class:`SnoopingOptions`, off); ``tests``
     (:class:`TestOptions`: levels of the global, group, AP and score tests, reliability);
     ``selection`` (:class:`tlsjax.SelectionOptions`: stepwise AP selection on the screened
-    observations, starting from the model's APs; off).
+    observations, starting from the model's APs; off); ``cross_validation``
+    (:class:`tlsjax.CrossValidationOptions`: held-out scans predicted with the calibration and
+    without, the judge of the calibration and of the selection's alternatives and end point;
+    on); ``architecture_check`` (:class:`ArchitectureCheckOptions`: hybrid and panoramic
+    fitted and compared, for data that do not record the architecture; off, ``tlsjax
+    calibrate`` turns it on for such files).
     """
 
     solver: SolverOptions = dataclasses.field(default_factory=SolverOptions)
@@ -200,6 +234,10 @@ class CalibrationOptions(Settings):
     snooping: SnoopingOptions | None = None
     tests: TestOptions = dataclasses.field(default_factory=TestOptions)
     selection: SelectionOptions | None = None
+    cross_validation: CrossValidationOptions | None = dataclasses.field(
+        default_factory=CrossValidationOptions
+    )
+    architecture_check: ArchitectureCheckOptions | None = None
 
     def __post_init__(self):
         for name, kind in _CONCERNS.items():

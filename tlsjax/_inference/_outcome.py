@@ -129,8 +129,10 @@ class TestedCalibration:
     (:class:`VCEResult`) says how VCE ended and ``vce_iterations`` counts its re-weighted
     adjustments; ``warnings`` name implausible variance factors (with a suspected unit
     mix-up) and other findings. ``selection`` (:class:`tlsjax.SelectionResult`),
-    ``plane_screening`` (:class:`tlsjax.PlaneScreening`) and ``score_tests``
-    (:class:`tlsjax.ScoreTests`): what those steps found (None where they did not run).
+    ``plane_screening`` (:class:`tlsjax.PlaneScreening`), ``score_tests``
+    (:class:`tlsjax.ScoreTests`) and ``cross_validation`` (:class:`tlsjax.CrossValidation`,
+    held-out scans predicted with the final model and weights): what those steps found (None
+    where they did not run).
 
     With planes (None without), per plane point in the network's plane row order: ``plane_mask``
     (m,) True where used, ``plane_w`` (m,) the w-test of its condition, ``plane_mdb`` (m, 3) the
@@ -172,6 +174,7 @@ class TestedCalibration:
     score_tests: object = None  # ._score.ScoreTests, or None (off, failed or planes)
     selection: object = None  # ._selection.SelectionResult, or None (no selection)
     plane_screening: object = None  # ._robust.PlaneScreening, or None (no IGG-III)
+    cross_validation: object = None  # ._crossval.CrossValidation, or None (off or failed)
 
     @property
     def weights_fitted(self) -> bool:
@@ -182,7 +185,8 @@ class TestedCalibration:
     def testing_fields(self) -> dict:
         """The result JSON's ``outliers`` and ``variance_components`` (SPEC section 11), how
         screening, VCE and snooping went, the a priori tests, the AP t-tests, the warnings, and
-        what the selection, the plane screening and the score tests found; NaN becomes null
+        what the selection, the plane screening, the score tests and the cross-validation
+        found; NaN becomes null
         (strict JSON). With VCE, ``global_test`` is the a priori test (before VCE, after
         screening): the test after VCE is not a test and is reported as such."""
         o = self.options
@@ -224,7 +228,7 @@ class TestedCalibration:
             "warnings": list(self.warnings),
             "testing_message": self.message,
         }
-        for name in ("selection", "plane_screening", "score_tests"):
+        for name in ("selection", "plane_screening", "score_tests", "cross_validation"):
             if getattr(self, name) is not None:
                 out[name] = getattr(self, name).to_dict()
         if self.a_priori_tests and self.weights_fitted:
@@ -238,8 +242,8 @@ class TestedCalibration:
 
     def testing_summary(self) -> str:
         """The text of what the steps found: the selection, the plane screening, the a priori
-        tests, the variance components, the removals, the warnings, the score tests and the AP
-        t-tests."""
+        tests, the variance components, the removals, the warnings, the score tests, the AP
+        t-tests and the cross-validation."""
         c = self.calibration
         lines = []
         if self.selection is not None:
@@ -276,9 +280,11 @@ class TestedCalibration:
         )
         for o in self.outliers:
             what = f"plane {o.target} point {o.row}" if o.group == "plane" else f"target {o.target}"
+            # A target left without redundancy has no test statistic: never printed as nan.
+            w = f"w = {o.w:.4g}" if np.isfinite(o.w) else "no w-test"
             lines.append(
                 f"    step {o.step}: scan {o.scan} {what} {o.group}: v = {o.residual:.4g} {o.unit}, "
-                f"w = {o.w:.4g} ({o.reason})"
+                f"{w} ({o.reason})"
             )
         for w in self.warnings:
             lines.append(f"warning: {w}")
@@ -289,6 +295,8 @@ class TestedCalibration:
             lines.append("  no AP t-tests: the run failed, its estimates are not a calibration")
         for t in self.ap_tests if usable else ():
             lines.append(f"  {t.describe()}")
+        if self.cross_validation is not None:
+            lines.append(self.cross_validation.summary())
         return "\n".join(lines)
 
 

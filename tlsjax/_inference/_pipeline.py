@@ -36,11 +36,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._adjustment._calibrate import analyze
+from .._adjustment._calibrate import PIN_SIGMA, analyze
 from .._adjustment._config import CalibrationModel, SolverOptions
 from .._adjustment._network import Network
 from .._adjustment._quality import condition_w_tests
 from .._adjustment._result import CalibrationResult, assemble
+from .._model._geometry import rotation_matrix
 from .._model._levelling import compensator_reading
 from .._model._planes import observation_residuals
 from .._model._scanner import Scanner
@@ -50,9 +51,6 @@ from ._outcome import GROUPS, Removal, VCEResult
 from ._score import ScoreTester
 from ._variance_factors import variance_factor
 
-#: Pseudo-observation sigma [m] that holds a target which lost all its testable observations
-#: at its last estimate; it carries no information about anything else (see :func:`remove`).
-PIN_SIGMA = 1.0
 #: Residual sigma of a group [m, rad, rad, rad] below which the residuals are rounding, not
 #: measurement noise (noise-free data: about 1e-15 m and 1e-16 rad in a float64 adjustment;
 #: the best scanners measure to 1e-4 m and 1e-6 rad).
@@ -116,9 +114,8 @@ class Reweighter:
             opts = eqx.tree_at(
                 lambda o: o.max_iterations, adj.options.arrays(), np.asarray(int(max_iterations))
             )
-        state, q = adj.run(problem, params0, opts)
-        plan = dataclasses.replace(self.plan, problem=problem)
-        res = assemble(self.net, self.model, plan, state, q)
+        plan, state, q, absent = adj.run_estimable(problem, params0, opts)
+        res = assemble(self.net, self.model, plan, state, q, absent)
         infl = np.zeros((self.net.observations.shape[0], 3, plan.spec.n_aps))
         for fi, rows in enumerate(plan.family_rows[: len(plan.family_targets)]):
             infl[rows] = np.asarray(q.ap_influence[fi])
@@ -246,7 +243,8 @@ class TestingState:
     (:mod:`._score`). ``robust_factor`` (n, 3): weight factors of a robust reweighting (the
     robust start; None: none); ``fixed_aps``: AP labels held at zero (None: the model's).
     ``model``: the model a step chose (selection; None: the context's); ``selection`` and
-    ``plane_screening``: what those steps found (:mod:`._selection`, :mod:`._robust`).
+    ``plane_screening``: what those steps found (:mod:`._selection`, :mod:`._robust`);
+    ``cross_validation``: the model's cross-validation by scan groups (:mod:`._crossval`).
     """
 
     factor: np.ndarray
@@ -274,6 +272,7 @@ class TestingState:
     model: CalibrationModel | None = None
     selection: object = None
     plane_screening: object = None
+    cross_validation: object = None
 
     @classmethod
     def initial(cls, ctx: TestingContext, critical_value: float) -> TestingState:
@@ -539,7 +538,8 @@ def _removal(net: Network, res: CalibrationResult, step: int, i: int, c: int, w,
 
 def _undetermined_targets(net: Network, res: CalibrationResult, mask, pinned: Mapping, step: int):
     """The remaining observations of targets that the removals left without redundancy
-    (observed in fewer than two scans or by fewer than four observations), removed and
+    (observed in fewer than two scans or by fewer than four observations) or undetermined
+    (their remaining observations do not fix three coordinates, :func:`_determined`), removed and
     reported, and the targets pinned at their last estimate. Such a target would otherwise be
     determined exactly by its last observations (nothing to test) or not at all (a rank
     defect). Returns (removals, mask, pinned), new objects."""
@@ -550,7 +550,7 @@ def _undetermined_targets(net: Network, res: CalibrationResult, mask, pinned: Ma
             continue
         rows = np.flatnonzero(net.target_index == t)
         n_scans = len(np.unique(net.scan_index[rows[active[rows]]]))
-        if n_scans >= 2 and int(mask[rows].sum()) >= 4:
+        if n_scans >= 2 and int(mask[rows].sum()) >= 4 and _determined(res, rows, mask[rows], t):
             continue
         why = "target left without redundancy by the removals; held at its last estimate"
         for i in rows:
@@ -560,6 +560,37 @@ def _undetermined_targets(net: Network, res: CalibrationResult, mask, pinned: Ma
                     mask[i, c] = False
         pinned[int(t)] = res.target_xyz[t].copy()
     return tuple(out), mask, pinned
+
+
+#: A target whose remaining observations' directions (unit gradients in object space) span 3D
+#: only to this ratio of their singular values is not determined by them.
+UNDETERMINED_RATIO = 1e-3
+
+
+def _determined(res: CalibrationResult, rows, mask, t: int) -> bool:
+    """Whether the remaining observations ``mask`` (k, 3) of target ``t`` (its rows) fix its
+    three coordinates: the unit gradients of its ranges (along the line of sight) and of its
+    directions and elevations (across it) span 3D. From one station with every range removed,
+    or every direction, they do not, though they are four or more from two scans."""
+    net = res.network
+    X = res.target_xyz[t]
+    grads = []
+    for i, m in zip(rows, mask):
+        j = net.scan_index[i]
+        R = np.asarray(rotation_matrix(*res.eops[j, 3:], xp=np))
+        x = R @ (X - res.eops[j, :3])
+        rho, th = np.linalg.norm(x), np.arctan2(x[1], x[0])
+        al = np.arcsin(np.clip(x[2] / rho, -1.0, 1.0))
+        local = (
+            x / rho,
+            np.array([-np.sin(th), np.cos(th), 0.0]),
+            np.array([-np.sin(al) * np.cos(th), -np.sin(al) * np.sin(th), np.cos(al)]),
+        )
+        grads += [R.T @ local[c] for c in range(3) if m[c]]
+    if len(grads) < 3:
+        return False
+    sv = np.linalg.svd(np.asarray(grads), compute_uv=False)
+    return bool(sv[-1] > UNDETERMINED_RATIO * sv[0])
 
 
 # --- Plane points (one Gauss-Helmert condition each) -----------------------------------------

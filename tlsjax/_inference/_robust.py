@@ -156,9 +156,8 @@ def _solve(adj, plane_weights, params):
     """One adjustment with other plane weights: the result, the quality arrays and the
     estimates (a warm start for the next)."""
     problem = adj.problem(plane_weights=plane_weights)
-    state, q = adj.run(problem, params)
-    plan = dataclasses.replace(adj.plan, problem=problem)
-    return assemble(adj.network, adj.model, plan, state, q), q, state.params
+    plan, state, q, absent = adj.run_estimable(problem, params)
+    return assemble(adj.network, adj.model, plan, state, q, absent), q, state.params
 
 
 def _per_pair(net: Network, removed):

@@ -30,6 +30,7 @@ from .._adjustment._network import Network
 from .._adjustment._plan import initial_params
 from .._adjustment._quality import external_reliability, minimal_detectable_bias, w_tests
 from .._stats import snooping_critical_value
+from ._crossval import CrossValidation, CrossValidationOptions, validate
 from ._options import CalibrationOptions, SnoopingOptions
 from ._outcome import GROUPS, TestedCalibration, VarianceComponent, VCEResult
 from ._pipeline import (
@@ -48,10 +49,15 @@ from ._variance_factors import implausible_factor
 
 
 def run_tests(
-    network: Network, model: CalibrationModel, options: CalibrationOptions, steps=PIPELINE
+    network: Network,
+    model: CalibrationModel,
+    options: CalibrationOptions,
+    steps=PIPELINE,
+    warnings: tuple = (),
 ) -> TestedCalibration:
     """Run ``steps`` (default the whole :data:`._steps.PIPELINE`) on ``network`` with
-    ``model`` and ``options`` (checked by the caller) and assemble what they found. Every
+    ``model`` and ``options`` (checked by the caller) and assemble what they found;
+    ``warnings``: what the caller found before (reported with the steps' own). Every
     re-adjustment is the one compiled adjustment of the model with other weights: nothing
     recompiles, except once for a model that selection chose."""
     ctx = TestingContext.make(network, model, options)
@@ -62,7 +68,8 @@ def run_tests(
         bonferroni=snooping.bonferroni,
         given=snooping.critical_value,
     )
-    state = run_pipeline(ctx, TestingState.initial(ctx, crit), steps)
+    start = dataclasses.replace(TestingState.initial(ctx, crit), warnings=tuple(warnings))
+    state = run_pipeline(ctx, start, steps)
     return tested_calibration(ctx.for_state(state), state)
 
 
@@ -130,6 +137,7 @@ def tested_calibration(ctx: TestingContext, state: TestingState) -> TestedCalibr
         score_tests=state.score_tests,
         selection=state.selection,
         plane_screening=state.plane_screening,
+        cross_validation=state.cross_validation,
         **planes,
     )
 
@@ -227,3 +235,29 @@ def score_tests(
     p = initial_params(network, tester.adjustment.plan, result.target_xyz, result.eops)
     narrow = Params(p.prims, p.eops, jnp.asarray(result.ap_values))
     return tester(narrow, alpha=options.tests.score_test_level)
+
+
+def cross_validate(
+    network: Network,
+    model: CalibrationModel | None = None,
+    options: CalibrationOptions | None = None,
+    *,
+    result=None,
+) -> CrossValidation:
+    """Cross-validation of ``model`` on ``network`` by scan groups (SPEC section 7,
+    "Prediction"; :mod:`._crossval`): each fold's scans held out, the rest adjusted (the one
+    compiled adjustment, held-out weights zeroed), the held-out scans corrected with the rest's
+    APs and placed by their own pose on its targets; the misfit RMS (3D and per axis, mm) with
+    the APs and with none, per fold and overall, and a code that says whether the calibration
+    improves the prediction. The cross-validation step of :func:`tlsjax.self_calibrate` on a
+    model and weights of one's own.
+
+    ``options``: the folds and placement (``options.cross_validation``, default
+    :class:`tlsjax.CrossValidationOptions`) and the solver. ``result``: a
+    :class:`tlsjax.CalibrationResult` of this network and model whose removed observations
+    stay out (of the folds' adjustments and of the placement) and whose estimates warm-start
+    the folds; None: the network is calibrated first with its own weights.
+    """
+    options = options or CalibrationOptions()
+    folds = options.cross_validation or CrossValidationOptions()
+    return validate(network, model, folds, options.solver, result)

@@ -34,9 +34,10 @@ Each step is ``step(ctx, state) -> state`` over the explicit :class:`._pipeline.
    statistic exceeds ``u_i^2`` (:func:`_systematic`: the misfit is systematic, and a warning
    names the term); the a priori tests are repeated on the screened observations.
 4. **Selection** (:func:`selection`, with ``selection``): stepwise AP selection
-   (:func:`._selection.select_terms`) on the screened observations, entering terms by their
-   score tests; the chosen model is the model of every step after it, and its a priori tests
-   are recorded.
+   (:func:`._selection.select_terms`) on the screened observations, terms entering and leaving
+   by one statistic, alternatives and the end point decided by cross-validation (with
+   ``cross_validation``); the chosen model is the model of every step after it, and its a
+   priori tests are recorded.
 5. **Variance components** (:func:`variance_components`, with ``vce``): VCE per group, range, horizontal
    direction, elevation angle and levelling (Förstner 1979; Koch 1999, sec. 3.6), ``s_g^2 =
    v_g^T P_g v_g / r_g``; the group's sigmas are multiplied by ``s_g`` and the adjustment is
@@ -52,8 +53,11 @@ Each step is ``step(ctx, state) -> state`` over the explicit :class:`._pipeline.
    the variance components re-estimated, until no test rejects. Every removal is reported.
 7. **Missing terms** (:func:`missing_terms`, with ``tests.score_tests``): the score test of
    every candidate term not in the model at the final adjustment (:mod:`._score`).
-8. **Cross-validation** (:func:`cross_validation`): the slot of the prediction of held-out
-   scans (issue 41); it changes nothing yet.
+8. **Cross-validation** (:func:`cross_validation`, with ``cross_validation``): each fold of
+   scans held out, the rest adjusted with the final model and weights (the same compiled
+   adjustment), the held-out scans corrected with the rest's APs and placed on its targets, and
+   the misfit compared with that of no calibration (:mod:`._crossval`); a calibration that does
+   not improve prediction, or that no fold could check, is named in a warning.
 
 Both screening and the robust start weigh a removal against the candidate terms (Baarda's
 alternative hypotheses, SPEC section 7: the score test ``T_c`` of a term missing from the model
@@ -67,6 +71,7 @@ import dataclasses
 
 import numpy as np
 
+from .._adjustment._calibrate import PIN_SIGMA
 from .._adjustment._quality import w_tests
 from .._stats import (
     global_test,
@@ -75,10 +80,10 @@ from .._stats import (
     robust_scale,
     snooping_critical_value,
 )
+from ._crossval import CrossValidationCode, FoldData, run_folds
 from ._options import SnoopingOptions
 from ._outcome import GROUPS, VCEResult
 from ._pipeline import (
-    PIN_SIGMA,
     ROUNDING_SIGMA,
     NamedStep,
     TestingContext,
@@ -86,6 +91,7 @@ from ._pipeline import (
     add_history,
     add_warning,
     adjust,
+    constraint_weights,
     dominant_misfit,
     group_statistics,
     plane_w,
@@ -95,6 +101,7 @@ from ._pipeline import (
     rounding_groups,
     score_tests_at,
     sigmas,
+    weights,
     with_factors,
 )
 from ._robust import screen_planes
@@ -642,7 +649,13 @@ def selection(ctx: TestingContext, state: TestingState) -> TestingState:
     if ctx.network.has_planes:
         data["plane_weights"] = np.where(state.plane_mask[:, None], 1.0 / ctx.plane_sigma, 0.0)
     chosen = select_terms(
-        ctx.network, ctx.model, options, ctx.reweighter.options, data, state.removals
+        ctx.network,
+        ctx.model,
+        options,
+        ctx.reweighter.options,
+        data,
+        state.removals,
+        ctx.options.cross_validation,
     )
     if chosen.aps == tuple(ctx.model.scanner.aps):
         return dataclasses.replace(state, selection=chosen)
@@ -677,10 +690,42 @@ def missing_terms(ctx: TestingContext, state: TestingState) -> TestingState:
 
 
 def cross_validation(ctx: TestingContext, state: TestingState) -> TestingState:
-    """Slot for cross-validation by scan groups (issue 41): calibrate on the other scans,
-    predict the held-out ones. It returns the state it was given until the module that does it
-    lands; it will read its settings from ``ctx.options`` and put what it finds in the state,
-    like the other steps."""
+    """Cross-validation by scan groups (:mod:`._crossval`, with ``cross_validation``) of the
+    final model at the state's weights (variance factors, removals, pins) on the context's
+    compiled adjustment, warm-started at its estimates; the result in
+    ``state.cross_validation`` and, where the calibration does not improve the prediction of
+    held-out scans or no fold of a target network could be held out, a warning."""
+    options = ctx.options.cross_validation
+    if options is None or not state.ok:
+        return state
+    w, lw, _ = weights(ctx, state)
+    names = {"heading_weight": "heading_weights", "ap_prior_weight": "ap_prior_weights"}
+    extra = {names[k]: v for k, v in constraint_weights(ctx, state).items()}
+    data = FoldData(
+        w,
+        lw,
+        extra,
+        dict(state.pinned),
+        state.adjusted.solution.params,
+        state.result.target_xyz,
+        state.mask.all(axis=1),
+    )
+    cv = run_folds(ctx.reweighter.adjustment, data, options)
+    state = dataclasses.replace(state, cross_validation=cv)
+    if cv.code == CrossValidationCode.NOT_IMPROVED:
+        return add_warning(
+            state,
+            f"cross-validation: {cv.message} (held-out misfit {cv.rms_mm['xyz']:.3f} mm with "
+            f"the APs, {cv.rms_none_mm['xyz']:.3f} mm without)",
+        )
+    if cv.code == CrossValidationCode.NO_FOLDS and cv.aps and ctx.network.has_targets:
+        why = "; ".join(dict.fromkeys(f.note for f in cv.folds if f.note))
+        return add_warning(
+            state,
+            f"cross-validation: no scan could be held out ({why}), so whether this calibration "
+            "improves the clouds is not checked: compare with a reference survey (tlsjax "
+            "check-targets) before applying it",
+        )
     return state
 
 

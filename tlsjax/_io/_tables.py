@@ -60,13 +60,17 @@ def _check_directions(row, cells, line, loc) -> None:
 
 
 _ARCH_KEY = re.compile(r"architecture\s*[=:]\s*([A-Za-z]+)")
+#: What the comment adds where the architecture was declared, not measured (:data:`DECLARED`).
+DECLARED = "declared for Cartesian target lists"
 
 
-def recorded_architecture(path) -> str | None:
+def recorded_architecture(path) -> tuple[str | None, bool]:
     """The scanner architecture recorded in the comment lines before the header of an
-    observation CSV (``# tlsjax ...: architecture=panoramic``), or None."""
+    observation CSV (``# tlsjax ...: architecture=panoramic``), or None; and whether it was
+    declared when Cartesian target lists were converted (:data:`DECLARED`: the lists do not
+    record it, so only the fit can tell)."""
     source = os.fspath(path)
-    found = None
+    found, declared = None, False
     with open_text(source) as fh:
         try:
             for line in fh:
@@ -78,19 +82,21 @@ def recorded_architecture(path) -> str | None:
                 m = _ARCH_KEY.search(text)
                 if m:
                     found = m.group(1).lower()
+                    declared = DECLARED.lower() in text.lower()
         except UnicodeDecodeError:
             return None  # not text: the reader says so, with the line
     if found is not None and found not in ARCHITECTURES:
         raise ValueError(
             f"{source}: the recorded scanner architecture {found!r} is not one of {ARCHITECTURES}"
         )
-    return found
+    return found, declared
 
 
-def architecture_comment(kind: str, architecture: str) -> str:
+def architecture_comment(kind: str, architecture: str, declared: bool = False) -> str:
     """The comment line that records the architecture (read back by
-    :func:`recorded_architecture`)."""
-    return f"# tlsjax {kind} observations: architecture={architecture}"
+    :func:`recorded_architecture`), saying where it was only declared."""
+    tail = f" ({DECLARED}, not measured)" if declared else ""
+    return f"# tlsjax {kind} observations: architecture={architecture}{tail}"
 
 
 def _observation_kind(seen, header_line, loc, data) -> str:
@@ -161,7 +167,7 @@ def read_observations(path) -> ObservationTable:
     _check_path(path, "path")
     source = os.fspath(path)
     loc = Located(source)
-    architecture = recorded_architecture(source)
+    architecture, declared = recorded_architecture(source)
     header_line, names, data = read_rows(path, loc)
     columns, seen = parse_header(names, header_line, loc, _OBS_TEXT, _OBS_NUMERIC)
     kind = _observation_kind(seen, header_line, loc, data)
@@ -204,6 +210,7 @@ def read_observations(path) -> ObservationTable:
         instruments=tuple(instruments) if "instrument" in seen else None,
         rows=np.asarray(lines, dtype=np.int64),
         architecture=architecture,
+        architecture_declared=declared,
     )
 
 
@@ -382,7 +389,10 @@ def write_observations(path, table: ObservationTable, *, length_unit="m", angle_
 
     with atomic_output(path) as tmp, open(tmp, "w", newline="", encoding="utf-8") as fh:
         if table.architecture is not None:
-            fh.write(architecture_comment(table.kind, table.architecture) + "\n")
+            comment = architecture_comment(
+                table.kind, table.architecture, table.architecture_declared
+            )
+            fh.write(comment + "\n")
         writer = csv.writer(fh, delimiter=",", lineterminator="\n")
         writer.writerow(header)
         for i in range(n):

@@ -231,6 +231,7 @@ class _Lines:
                     self.notes.append(f"header from the comment on line {last_comment[0]}")
             self.data.append((i, line))
         self._skip_preamble()
+        self._skip_header_block()
 
     @staticmethod
     def _header_like(line: str) -> bool:
@@ -249,6 +250,46 @@ class _Lines:
             if int(line) == len(self.data) - 1:
                 self.data.pop(0)
                 self.notes.append(f"line {i} skipped (the point count of a PTS layout)")
+
+    def _skip_header_block(self):
+        # A survey's preamble (project, instrument, date lines, often with digits) before its
+        # column header and data, and a trailer after them (e.g. OP_END): where the lines do
+        # not share one field count, the data are the longest run of lines that do (3 or more
+        # fields under one separator); the lines around it are skipped and named, provided
+        # none of them holds three numbers (a data line with a column more or less is an
+        # error, never skipped). The run's first line is the header when it reads as one.
+        if len(self.data) < 4:
+            return
+        best = None  # (length, start, stop)
+        for sep in (";", "\t", ",", None):
+            counts = [len(_split(line, sep)) for _, line in self.data]
+            i = 0
+            while i < len(counts):
+                j = i
+                while j + 1 < len(counts) and counts[j + 1] == counts[i]:
+                    j += 1
+                if counts[i] >= 3 and j + 1 - i >= 3 and (best is None or j + 1 - i > best[0]):
+                    best = (j + 1 - i, i, j + 1)
+                i = j + 1
+        if best is None or best[0] == len(self.data):
+            return
+        _, a, b = best
+        outside = self.data[:a] + self.data[b:]
+        numbers = lambda line: sum(_number(f, True) is not None for f in _split(line, None))
+        if any(numbers(line) >= 3 for _, line in outside):
+            return
+        head, trail = self.data[:a], self.data[b:]
+        self.data = self.data[a:b]
+        if self.header is None and self._header_like(self.data[0][1]):
+            self.header = self.data.pop(0)
+        elif self.header is None and head and self._header_like(head[-1][1]):
+            self.header = head.pop()
+        for part, what in ((head, "a preamble before the data"), (trail, "after the data")):
+            if part:
+                self.notes.append(
+                    f"lines {part[0][0]}-{part[-1][0]} skipped ({what}: "
+                    f"{part[0][1].strip()[:40]!r}...)"
+                )
 
 
 _SEP_NAMES = {";": "semicolon-separated", "\t": "tab-separated", ",": "comma-separated"}
@@ -626,6 +667,7 @@ def read_target_list(
         instruments=None,
         rows=np.array([ln for _, ln in lines], dtype=np.int64),
         architecture=architecture,
+        architecture_declared=True,  # Cartesian lists do not record it
         notes=tuple(notes),
     )
 

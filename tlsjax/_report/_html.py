@@ -468,6 +468,167 @@ def _section_outliers(doc) -> str:
     return "<h2>Removals</h2>" + txt + (_table(head, rows, "removals") if rows else "")
 
 
+def _section_score_tests(doc) -> str:
+    """The score tests of the missing terms (``score_tests``: :meth:`tlsjax.ScoreTests.to_dict`):
+    each testable candidate with T, its share of v^T P v, the one-step estimate, its group of
+    alternatives and a plausibility flag; the candidates the design cannot estimate apart."""
+    st = doc.get("score_tests")
+    if not st:
+        return "<h2>Missing terms (score tests)</h2>" + _na(
+            "score tests of the terms not in the model",
+            "they are run for target networks of one instrument",
+        )
+    crit, vf = st.get("critical_value"), st.get("variance_factor") or 1.0
+    scale = "" if vf == 1.0 else f" / s0&sup2; (s0&sup2; = {_fmt(vf, 3)})"
+    rows = []
+    for c in st.get("candidates") or []:
+        if not c.get("testable"):
+            continue
+        label, f = _ap_display(c.get("unit"))
+        flags = []
+        if c.get("significant"):
+            flags.append("<b>significant</b>")
+        if c.get("alternatives"):
+            flags.append("alternatives: " + _e(", ".join(c["alternatives"])))
+        if c.get("plausibility"):
+            flags.append(f'<span class="flag">{_e(c["plausibility"])}: implausible estimate</span>')
+        share = c.get("share")
+        rows.append(
+            (
+                f"<b>{_e(c['name'])}</b>",
+                _e(c.get("group", "")),
+                _fmt(c.get("statistic"), 1),
+                _fmt(share, 1, 100.0),
+                _fmt(c.get("estimate"), 3, f),
+                _fmt(c.get("sigma"), 3, f),
+                _e(label),
+                "; ".join(flags),
+            )
+        )
+    head = ("term", "group", "T", "share of vTPv [%]", "one-step estimate", "sigma", "unit", "")
+    out = (
+        "<h2>Missing terms (score tests)</h2>"
+        f"<p>T = (c<sup>T</sup>Pv)&sup2; / (c<sup>T</sup>PQ<sub>vv</sub>Pc) of each term not in "
+        f"the model, &chi;&sup2;(1) under H0; significant where T{scale} &gt; {_fmt(crit, 2)} "
+        f"(family-wise &alpha; = {_e(st.get('family_level'))}). Largest first.</p>"
+        + (_table(head, rows, "small") if rows else "<p>No candidate could be tested.</p>")
+    )
+    groups = st.get("alternatives") or []
+    if groups:
+        items = "".join(f"<li>{_e(', '.join(g))}</li>" for g in groups)
+        out += (
+            "<h3>Groups of alternatives</h3><p>Their effects after the model correlate beyond "
+            "0.9: they predict nearly the same residuals, and the larger T is no evidence that "
+            "it is the right term. Only prediction on held-out scans tells them apart "
+            f"(cross-validation, stepwise selection).</p><ul>{items}</ul>"
+        )
+    gone = st.get("not_estimable") or []
+    if gone:
+        items = "".join(f"<li>{_e(g['name'])}: {_e(g['reason'])}</li>" for g in gone)
+        out += f"<h3>Not estimable in this design (never proposed)</h3><ul>{items}</ul>"
+    return out
+
+
+def _section_cross_validation(doc) -> str:
+    """Prediction of held-out scans (``cross_validation``:
+    :meth:`tlsjax.CrossValidation.to_dict`): the misfit RMS with the APs and without, overall
+    and per fold, and the verdict."""
+    cv = doc.get("cross_validation")
+    if not cv:
+        return "<h2>Prediction of held-out scans (cross-validation)</h2>" + _na(
+            "cross-validation by scan groups", "tlsjax.cross_validate or the self-calibration"
+        )
+    axes = ("xyz", "x", "y", "z")
+    head = ("", "3D [mm]", "X [mm]", "Y [mm]", "Z [mm]")
+    with_, none = cv.get("rms_mm") or {}, cv.get("rms_none_mm") or {}
+    rows = [
+        ("with the APs", *(_fmt(with_.get(k), 3) for k in axes)),
+        ("without APs", *(_fmt(none.get(k), 3) for k in axes)),
+    ]
+    code, improves = cv.get("code"), cv.get("improves")
+    cls = "accepted" if improves else "rejected" if code in (1, 2) else "na"
+    out = (
+        "<h2>Prediction of held-out scans (cross-validation)</h2>"
+        "<p>Each fold's scans are left out, the rest adjusted, the held-out scans corrected with "
+        "the rest's APs and placed by their own pose on its targets; the misfit of the placed "
+        "targets, RMS over all folds (without APs: the rest adjusted and the scans placed with "
+        f"none). Standard error between folds: {_fmt(cv.get('se_mm'), 3)} mm.</p>"
+        + _table(head, rows, "small")
+        + f'<p class="{cls}"><b>{_e(cv.get("message", ""))}</b></p>'
+    )
+    folds = []
+    for f in cv.get("folds") or []:
+        name = "+".join(f.get("held_out") or [])
+        if not f.get("ok"):
+            folds.append((_e(name), "&ndash;", "&ndash;", "&ndash;", _e(f.get("note", ""))))
+            continue
+        folds.append(
+            (
+                _e(name),
+                f.get("n_targets"),
+                _fmt((f.get("rms_mm") or {}).get("xyz"), 3),
+                _fmt((f.get("rms_none_mm") or {}).get("xyz"), 3),
+                _e(", ".join(sorted(set(f.get("placement") or [])))),
+            )
+        )
+    head = ("held out", "targets", "with [mm]", "without [mm]", "placement / note")
+    return out + "<h3>Folds</h3>" + _table(head, folds, "small")
+
+
+def _section_selection(doc) -> str:
+    """The path of stepwise selection with the figure at each step (``selection``), when it ran."""
+    sel = doc.get("selection")
+    if not sel or not sel.get("steps"):
+        return ""
+    rows = []
+    for st in sel["steps"]:
+        rows.append(
+            (
+                _e(st.get("action", "")),
+                _e(st.get("term", "")),
+                _fmt(st.get("statistic"), 1),
+                _fmt(st.get("sigma0"), 3),
+                _fmt(st.get("cv_mm"), 3),
+                _e(st.get("reason", "")),
+            )
+        )
+    head = ("step", "term", "statistic", "sigma0", "CV [mm]", "why")
+    end = f"<p>{_e(sel['end'])}</p>" if sel.get("end") else ""
+    return (
+        f"<h2>Stepwise selection: {_e(' '.join(sel.get('aps', [])) or '(none)')}</h2>"
+        + end
+        + _table(head, rows, "removals")
+    )
+
+
+def _section_architecture(doc) -> str:
+    """Hybrid against panoramic (``architecture_check``:
+    :meth:`tlsjax.ArchitectureComparison.to_dict`), when it ran."""
+    ac = doc.get("architecture_check")
+    if not ac:
+        return ""
+    rows = []
+    for arch, f in (ac.get("fits") or {}).items():
+        mark = " (as read)" if arch == ac.get("given") else ""
+        rows.append(
+            (
+                _e(arch + mark),
+                _fmt(f.get("sigma0"), 3),
+                _fmt(f.get("cv_mm"), 3),
+                f.get("n_removed"),
+                _e(f.get("message", "") if not f.get("ok") else ""),
+            )
+        )
+    head = ("architecture", "sigma0 (a priori)", "CV [mm]", "removed", "")
+    warn = f'<p class="flag">{_e(ac["warning"])}</p>' if ac.get("warning") else ""
+    return (
+        "<h2>Architecture from the data</h2>"
+        + _table(head, rows, "small")
+        + f"<p>Explains the data better: <b>{_e(ac.get('best'))}</b> ({_e(ac.get('reason'))}).</p>"
+        + warn
+    )
+
+
 def _section_eops(doc) -> str:
     eops = doc.get("eops") or {}
     if not eops:
@@ -585,6 +746,10 @@ def render_html(doc: dict, plots: dict | None = None) -> str:
             _section_reliability(doc),
             _section_outliers(doc),
             "<h2>Plots</h2>" + figs,
+            _section_score_tests(doc),
+            _section_cross_validation(doc),
+            _section_selection(doc),
+            _section_architecture(doc),
             _section_eops(doc),
             _section_planes(doc),
             _section_provenance(doc),

@@ -4,7 +4,8 @@
 The steps are those of the one pipeline (:data:`tlsjax._inference._steps.PIPELINE`: plane
 screening, robust start, a priori tests, screening, selection, variance components, data
 snooping, score tests of the missing terms, cross-validation), each switched on or off by its
-concern in :class:`tlsjax.CalibrationOptions`. The result's ``summary()`` is the text the
+concern in :class:`tlsjax.CalibrationOptions`; before them, where asked, the architecture from
+the data (:func:`tlsjax.compare_architectures`). The result's ``summary()`` is the text the
 command prints, its ``to_dict()`` the JSON it writes (SPEC section 11), so a notebook gets what
 the command line gets from one call.
 
@@ -20,6 +21,8 @@ from .._adjustment._config import CalibrationModel, scanner_settings
 from .._adjustment._json import withhold_estimates
 from .._adjustment._network import Network, check_calibration_arguments, network_design_warnings
 from .._adjustment._text import ap_table, summary
+from .._inference._architecture import compare_architectures
+from .._inference._crossval import CrossValidationCode
 from .._inference._options import CalibrationOptions
 from .._inference._outcome import TestedCalibration
 from .._inference._run import run_tests
@@ -43,7 +46,9 @@ class SelfCalibration(TestedCalibration):
     read back; ``provenance``: tlsjax version, time, Python, platform and the network's input
     files with their SHA-256; ``inputs``: how the network was read (files, reading settings,
     the command line), recorded by whoever read it (:meth:`with_inputs`; ``tlsjax calibrate``
-    does); ``design_warnings``: what the design (scans, primitives, APs) cannot determine well.
+    does); ``design_warnings``: what the design (scans, primitives, APs) cannot determine well;
+    ``architecture_check``: hybrid and panoramic fitted and compared
+    (:class:`tlsjax.ArchitectureComparison`; None where not asked).
 
     ``summary()`` is the text ``tlsjax calibrate`` prints, ``to_dict()`` the JSON it writes.
     """
@@ -52,12 +57,22 @@ class SelfCalibration(TestedCalibration):
     provenance: dict = dataclasses.field(default_factory=dict)
     inputs: dict = dataclasses.field(default_factory=dict)
     design_warnings: tuple = ()
+    architecture_check: object = None
 
     @property
     def ok(self) -> bool:
         """The run is a calibration: the adjustment succeeded, VCE ended usable and no AP has
         a magnitude no working instrument has (``tlsjax calibrate`` exits 0 exactly then)."""
         return self.calibration.ok and self.vce_result.ok and not self.implausible
+
+    @property
+    def not_improved(self) -> bool:
+        """The cross-validation found that the calibration does not improve the prediction of
+        held-out scans (:attr:`tlsjax.CrossValidationCode.NOT_IMPROVED`): corrected with its
+        APs they fit no better than uncorrected. A calibration all the same (``ok``), but not
+        one to apply; ``tlsjax calibrate`` exits with its own code then."""
+        cv = self.cross_validation
+        return cv is not None and cv.code == CrossValidationCode.NOT_IMPROVED
 
     @property
     def implausible(self) -> bool:
@@ -87,7 +102,8 @@ class SelfCalibration(TestedCalibration):
         (sigma0 and its test, redundancy, flags) and the AP table (no numbers where the run is
         no calibration)."""
         res, withheld = self.calibration, self.withheld
-        lines = [self.testing_summary(), summary(res, after_vce=self.weights_fitted)]
+        lines = [] if self.architecture_check is None else [self.architecture_check.summary()]
+        lines += [self.testing_summary(), summary(res, after_vce=self.weights_fitted)]
         if withheld:
             lines.append(f"error: {withheld}")
         lines += ["", ap_table(res, withheld=withheld)]
@@ -111,6 +127,8 @@ class SelfCalibration(TestedCalibration):
             doc["outliers"] = with_lines(doc["outliers"], res)
         if self.design_warnings:
             doc["design_warnings"] = list(self.design_warnings)
+        if self.architecture_check is not None:
+            doc["architecture_check"] = self.architecture_check.to_dict()
         doc["settings"] = {**self.settings, "inputs": dict(self.inputs)}
         if self.withheld:
             withhold_estimates(doc, self.withheld)
@@ -134,7 +152,13 @@ def self_calibrate(
     (``options.selection``) on the screened observations; variance component estimation
     (``s_g^2 = v_g^T P_g v_g / r_g``, Förstner 1979); Baarda's data snooping
     (``w_i = v_i / (sigma_i sqrt(r_i))``, Baarda 1968); the score tests of the terms missing
-    from the final model; then reliability (MDB, external reliability) and the AP t-tests.
+    from the final model; then reliability (MDB, external reliability) and the AP t-tests;
+    last, cross-validation by scan groups (``options.cross_validation``, on: each fold of scans
+    held out, the rest adjusted, the held-out scans corrected with its APs and placed on its
+    targets; a calibration that does not improve their prediction is ``not_improved`` and says
+    so in a warning). With ``options.architecture_check``, first hybrid and panoramic are
+    fitted and compared (:func:`tlsjax.compare_architectures`), with a warning where the
+    model's is clearly worse.
 
     Every re-adjustment is the one compiled adjustment of the model with other weights (only a
     model that selection chose is analysed once more). Returns a :class:`SelfCalibration`:
@@ -153,7 +177,9 @@ def self_calibrate(
         raise ValueError(
             "self_calibrate: stepwise selection works on one instrument; give the model one Scanner"
         )
-    tested = run_tests(network, model, options)
+    check = _architecture_check(network, model, options)
+    warnings = (check.warning,) if check is not None and check.warning else ()
+    tested = run_tests(network, model, options, warnings=warnings)
     fields = {f.name: getattr(tested, f.name) for f in dataclasses.fields(TestedCalibration)}
     return SelfCalibration(
         **fields,
@@ -164,4 +190,18 @@ def self_calibrate(
         },
         provenance=provenance((network.source, network.plane_source, network.scans_source)),
         design_warnings=tuple(network_design_warnings(network, model)),
+        architecture_check=check,
     )
+
+
+def _architecture_check(network: Network, model: CalibrationModel, options: CalibrationOptions):
+    """:func:`tlsjax.compare_architectures` with ``options`` where asked (None otherwise),
+    the model's architecture the one the data were read as."""
+    if options.architecture_check is None:
+        return None
+    if network.has_planes or not network.has_targets or not isinstance(model.scanner, Scanner):
+        raise ValueError(
+            "self_calibrate: the architecture check compares target observations of one "
+            "instrument (a target network and one Scanner); set architecture_check=None"
+        )
+    return compare_architectures(network, model, options, given=model.scanner.architecture)
