@@ -91,6 +91,29 @@ def _to_device(a: np.ndarray):
     return jax.device_put(a)
 
 
+def _support(problem) -> bytes:
+    """Which observations and constraints take part (nonzero weight) and which parameters are
+    held: what decides estimability, as bytes to key on."""
+    parts = [np.asarray(problem.fixed)]
+    for family in problem.families:
+        for field in dataclasses.fields(family):
+            value = getattr(family, field.name)
+            if field.name.endswith("weight") and value is not None:
+                parts.append(np.asarray(value) != 0)
+    for w in (problem.levelling_weight, problem.heading_weight, problem.ap_prior_weight):
+        if w is not None:
+            parts.append(np.asarray(w) != 0)
+    return b"|".join(np.ascontiguousarray(x).tobytes() for x in parts)
+
+
+def _hold_aps(problem, params0, held: np.ndarray, n6: int):
+    """``problem`` with the APs ``held`` (a, bool) fixed, ``params0`` with them at zero."""
+    fixed = np.asarray(problem.fixed).copy()
+    fixed[n6:] |= held
+    aps = np.where(held, 0.0, np.asarray(params0.aps))
+    return _replace(problem, fixed=_to_device(fixed)), _replace(params0, aps=_to_device(aps))
+
+
 def _replace(module, **changes):
     """``dataclasses.replace`` for an ``eqx.Module`` (a dataclass)."""
     return dataclasses.replace(module, **changes)
@@ -128,6 +151,7 @@ class Adjustment:
         self.plan = dataclasses.replace(plan, problem=problem)
         self._params0 = None
         self._leaves = None
+        self._absent = {}  # support of the data -> (APs found not estimable, their diagnoses)
 
     @property
     def initial(self) -> Params:
@@ -265,8 +289,16 @@ class Adjustment:
         """
         problem = self.plan.problem if problem is None else problem
         params0 = self.initial if params0 is None else params0
-        absent, n6 = (), 6 * self.plan.spec.n_scans
+        n6 = 6 * self.plan.spec.n_scans
         previous = None
+        # Estimability depends on which observations take part, not on their (positive)
+        # weights: the APs found not estimable for the same support (VCE's re-weighted passes)
+        # are held from the start. Re-found per pass, a nearly dependent AP at the threshold
+        # could be held in one pass and drift along its near-dependence in the next.
+        key = _support(problem)
+        held, absent = self._absent.get(key, (None, ()))
+        if held is not None:
+            problem, params0 = _hold_aps(problem, params0, held, n6)
         # Each pass can only add held columns; an AP found in pass k is held in pass k + 1.
         for _ in range(self.plan.spec.n_aps + 1):
             # One transfer of every output to the host.
@@ -281,13 +313,12 @@ class Adjustment:
             if not dep.any() or not bool(state.finite):
                 break
             absent += not_estimable_aps(plan, q, state, np.flatnonzero(dep))
-            fixed = np.asarray(problem.fixed).copy()
-            fixed[n6:] |= dep
-            problem = _replace(problem, fixed=_to_device(fixed))
-            params0 = _replace(params0, aps=_to_device(np.where(dep, 0.0, np.asarray(params0.aps))))
+            problem, params0 = _hold_aps(problem, params0, dep, n6)
             previous = _replace(
                 state.params, aps=_to_device(np.where(dep, 0.0, np.asarray(state.params.aps)))
             )
+        if absent and bool(state.finite):
+            self._absent[key] = (np.asarray(problem.fixed)[n6:].copy(), absent)
         return plan, state, q, absent
 
     def solve(self, *, initial=None, **weights) -> CalibrationResult:
