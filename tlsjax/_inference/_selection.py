@@ -72,7 +72,7 @@ class SelectionOptions(Settings):
     candidates); ``max_correlation``: a term entered with a larger absolute correlation with
     another unknown is reported as such (it stays, since it explains the misfit);
     ``max_steps``: bound on add/remove steps. The prediction check of alternatives and of the
-    end point uses the folds of :attr:`tlsjax.CalibrationOptions.cross_validation` (None: not
+    end point uses the folds of ``cross_validation`` of :class:`tlsjax.CalibrationOptions` (None: not
     checked, the path's last model is the end point)."""
 
     candidates: tuple = ("chow2013-noscale",)

@@ -68,7 +68,7 @@ class SelfCalibration(TestedCalibration):
     @property
     def not_improved(self) -> bool:
         """The cross-validation found that the calibration does not improve the prediction of
-        held-out scans (:attr:`tlsjax.CrossValidationCode.NOT_IMPROVED`): corrected with its
+        held-out scans (``NOT_IMPROVED`` of :class:`tlsjax.CrossValidationCode`): corrected with its
         APs they fit no better than uncorrected. A calibration all the same (``ok``), but not
         one to apply; ``tlsjax calibrate`` exits with its own code then."""
         cv = self.cross_validation
