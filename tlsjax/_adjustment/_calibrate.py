@@ -290,15 +290,27 @@ class Adjustment:
         problem = self.plan.problem if problem is None else problem
         params0 = self.initial if params0 is None else params0
         n6 = 6 * self.plan.spec.n_scans
-        previous = None
-        # Estimability depends on which observations take part, not on their (positive)
-        # weights: the APs found not estimable for the same support (VCE's re-weighted passes)
-        # are held from the start. Re-found per pass, a nearly dependent AP at the threshold
-        # could be held in one pass and drift along its near-dependence in the next.
         key = _support(problem)
-        held, absent = self._absent.get(key, (None, ()))
-        if held is not None:
-            problem, params0 = _hold_aps(problem, params0, held, n6)
+        out = self._estimable_passes(problem, params0, options, (), n6)
+        held = self._absent.get(key)
+        if not bool(out[1].converged) and held is not None:
+            # Whether an AP is nearly dependent is judged numerically, so with other weights
+            # (VCE's passes) an AP held before may pass the test and then drift along its
+            # near-dependence: from the APs held in a converged run on the same observations
+            # (estimability depends on which take part, not on their weights) it is the model
+            # without them again.
+            problem, params0 = _hold_aps(problem, params0, held[0], n6)
+            retry = self._estimable_passes(problem, params0, options, held[1], n6)
+            out = retry if bool(retry[1].converged) else out
+        plan, state, q, absent = out
+        if absent and bool(state.converged):
+            self._absent[key] = (np.asarray(plan.problem.fixed)[n6:].copy(), absent)
+        return out
+
+    def _estimable_passes(self, problem, params0, options, absent, n6):
+        """The passes of :meth:`run_estimable` from ``problem`` (``absent``: the diagnoses of
+        the APs it already holds)."""
+        previous = None
         # Each pass can only add held columns; an AP found in pass k is held in pass k + 1.
         for _ in range(self.plan.spec.n_aps + 1):
             # One transfer of every output to the host.
@@ -317,8 +329,6 @@ class Adjustment:
             previous = _replace(
                 state.params, aps=_to_device(np.where(dep, 0.0, np.asarray(state.params.aps)))
             )
-        if absent and bool(state.finite):
-            self._absent[key] = (np.asarray(problem.fixed)[n6:].copy(), absent)
         return plan, state, q, absent
 
     def solve(self, *, initial=None, **weights) -> CalibrationResult:

@@ -84,7 +84,7 @@ def recorded_architecture(path) -> tuple[str | None, bool]:
                     found = m.group(1).lower()
                     declared = DECLARED.lower() in text.lower()
         except UnicodeDecodeError:
-            return None  # not text: the reader says so, with the line
+            return None, False  # not text: the reader says so, with the line
     if found is not None and found not in ARCHITECTURES:
         raise ValueError(
             f"{source}: the recorded scanner architecture {found!r} is not one of {ARCHITECTURES}"
