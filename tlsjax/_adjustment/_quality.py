@@ -52,8 +52,15 @@ from ._families import (
     pseudo_cost,
     settled_state,
 )
-from ._linalg import cholesky_inverse, forward_substitution
-from ._normal import linearise, linearise_rows, linearised_cost, null_space, reduce
+from ._linalg import cholesky_inverse, triangular_inverse
+from ._normal import (
+    datum_projector,
+    linearise,
+    linearise_rows,
+    linearised_cost,
+    null_space,
+    reduce,
+)
 from ._solver import Linearisation
 
 #: Redundancy number at or below which an observation is not controlled by the tests: its
@@ -288,8 +295,7 @@ def pose_ap_cofactor(spec: Spec, problem: Problem, params: Params, rank_toleranc
 def _closure(red, Hz):
     """The datum closure ``Q Q^T`` that :func:`reduce` added to the scaled reduced matrix."""
     ok = red.scale > 0
-    Q, _ = jnp.linalg.qr(Hz / jnp.where(ok, red.scale, 1.0)[:, None])
-    return Q @ Q.T
+    return datum_projector(Hz / jnp.where(ok, red.scale, 1.0)[:, None])
 
 
 def _full_cofactor(spec, red, Qzz, Hp, Hz):
@@ -336,13 +342,15 @@ def summary(spec: Spec, problem: Problem, params: Params, rank_tolerance) -> Sum
 
 
 def summary_from(spec: Spec, grid: Problem, params: Params, lin, vtpv=None) -> Summary:
-    """No observation-space or primitive blocks: ``Q_aa`` comes from one triangular solve with
-    the AP unit columns, ``W = L^-1 E_a``, ``Q_aa = W^T W`` (scaled back), instead of the whole
-    ``L^-T L^-1``; ``v^T P v`` from the linearisation's rows."""
+    """No observation-space or primitive blocks: ``Q_aa`` comes from the AP columns of the
+    triangular inverse, ``W = L^-1 E_a`` (the inverse of L's trailing AP block), ``Q_aa = W^T
+    W`` (scaled back), instead of the whole ``L^-T L^-1``; ``v^T P v`` from the
+    linearisation's rows."""
     red = lin.reduced
     dep = red.dependent
     a0 = 6 * spec.n_scans
-    W = forward_substitution(red.L, jnp.eye(spec.r, dtype=red.L.dtype)[:, a0:])
+    # L^-1 is lower triangular: its AP columns are the inverse of L's trailing block.
+    W = triangular_inverse(red.L[a0:, a0:])
     s = red.scale[a0:]
     Qaa = (W.T @ W) * s[:, None] * s[None, :]
     Qaa = jnp.where(dep[a0:, None] | dep[None, a0:], 0.0, Qaa)

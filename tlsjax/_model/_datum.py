@@ -14,6 +14,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from .._adjustment._linalg import small_spd_solve
 from ._geometry import rotation_matrix
 
 
@@ -73,11 +74,19 @@ def null_space_columns(action, params, columns):
     return J[..., jnp.asarray(columns, dtype=jnp.int32)]
 
 
-def s_transform_vector(Hp, Hz, dps, dz):
-    """``dx - H (G^T H)^-1 G^T dx`` with G the primitive rows of H (inner constraints)."""
-    GtH = sum(jnp.einsum("npd,npe->de", H, H) for H in Hp)
+def inner_gram(Hp):
+    """``G^T H`` (d x d) of the inner constraints, G the primitive rows of H."""
+    return sum(jnp.einsum("npd,npe->de", H, H) for H in Hp)
+
+
+def s_transform_vector(Hp, Hz, dps, dz, GtH_inv=None):
+    """``dx - H (G^T H)^-1 G^T dx`` with G the primitive rows of H (inner constraints);
+    ``GtH_inv``: ``(G^T H)^-1`` when it is at hand (many vectors with one H)."""
     Gtx = sum(jnp.einsum("npd,np->d", H, dp) for H, dp in zip(Hp, dps))
-    coef = jnp.linalg.solve(GtH, Gtx)
+    if GtH_inv is None:
+        coef = small_spd_solve(inner_gram(Hp), Gtx)
+    else:
+        coef = GtH_inv @ Gtx
     dps = tuple(dp - jnp.einsum("npd,d->np", H, coef) for H, dp in zip(Hp, dps))
     return dps, dz - Hz @ coef
 
@@ -96,7 +105,8 @@ def inner_constraint_cofactor(Hp, Hz, Ninv, Y, Qzz):
     reduced unknowns, the (r, r) block). Linear in the number of primitives.
     """
     C = sum(jnp.einsum("npd,npr->dr", H, y) for H, y in zip(Hp, Y))  # Hp^T Y
-    M = jnp.linalg.inv(sum(jnp.einsum("npd,npe->de", H, H) for H in Hp))
+    GtH = sum(jnp.einsum("npd,npe->de", H, H) for H in Hp)
+    M = small_spd_solve(GtH, jnp.eye(GtH.shape[0], dtype=GtH.dtype))
     Wz = -C @ Qzz  # (d, r)
     Wp = tuple(
         jnp.einsum("npd,npq->ndq", H, Ni) + jnp.einsum("dr,npr->ndp", C @ Qzz, y)
