@@ -51,8 +51,10 @@ def _flat_run(spec, treedef, full_covariance: bool):
         return _run(spec, problem, params0, options, full_covariance)
 
     # Stored traced (a re-run in a new process neither traces nor compiles it), keyed on what
-    # it closes over: the spec with its AP terms, the arguments' structure, full_covariance.
-    return StoredProgram(run, ("adjustment", spec_key(spec), treedef, full_covariance))
+    # it closes over: the spec with its AP terms, the arguments' structure, full_covariance;
+    # its outputs come to the host in one transfer per dtype (``host``).
+    key = ("adjustment", spec_key(spec), treedef, full_covariance)
+    return StoredProgram(run, key, host=True)
 
 
 def spec_key(spec) -> tuple:
@@ -225,9 +227,10 @@ class Adjustment:
         return _replace(problem, **changes)
 
     def run(self, problem=None, params0=None, options=None):
-        """The compiled call: (solver state, quality) as arrays. ``options``: other numerical
-        settings (:meth:`SolverOptions.arrays`, e.g. another ``max_iterations``): the same
-        compiled program, they are data."""
+        """The compiled call: (solver state, quality) as numpy arrays on the host (fetched in
+        one transfer per dtype). ``options``: other numerical settings
+        (:meth:`SolverOptions.arrays`, e.g. another ``max_iterations``): the same compiled
+        program, they are data."""
         args = (
             self.plan.problem if problem is None else problem,
             self.initial if params0 is None else params0,
@@ -247,8 +250,7 @@ class Adjustment:
         problem = self.problem(**weights) if weights else None
         if initial is not None and not isinstance(initial, Params):
             initial = initial_params(self.network, self.plan, *initial)
-        # One transfer of every output to the host.
-        state, q = jax.device_get(self.run(problem, initial))
+        state, q = self.run(problem, initial)  # on the host
         plan = self.plan if problem is None else dataclasses.replace(self.plan, problem=problem)
         return assemble(self.network, self.model, plan, state, q)
 

@@ -12,6 +12,50 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+# Contractions over small axes are written out as sums of elementwise products: XLA fuses them
+# with their neighbours into one loop, where ``jnp.sum`` over a small axis or a tiny einsum is
+# a reduction or batched-dot kernel of its own (each 10-80 us on the CPU at these shapes,
+# measured; PERFORMANCE.md).
+
+
+def small_sum(x, axis: int):
+    """``x.sum(axis)`` over a small static axis, as a chain of adds (of an input: a computed
+    ``x`` would be materialised before it is sliced; write such sums over slices of its
+    operands instead, as :func:`outer` does)."""
+    terms = [lax.index_in_dim(x, i, axis, keepdims=False) for i in range(x.shape[axis])]
+    return sum(terms[1:], terms[0])
+
+
+def outer(a, b):
+    """(..., k, i) x (..., k, j) -> (..., i, j): ``sum_k a_ki b_kj``."""
+    if a.shape[-2] == 0:
+        return jnp.zeros(
+            jnp.broadcast_shapes(a.shape[:-2], b.shape[:-2]) + (a.shape[-1], b.shape[-1]), a.dtype
+        )
+    return sum(a[..., k, :, None] * b[..., k, None, :] for k in range(a.shape[-2]))
+
+
+def matvec_t(a, e):
+    """(..., k, i), (..., k) -> (..., i): ``sum_k a_ki e_k``."""
+    if a.shape[-2] == 0:
+        return jnp.zeros(jnp.broadcast_shapes(a.shape[:-2], e.shape[:-1]) + a.shape[-1:], a.dtype)
+    return sum(a[..., k, :] * e[..., k, None] for k in range(a.shape[-2]))
+
+
+def bmm(a, b):
+    """(..., i, k) x (..., k, j) -> (..., i, j), a batch of small matrix products."""
+    return outer(jnp.swapaxes(a, -1, -2), b)
+
+
+def mm(a, b):
+    """``a[..., k] b[k, ...]`` as one matrix product over all of a's leading axes (a plain GEMM:
+    no batch axes, no transposed operands)."""
+    k = a.shape[-1]
+    if k == 0:
+        return jnp.zeros(a.shape[:-1] + b.shape[1:], jnp.result_type(a, b))
+    out = a.reshape(-1, k) @ b.reshape(k, -1)
+    return out.reshape(a.shape[:-1] + b.shape[1:])
+
 
 def spd_inverse(A):
     """Inverse of a batch of small SPD matrices ``A[..., p, p]`` by unrolled Cholesky."""
