@@ -9,7 +9,6 @@ adjustment (at the approximate values): where the time of one iteration goes. Th
   the factorisation;
 * ``factorisation``: the rank-revealing Cholesky of the reduced system;
 * ``back_substitution``: the reduced solve, the primitives' updates and the datum;
-* ``update_size``: the convergence test's cofactor diagonal;
 * ``step_cost``: ``v^T P v`` at the new estimate (the step's acceptance);
 * ``quality``: the quality pass from the last linearisation (cofactors, redundancy,
   reliability).
@@ -98,19 +97,12 @@ def phase_times(spec, problem, params, options, repeats: int = 20, costs: dict |
         "factorisation",
     )
     out["reduction"] = max(red_ms - out["factorisation"], 0.0)
-    out["back_substitution"], (new, dps, dz) = _time(
+    out["back_substitution"], (new, _, _) = _time(
         lambda pr, p, b, r, hp, hz: N.solve_step(spec, pr, p, b, r, hp, hz),
         (grid, params, blocks, red, Hp, Hz),
         repeats,
         raw,
         "back_substitution",
-    )
-    out["update_size"], _ = _time(
-        lambda b, r, z, d: N.update_size(b, r, z, d),
-        (blocks, red, dz, dps),
-        repeats,
-        raw,
-        "update_size",
     )
     # As the loop does: v^T P v with one Gauss-Helmert update of the residuals (planes).
     out["step_cost"], _ = _time(
@@ -141,7 +133,7 @@ def phase_times(spec, problem, params, options, repeats: int = 20, costs: dict |
 
 #: Phases of every pass of the loop (the last one included) and of every step.
 PASS_PHASES = ("linearisation", "assembly", "reduction", "factorisation")
-STEP_PHASES = ("back_substitution", "update_size", "step_cost")
+STEP_PHASES = ("back_substitution", "step_cost")
 
 
 def matmul_gflops(n: int = 1000, repeats: int = 10) -> float:

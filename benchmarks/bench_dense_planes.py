@@ -19,7 +19,7 @@ every 5 ms while the phase runs; VmHWM of the whole process beside it):
   writes after matching);
 * ``thin``: :func:`tlsjax.thin_planes` at the default 0.1 m (``calibrate``'s default);
 * ``network``: ``tj.make_plane_network`` of the thinned table with the compensator readings;
-* ``calibrate``: ``tj.screen_planes`` (what ``calibrate --planes`` runs by default: IGG-III
+* ``calibrate``: ``tj.self_calibrate`` (what ``calibrate --planes`` runs by default: IGG-III
   rounds, then the final adjustment), the first call of the process, so compile included;
 * ``calibrate_all_points`` (only up to ``--all-points-max`` points): the same on all points,
   without thinning, as the issue measured it (35 s, 2.5 GB at 1 million points).
@@ -123,7 +123,7 @@ def child_path(points: float, all_points_max: float) -> dict:
         )
     model = tj.CalibrationModel(pc.scanner)
     with Phase("calibrate", log):
-        screened = tj.screen_planes(net, model)
+        screened = tj.self_calibrate(net, model)
     res = screened.calibration
     truth = np.array([pc.true_aps[a] for a in res.ap_names])
     out["aps"] = {
@@ -141,7 +141,7 @@ def child_path(points: float, all_points_max: float) -> dict:
     if n_all <= all_points_max:
         del thinned, net, screened, res
         with Phase("calibrate_all_points", log):
-            full = tj.screen_planes(
+            full = tj.self_calibrate(
                 tj.make_plane_network(
                     table,
                     sigma_range=pc.sigma_range,

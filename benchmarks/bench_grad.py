@@ -62,7 +62,7 @@ def main(argv=None):
     calib, _ = timed(run, args.repeats)
 
     design = tj.TargetDesign.from_simulation(sim)
-    dn = tj.DesignNetwork.targets(design, sim.scanner)
+    dn = tj.DesignProblem.targets(design, sim.scanner)
     crit = tj.DesignCriterion("max_sigma", aps="B6", tolerances={"B6": np.pi / 180 / 3600})
     value = lambda d: tj.design_criterion(dn, d, crit)
     cval, cval_compile = _compiled(value, design)
@@ -78,7 +78,7 @@ def main(argv=None):
 
     levelled = tj.simulate(seed=0, architecture="hybrid", tilted=False, aps="A0 B6 B7 C0")
     mask = np.array([True, True, True, True, False, False])
-    dnl = tj.DesignNetwork.targets(
+    dnl = tj.DesignProblem.targets(
         tj.TargetDesign.from_simulation(levelled), levelled.scanner, levelled=mask
     )
     t0 = time.perf_counter()

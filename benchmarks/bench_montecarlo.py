@@ -177,7 +177,11 @@ def level_study(tests, sims, shifts=(0.0, 3.0, 5.0, 8.0), seed=5):
     C0): both drawn from one truth. B6 of the second set is then shifted by ``shift`` sigma of
     the B6 difference. Each test uses ``sims`` simulations (the compiled test is reused).
     """
-    from tlsjax._inference._compat import APSet, CompatibilityOptions, compatibility_test
+    from tlsjax._inference._compatibility import (
+        APSet,
+        CompatibilityOptions,
+        compatibility_test,
+    )
 
     sim = tj.simulate(seed=0)
     mc = monte_carlo(sim, options=MonteCarloOptions(runs=2 * tests, seed=seed, progress=False))

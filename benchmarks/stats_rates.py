@@ -37,7 +37,6 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import tlsjax as tj  # noqa: E402
-from tlsjax._inference._testing import TestingOptions, calibrate_and_test
 
 TRUE_APS = ("A0", "B6", "B7", "C0")
 
@@ -54,10 +53,10 @@ def inject_blunders(net, rng, k=5, size=20.0):
 def run_snoop(seeds):
     model = tj.CalibrationModel(tj.Scanner(aps=TRUE_APS))
     levels = {
-        "alpha=0.001 (k=3.29)": TestingOptions(alpha=0.001),
-        "bonferroni family alpha=0.05": TestingOptions(alpha=0.05, bonferroni=True),
-        "target removal, bonferroni 0.05": TestingOptions(
-            alpha=0.05, bonferroni=True, removal="target"
+        "alpha=0.001 (k=3.29)": tj.SnoopingOptions(w_test_level=0.001),
+        "bonferroni family alpha=0.05": tj.SnoopingOptions(w_test_level=0.05, bonferroni=True),
+        "target removal, bonferroni 0.05": tj.SnoopingOptions(
+            w_test_level=0.05, bonferroni=True, removal="target"
         ),
     }
     out = {
@@ -77,7 +76,7 @@ def run_snoop(seeds):
         net, truth = inject_blunders(sim.network, rng)
         for name, opt in levels.items():
             t = time.perf_counter()
-            r = calibrate_and_test(net, model, testing=opt)
+            r = tj.self_calibrate(net, model, tj.CalibrationOptions(snooping=opt))
             dt = time.perf_counter() - t
             removed = {(o.row, ("range", "hz", "el").index(o.group)) for o in r.outliers}
             if opt.removal == "target":
@@ -138,7 +137,7 @@ def run_vce(seeds):
             sigmas=sim.network.sigmas * wrong[None, :],
             levelling_sigma=sim.network.levelling_sigma * wrong_lev,
         )
-        r = calibrate_and_test(net, model, testing=TestingOptions(snooping=False))
+        r = tj.self_calibrate(net, model)
         est = {}
         for vc in r.variance_components:
             # Estimated true sigma = a priori (wrong) sigma x sqrt(factor), in the nominal units.
@@ -173,8 +172,6 @@ def run_vce(seeds):
 
 
 def run_select(seeds):
-    from tlsjax._inference._selection import SelectionOptions, select_aps
-
     candidates = ("A0", "A2", "B6", "B7", "B8", "C0", "C6", "C7")
     conf = {c: {"tp": 0, "fp": 0, "fn": 0, "tn": 0} for c in candidates}
     exact = 0
@@ -182,12 +179,12 @@ def run_select(seeds):
     for seed in seeds:
         sim = tj.simulate(seed=seed, aps=" ".join(TRUE_APS))
         t = time.perf_counter()
-        sel = select_aps(
+        selection = tj.SelectionOptions(candidates=candidates)
+        sel = tj.self_calibrate(
             sim.network,
             tj.CalibrationModel(tj.Scanner(aps=())),
-            candidates=candidates,
-            options=SelectionOptions(),
-        )
+            tj.CalibrationOptions(vce=None, selection=selection),
+        ).selection
         dt = time.perf_counter() - t
         chosen = set(sel.aps)
         for c in candidates:

@@ -277,7 +277,7 @@ network of section 1.
 code(r"""
 print(f"{'run':30s} | {'range':>6s} {'hz':>6s} {'el':>6s} {'all':>6s} | {'per point':>9s}")
 for k, r in runs.items():
-    s = r.redundancy_summary()
+    s = r.to_dict()["redundancy"]
     if "planes" in s:
         p = s["planes"]
         print(f"{k:30s} | {p['range']['mean']:6.3f} {p['hz']['mean']:6.3f} {p['el']['mean']:6.3f} "

@@ -61,7 +61,7 @@ paper = tj.simulate(seed=SEED, architecture="hybrid", tilted=True, aps=APS)
 mask = np.array([True, True, True, True, False, False])      # scans 5 and 6 may tilt
 start = tj.TargetDesign.from_simulation(levelled)
 paper_design = tj.TargetDesign.from_simulation(paper)
-dn = tj.DesignNetwork.targets(start, levelled.scanner, levelled=mask)
+dn = tj.DesignProblem.targets(start, levelled.scanner, levelled=mask)
 space = tj.DesignSpace()                                       # the Chow room, clearance 0.5 m
 sigma_b6 = tj.DesignCriterion("max_sigma", aps="B6", tolerances=B6_TOL)
 print(f"fast mode: {FAST}; optimiser: {STARTS} starts x {STEPS} steps")
@@ -181,7 +181,7 @@ CANDIDATES = tuple(tj.CloudDesign().boards) + (
 )
 STEP, MAX_POINTS = (3 * DEG, 12) if FAST else (2 * DEG, 25)
 clouds = tj.simulate_point_clouds(tj.CloudDesign(angular_step=STEP, boards=CANDIDATES, aps=APS), seed=SEED)
-pdn = tj.DesignNetwork.from_point_clouds(clouds, max_points=MAX_POINTS, seed=SEED)
+pdn = tj.DesignProblem.from_point_clouds(clouds, max_points=MAX_POINTS, seed=SEED)
 tol = {"A0": 0.05e-3, "B6": ARCSEC, "B7": ARCSEC, "C0": ARCSEC}
 crit = tj.DesignCriterion("max_sigma", tolerances=tol)
 plane_of_row = pdn.prim_index

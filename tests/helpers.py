@@ -260,3 +260,31 @@ def tiny_planes(rng, n: int):
         poses=np.zeros((2, 6)),
         planes=np.array([[1.0, 0, 0, 5.0]]),
     )
+
+
+def same_run(cli_doc: dict, api_doc: dict) -> None:
+    """The JSON ``tlsjax calibrate`` wrote equals ``self_calibrate(...).to_dict()`` of the same
+    network, model and options, but for what only the command knows or what differs between
+    two runs: the time and the command line in ``provenance``, and ``settings.inputs`` (how
+    the command read the files)."""
+
+    def comparable(doc):
+        doc = {**doc, "provenance": dict(doc["provenance"]), "settings": dict(doc["settings"])}
+        for key in ("created_utc", "command"):
+            doc["provenance"].pop(key)
+        doc["settings"].pop("inputs")
+        return doc
+
+    a, b = comparable(cli_doc), comparable(api_doc)
+    assert set(a) == set(b), set(a) ^ set(b)
+    for key in a:
+        assert a[key] == b[key], key
+
+
+def printed_is_summary(stdout: str, summary: str) -> None:
+    """What ``tlsjax calibrate`` printed is what reading decided (lines naming the files), the
+    result's ``summary()``, then one line per file written."""
+    head, found, tail = stdout.partition(summary + "\n")
+    assert found, "the summary is not in the output"
+    assert all(".csv" in line or ".npz" in line for line in head.splitlines()), head
+    assert all(line.startswith("wrote ") for line in tail.splitlines()), tail

@@ -26,7 +26,7 @@ from hypothesis import strategies as st
 from scipy import stats
 
 import tlsjax as tj
-from tlsjax._model._geometry import angles_from_matrix
+from tlsjax import angles_from_matrix
 
 DEG = np.pi / 180
 APS = ("A0", "B6", "B7", "C0")
@@ -85,7 +85,7 @@ class HypothesisDrawer:
 @dataclasses.dataclass(frozen=True)
 class Case:
     """One drawn network: its design, the seed of its geometry and noise, whether to run
-    ``calibrate_and_test`` (VCE and data snooping) and what kind of design it is."""
+    ``self_calibrate`` with VCE and data snooping and what kind of design it is."""
 
     design: tj.NetworkDesign
     seed: int = 0
@@ -189,7 +189,7 @@ def _near(dr, stations, room, n):
 def _crossing_plane(dr, stations, room):
     """An infinite plane of any orientation crossing the room, 0.3 to 2 m from a station."""
     n = _direction(dr)
-    return tj.DesignPlane(tuple(n), tuple(_near(dr, stations, room, n)))
+    return tj.RoomPlane(tuple(n), tuple(_near(dr, stations, room, n)))
 
 
 def _board(dr, stations, room):
@@ -236,7 +236,7 @@ def _oblique_plane(dr, stations, room, k):
     tilt = dr.uniform(20.0, 70.0) * DEG
     az = dr.uniform(0.0, 2 * np.pi / 3) + k * 2 * np.pi / 3
     n = np.array([np.sin(tilt) * np.cos(az), np.sin(tilt) * np.sin(az), np.cos(tilt)])
-    return tj.DesignPlane(tuple(n), tuple(_near(dr, stations, room, n)))
+    return tj.RoomPlane(tuple(n), tuple(_near(dr, stations, room, n)))
 
 
 def oblique_case(dr):
@@ -305,8 +305,8 @@ def run(case: Case, sim=None):
     sim = sim or tj.simulate_design(case.design, seed=case.seed)
     model = tj.CalibrationModel(sim.scanner)
     if case.testing:
-        tested = tj.calibrate_and_test(
-            sim.network, model, testing=tj.TestingOptions(vce=True, snooping=True)
+        tested = tj.self_calibrate(
+            sim.network, model, tj.CalibrationOptions(snooping=tj.SnoopingOptions())
         )
         return sim, tested.calibration, tested
     return sim, tj.calibrate(sim.network, model), None

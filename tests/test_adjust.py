@@ -53,7 +53,7 @@ def test_redundancy_sum_equals_dof(small):
     _, res = small
     total = res.redundancy.sum() + res.redundancy_levelling.sum() + res.redundancy_prior_sum
     assert np.isclose(total, res.dof, rtol=1e-9)
-    assert np.isclose(res.redundancy_summary()["total"]["sum"], res.dof, rtol=1e-9)
+    assert np.isclose(res.to_dict()["redundancy"]["total"]["sum"], res.dof, rtol=1e-9)
     assert np.all(res.redundancy > -1e-9) and np.all(res.redundancy < 1 + 1e-9)
 
 
@@ -123,4 +123,4 @@ def test_fixed_aps_equal_the_model_without_them():
     np.testing.assert_allclose(wide.redundancy, small.redundancy, atol=1e-10)
     j = [wide.ap_names.index(a) for a in ("B6", "C0")]
     assert np.all(wide.ap_values[j] == 0) and np.all(wide.ap_sigmas[j] == 0)
-    assert "held at 0" in tj.ap_table(wide)
+    assert "held at 0" in wide.summary()

@@ -1,11 +1,12 @@
-"""The public API as a user holds it: settings objects are called ``Options``, and the names of
-earlier releases still resolve, with a DeprecationWarning naming their replacement."""
+"""The public API as a user holds it (issue 39): every result has ``summary()`` (text) and
+``to_dict()`` (strict JSON), written by :func:`tlsjax.write_json`; every settings object is
+called ``...Options``, round-trips through ``to_dict()``/``from_dict()``, and is passed as
+``options=``; levels are named for the test they are the level of."""
 
 import dataclasses
 import inspect
 import json
 import types
-import warnings
 
 import numpy as np
 import pytest
@@ -13,16 +14,7 @@ import pytest
 import tlsjax as tj
 
 
-@pytest.mark.parametrize(
-    "old, new", [("ExtractionConfig", "ExtractionOptions"), ("MatchingConfig", "MatchingOptions")]
-)
-def test_old_names_warn_and_resolve_to_the_new_ones(old, new):
-    with pytest.warns(DeprecationWarning, match=f"tlsjax.{new}"):
-        obj = getattr(tj, old)
-    assert obj is getattr(tj, new)
-
-
-def test_unknown_names_still_raise_attribute_error():
+def test_unknown_names_raise_attribute_error():
     with pytest.raises(AttributeError, match="NoSuchThing"):
         _ = tj.NoSuchThing
 
@@ -32,28 +24,101 @@ def test_settings_objects_share_one_word():
     assert settings == [], settings
 
 
-# --- summary() is text, to_dict() strict JSON, on every public result type -------------------
+# --- One convention (issue 39 item 2) --------------------------------------------------------
+
+#: Public classes a public function returns that are inputs or data for further work, not
+#: results to read: networks and tables, the analysed adjustment, differentiable inputs and
+#: estimates, simulations (their truth is an input of the tests), a registered AP term, one
+#: scan's points.
+NOT_RESULTS = {
+    "Network",
+    "ObservationTable",
+    "Adjustment",
+    "NetworkInputs",
+    "Estimates",
+    "Simulation",
+    "DesignSimulation",
+    "PointClouds",
+    "APTerm",
+    "CorrectedScan",
+    "PointCloudScan",
+    "DesignCriterion",
+}
+#: Results that are parts of other results (``SelfCalibration.selection`` ...) or made by a
+#: constructor (``APSet.from_result``), beside those a public function returns.
+PARTS = {
+    "ScoreTests",
+    "SelectionResult",
+    "PlaneScreening",
+    "CheckpointReport",
+    "TargetMatching",
+    "APSet",
+}
+#: Names of the variants the convention replaced.
+OLD_VARIANTS = (
+    "json_fields",
+    "outliers_json",
+    "as_dict",
+    "as_json",
+    "report",
+    "redundancy_summary",
+    "to_json",
+)
 
 
-def _result_types_with(method):
-    return [
-        getattr(tj, n)
-        for n in sorted(dir(tj))
-        if not n.startswith("_")
-        and n not in ("ExtractionConfig", "MatchingConfig")  # deprecated aliases (they warn)
-        and inspect.isclass(getattr(tj, n))
-        and callable(getattr(getattr(tj, n), method, None))
-    ]
+def _returned_classes():
+    """Names of the public classes that public functions are annotated to return."""
+    public = {n for n in dir(tj) if not n.startswith("_") and inspect.isclass(getattr(tj, n))}
+    out = set()
+    for n in dir(tj):
+        f = getattr(tj, n)
+        if n.startswith("_") or inspect.isclass(f) or not callable(f):
+            continue
+        ann = inspect.signature(f).return_annotation
+        text = ann if isinstance(ann, str) else getattr(ann, "__name__", str(ann))
+        out |= {c for c in public if c in text.replace("|", " ").replace(",", " ").split()}
+    return out
 
 
-def test_every_public_summary_is_annotated_as_text():
-    types = _result_types_with("summary")
-    assert {"MonteCarloResult", "DesignOptimisation", "ExtractedPlanes"} <= {
-        t.__name__ for t in types
-    }
-    for t in types:
-        ann = inspect.signature(t.summary).return_annotation
-        assert ann in ("str", str), (t.__name__, ann)
+def test_every_public_result_type_has_summary_and_to_dict():
+    """The public result types: every class a public function returns, and the results that
+    are parts of others. Each answers ``summary() -> str`` and ``to_dict() -> dict`` and
+    keeps none of the variants the convention replaced."""
+    results = (_returned_classes() - NOT_RESULTS) | PARTS
+    assert {
+        "SelfCalibration",
+        "CalibrationResult",
+        "MonteCarloResult",
+        "CompatibilityResult",
+    } <= results
+    for name in sorted(results):
+        cls = getattr(tj, name)
+        for method, kind in (("summary", str), ("to_dict", dict)):
+            assert callable(getattr(cls, method, None)), f"{name}.{method}"
+            ann = inspect.signature(getattr(cls, method)).return_annotation
+            assert ann in (kind.__name__, kind), (name, method, ann)
+        assert not [m for m in OLD_VARIANTS if hasattr(cls, m)], name
+
+
+def test_every_settings_object_round_trips_and_is_passed_as_options():
+    """Every public ``...Options`` reads its ``to_dict()`` back (strict JSON); every public
+    function takes its settings as ``options=`` (no ``config=``, ``solver=``, ``testing=``) and
+    names no parameter ``alpha``."""
+    options = [n for n in dir(tj) if n.endswith("Options")]
+    assert len(options) >= 12, options
+    for name in options:
+        cls = getattr(tj, name)
+        default = cls()
+        doc = json.loads(json.dumps(default.to_dict(), allow_nan=False))
+        assert cls.from_dict(doc) == default, name
+        assert not [f.name for f in dataclasses.fields(cls) if "alpha" in f.name], name
+    for n in dir(tj):
+        f = getattr(tj, n)
+        if n.startswith("_") or inspect.isclass(f) or not callable(f):
+            continue
+        params = inspect.signature(f).parameters
+        assert not {"config", "solver", "testing"} & set(params), n
+        assert not [p for p in params if "alpha" in p], n
 
 
 def _monte_carlo(ok=True):
@@ -71,7 +136,7 @@ def _monte_carlo(ok=True):
         iterations=np.full(4, 3),
         result=np.zeros(4, dtype=int) if ok else np.full(4, 1),
         dof=20,
-        alpha=0.05,
+        t_test_level=0.05,
         seed=7,
         chunk_size=4,
         n_devices=1,
@@ -158,26 +223,30 @@ def test_to_dict_is_strict_json_with_the_data():
         json.dumps(d, allow_nan=False)
 
 
-def test_old_summary_access_warns_and_returns_the_old_value():
-    mc = _monte_carlo()
-    text = mc.summary()
-    with pytest.warns(DeprecationWarning, match=r"summary\(\) returns text now; use to_dict\(\)"):
-        assert text["aps"]["A0"]["mean"] == pytest.approx(1.0e-3)
-    with pytest.warns(DeprecationWarning, match="use to_dict"):
-        assert set(text.keys()) == set(mc.to_dict())
-    with pytest.warns(DeprecationWarning, match="use to_dict"):
-        assert dict(text.items())["runs"] == 4
-    with pytest.warns(DeprecationWarning, match="use to_dict"):
-        assert text.get("dof") == 20 and text.get("nothing", 3) == 3
-    # NaN in the old dict (failed realisations) where to_dict() has None.
-    with pytest.warns(DeprecationWarning):
-        assert np.isnan(_monte_carlo(ok=False).summary()["sigma0_sq_mean"])
-    with pytest.warns(DeprecationWarning, match="use to_dict"):
-        assert _design_optimisation().summary()["value"] == 0.5
-    with pytest.warns(DeprecationWarning, match="use to_dict"):
-        assert _extracted_planes().summary()[0]["n_points"] == 400
-    # Plain text use does not warn.
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        assert text[:11] == "Monte Carlo" and text.splitlines()[0].startswith("Monte")
-        assert _extracted_planes().summary()[0:2] == "1 "
+def test_settings_and_models_round_trip_through_strict_json():
+    """What a result records of the settings that made it reads back as the same objects
+    (issue 40 item 5: a result can be re-run from its own file)."""
+    options = tj.CalibrationOptions(
+        solver=tj.SolverOptions(max_iterations=7),
+        vce=None,
+        snooping=tj.SnoopingOptions(w_test_level=0.01, removal="target", critical_value=3.0),
+        tests=tj.TestOptions(candidates="A3 C2", score_test_level=0.01),
+        selection=tj.SelectionOptions(candidates="A3 C2", test_level=0.02),
+    )
+    text = json.dumps(options.to_dict(), allow_nan=False)
+    assert tj.CalibrationOptions.from_dict(json.loads(text)) == options
+    model = tj.CalibrationModel(
+        {"a": tj.Scanner(aps="A0 B6"), "b": tj.Scanner(architecture="panoramic", aps="A0 C0")},
+        datum="inner",
+        correlation_threshold=0.95,
+        fixed_aps=("C0[b]",),
+        ap_priors={"B6[a]": (1e-4, 1e-5)},
+    )
+    text = json.dumps(model.to_dict(), allow_nan=False)
+    assert tj.CalibrationModel.from_dict(json.loads(text)) == model
+    with pytest.raises(ValueError, match="VCEOptions: unknown setting.*tol"):
+        tj.VCEOptions.from_dict({"tol": 1e-3})
+    with pytest.raises(
+        TypeError, match="CalibrationOptions.snooping must be a tlsjax SnoopingOptions"
+    ):
+        tj.CalibrationOptions(snooping=True)

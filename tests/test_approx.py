@@ -18,20 +18,21 @@ import pytest
 from networks import SIX_SCANS, ST1, ST2
 
 import tlsjax as tj
+from tlsjax import ObservationTable, rotation_matrix
 from tlsjax._adjustment._approx import ApproxConfig, approximate, approximate_network
 from tlsjax._adjustment._approx._local import Prims
 from tlsjax._adjustment._approx._register import register
-from tlsjax._adjustment._network import ObservationTable
-from tlsjax._model._geometry import rotation_matrix
+
+pytestmark = pytest.mark.internal
 
 DEG = np.pi / 180
 ROOM = (14.0, 11.0, 3.0)
 
 #: The issue's oblique planes: normals (1,1,1), (-1,2,3), (2,-1,1.5), 0.35 to 2 m from the stations.
 OBLIQUE = (
-    tj.DesignPlane((1, 1, 1), (5.0, 4.5, 2.1)),
-    tj.DesignPlane((-1, 2, 3), (9.5, 7.0, 2.6)),
-    tj.DesignPlane((2, -1, 1.5), (7.0, 5.5, 1.5)),
+    tj.RoomPlane((1, 1, 1), (5.0, 4.5, 2.1)),
+    tj.RoomPlane((-1, 2, 3), (9.5, 7.0, 2.6)),
+    tj.RoomPlane((2, -1, 1.5), (7.0, 5.5, 1.5)),
 )
 
 
@@ -162,7 +163,7 @@ def test_partial_visibility_and_a_narrow_field_of_view():
         room=ROOM,
         scans=SIX_SCANS,
         faces_as_planes=True,
-        planes=(tj.DesignPlane((1, 0.3, 0.2), (7.0, 5.5, 1.5)), OBLIQUE[1]),
+        planes=(tj.RoomPlane((1, 0.3, 0.2), (7.0, 5.5, 1.5)), OBLIQUE[1]),
         points_per_plane=12,
         elevation_limits=(-20 * DEG, 45 * DEG),
         max_range=9.0,

@@ -10,8 +10,8 @@ import pytest
 from strict_json import load_strict
 
 import tlsjax as tj
+from tlsjax import rotation_matrix
 from tlsjax._cli import main
-from tlsjax._model._geometry import rotation_matrix
 
 APS = "A0 B6 B7 C0"
 REF_NOISE = 3e-4  # reference survey, per coordinate [m]
@@ -61,7 +61,7 @@ def test_true_aps_give_noise_level_and_none_give_the_ap_effect(room):
         assert abs(without[k] - expect) < 0.15 * expect, (k, without[k], expect)
     assert chk.improvement()["xyz_mm"] > 80
     assert chk.per_scan.without["range_mm"] > 3 * chk.per_scan.with_correction["range_mm"]
-    assert len(chk.names) == len(noisy.network.targets) and "with calibration" in chk.table()
+    assert len(chk.names) == len(noisy.network.targets) and "with calibration" in chk.summary()
     # A 7-parameter fit reports its scale; leaving out targets leaves them out.
     sim7 = tj.check_targets(
         noisy.network, cal, _reference(noisy, REF_NOISE), transform="7-parameter", exclude=["T001"]
@@ -84,7 +84,7 @@ def test_targets_in_the_json_are_the_dense_covariance_blocks(room):
         tj.CalibrationModel(noisy.scanner),
         tj.SolverOptions(full_covariance=True),
     )
-    doc = tj.result_to_dict(res)
+    doc = res.to_dict()
     names = list(res.parameter_names)
     for t in ("T001", "T050", "T120"):
         idx = [names.index(f"{c}[{t}]") for c in "XYZ"]
@@ -99,7 +99,7 @@ def test_targets_in_the_json_are_the_dense_covariance_blocks(room):
         set(noisy.network.scan_index[noisy.network.target_index == 0].tolist())
     )
     assert "inner constraints" in doc["targets_frame"]
-    failed = tj.result_to_dict(dataclasses.replace(res, result=3, message="rank defect"))
+    failed = dataclasses.replace(res, result=3, message="rank defect").to_dict()
     assert failed["targets"]["T001"]["xyz"] == [None, None, None]
 
 
@@ -126,7 +126,9 @@ def test_every_result_json_keeps_the_architecture(tmp_path):
     for path in (out, truth):
         c = tj.Calibration.from_json(path)
         assert c.scanner.architecture == "panoramic" and c.scanner.aps == ("A0", "B6", "B7", "C0")
-        assert not c.notes, c.notes
+        # A simulation's truth is applied, and named as such (issue 39 item 7).
+        assert [n for n in c.notes if "true APs of a simulation" not in n] == [], c.notes
+        assert (path == truth) == bool(c.notes)
     true = load_strict(truth)["aps"]
     np.testing.assert_allclose(tj.Calibration.from_json(truth).values, list(true.values()))
     # `tlsjax compare` takes the architecture from the JSONs it compares (APSet.from_json).
@@ -188,6 +190,7 @@ def test_check_targets_cli_calibrate_targets_out_and_held_out_scans(tmp_path, ca
     plain.write_text((tmp_path / "survey.csv").read_text().replace(" [mm]", ""))
     bad = ["check-targets", str(truth), str(obs), "--reference", str(plain)]
     assert main(bad + ["--length-unit", "m"]) == 2
-    err = capsys.readouterr().err
-    assert "unit mix-up" in err and err.count("\n") == 1
+    err = capsys.readouterr().err.splitlines()
+    assert "true APs of a simulation" in err[0]  # the truth given as the calibration, named
+    assert "unit mix-up" in err[-1] and len(err) == 2
     assert json.loads(cal.read_text())["scanner"]["architecture"] == "hybrid"

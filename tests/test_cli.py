@@ -10,6 +10,8 @@ import re
 import numpy as np
 import pytest
 import scipy.stats
+from helpers import printed_is_summary, same_run
+from networks import NumpyDrawer, point_case
 from strict_json import load_strict
 
 import tlsjax as tj
@@ -232,7 +234,7 @@ def test_demo_writes_report_and_plots(tmp_path):
 
 def test_global_test_against_scipy():
     for dof in (3, 40, 1753):
-        g = tj.global_test(1.0, dof, alpha=0.05)
+        g = tj.global_test(1.0, dof, level=0.05)
         assert np.isclose(g["lower"], scipy.stats.chi2.ppf(0.025, dof), rtol=1e-9)
         assert np.isclose(g["upper"], scipy.stats.chi2.ppf(0.975, dof), rtol=1e-9)
     # s0 = 1.05 with r = 1000: T = 1102.5 beyond the 97.5 % quantile 1089.5, rejected;
@@ -414,3 +416,95 @@ def test_select_with_a_gross_error_ends_as_on_the_clean_file(simulated, tmp_path
         assert js["selection"]["n_screened"] == (name == "bad")
     assert chosen[0] == chosen[1] == {"A0", "B6", "B7", "C0"}
     assert "largest score statistic" in capsys.readouterr().out
+
+
+# --------------------------------------------------------------------------------------------
+# Issue 39: the command prints and writes the one library call's result
+
+
+def _cli_and_api(obs, scans, out, capsys, cli_args, model, options):
+    """``tlsjax calibrate`` with ``cli_args`` and ``tj.self_calibrate`` of the same files with
+    ``model`` and ``options``: (exit code, stdout, CLI JSON, API result)."""
+    code = main(["calibrate", str(obs), "--scans", str(scans), "--json", str(out), *cli_args])
+    printed = capsys.readouterr().out
+    net = tj.read_network(str(obs), str(scans))
+    return code, printed, load_strict(out), tj.self_calibrate(net, model, options)
+
+
+@pytest.mark.parametrize(
+    "cli_args, options",
+    [
+        ([], tj.CalibrationOptions()),
+        (
+            ["--no-vce", "--snoop", "--bonferroni", "--snoop-alpha", "0.05"],
+            tj.CalibrationOptions(
+                vce=None, snooping=tj.SnoopingOptions(w_test_level=0.05, bonferroni=True)
+            ),
+        ),
+        (
+            ["--aps", "A0 B6 C0", "--select", "--select-candidates", "A3 B7 C2"],
+            tj.CalibrationOptions(selection=tj.SelectionOptions(candidates="A3 B7 C2")),
+        ),
+    ],
+    ids=["defaults", "snooping", "selection"],
+)
+def test_cli_prints_and_writes_the_self_calibration(simulated, tmp_path, capsys, cli_args, options):
+    d, obs, scans, _ = simulated
+    aps = cli_args[cli_args.index("--aps") + 1] if "--aps" in cli_args else "physical"
+    model = tj.CalibrationModel(tj.Scanner(aps=aps))
+    code, printed, doc, result = _cli_and_api(
+        obs, scans, tmp_path / "r.json", capsys, cli_args, model, options
+    )
+    assert code == 0 and result.ok
+    same_run(doc, result.to_dict())
+    printed_is_summary(printed, result.summary())
+    assert doc["settings"]["options"] == options.to_dict()
+    assert doc["settings"]["inputs"]["command"].startswith("tlsjax calibrate ")
+    if options.selection is not None:
+        assert doc["selection"]["aps"] == list(result.model.scanner.aps)
+        assert set(result.model.scanner.aps) == {"A0", "B6", "B7", "C0"}
+
+
+def test_cli_prints_and_writes_the_self_calibration_of_a_drawn_network(tmp_path, capsys):
+    """A network drawn at random (tests/networks.py: four scans from one to three stations,
+    levelled or tilted, hybrid or panoramic, any sigma scale), written as ``tlsjax simulate``
+    writes it; whatever the run ends in, the command's JSON and text are the entry's."""
+    case = point_case(NumpyDrawer(7))
+    sim = tj.simulate_design(case.design, seed=case.seed)
+    obs, scans = tmp_path / "obs.csv", tmp_path / "scans.csv"
+    tj.write_network(obs, sim.network, scans_path=scans, architecture=sim.scanner.architecture)
+    model = tj.CalibrationModel(tj.Scanner(architecture=sim.scanner.architecture))
+    code, printed, doc, result = _cli_and_api(
+        obs, scans, tmp_path / "r.json", capsys, [], model, tj.CalibrationOptions()
+    )
+    assert code == (0 if result.ok else 1)
+    same_run(doc, result.to_dict())
+    printed_is_summary(printed, result.summary())
+
+
+def test_from_json_reruns_the_recorded_calibration(simulated, tmp_path, capsys):
+    """Issue 40 item 5: the JSON records its inputs, how they were read, the model and the
+    options; ``--from-json`` re-runs it and reproduces it; only output options go with it."""
+    d, obs, scans, _ = simulated
+    first, again = tmp_path / "first.json", tmp_path / "again.json"
+    given = ["--aps", "A0 B6 B7 C0", "--no-vce", "--snoop", "--sigma-range-mm", "0.6"]
+    assert main(["calibrate", str(obs), "--scans", str(scans), *given, "--json", str(first)]) == 0
+    assert main(["calibrate", "--from-json", str(first), "--json", str(again)]) == 0
+    a, b = load_strict(first), load_strict(again)
+    same_run(a, b)
+    assert (
+        a["settings"]["inputs"]["sigma_range_mm"] == 0.6 and a["settings"]["options"]["vce"] is None
+    )
+    assert b["settings"]["inputs"] == {
+        **a["settings"]["inputs"],
+        "command": b["provenance"]["command"],
+    }
+    capsys.readouterr()
+    assert main(["calibrate", "--from-json", str(first), "--no-vce"]) == 2
+    assert "--vce: not with --from-json" in capsys.readouterr().err
+    # Issue 39 item 7: a simulation's truth where a calibration is expected is named.
+    truth = d / "truth.json"
+    assert main(["calibrate", "--from-json", str(truth)]) == 2
+    assert "the truth of a simulation" in capsys.readouterr().err
+    assert main(["calibrate", str(obs), "--ap-priors", str(truth)]) == 2
+    assert "the truth of a simulation" in capsys.readouterr().err

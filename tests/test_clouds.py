@@ -203,6 +203,7 @@ def test_design_errors():
         CloudDesign(aps="A0 Z9")
 
 
+@pytest.mark.internal
 def test_fixed_point_matches_point_simulation():
     # The looped, chunked fixed point reproduces the target simulation's construction.
     import jax.numpy as jnp

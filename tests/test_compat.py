@@ -238,7 +238,7 @@ def test_zero_noise_power_close_to_the_naive_test_where_visible(set4):
 
 @pytest.mark.parametrize("case", ["4 APs", "23 APs", "different basis"])
 def test_zero_noise_eigenvalues_in_unit_interval_sum_to_three(case, set4, set23):
-    """L^T G L is a mean of orthogonal projectors of rank 3 (module docstring of _compat)."""
+    """L^T G L is a mean of orthogonal projectors of rank 3 (module docstring of _compatibility)."""
     s1, s2, _ = _design(case, set4, set23)
     r = tj.compatibility_test(s1, s2, options=options(runs=20), sigma_range=0, sigma_angle=0)
     lam = r.null_eigenvalues
@@ -269,7 +269,7 @@ def test_clearly_different_sets_and_the_report(set4):
     assert len(r.eigenvalues) == 4 and r.least_visible.startswith("lambda")
     q1, q3 = r.share_quartiles
     assert 0 <= q1 <= r.median_share <= q3 <= 1
-    text = r.table()
+    text = r.summary()
     assert "NOT compatible" in text and "naive chi-square" in text and "descriptive" in text
     json.dumps(r.to_dict(), allow_nan=False)
 
@@ -296,7 +296,7 @@ def test_difference_object_space_cannot_see_is_reported(set4):
     assert len(r.invisible) == 1 and "B6" in r.invisible[0] and "B6full" in r.invisible[0]
     assert r.seen_share.min() < 1e-6 and r.eigenvalues.min() < 1e-8
     assert r.compatible  # the two sets describe one instrument
-    assert "object space cannot see" in r.table()
+    assert "object space cannot see" in r.summary()
 
 
 def test_statistic_gradient_matches_finite_differences(set4):
@@ -348,7 +348,7 @@ def test_json_round_trip(set4, tmp_path):
         scanner=tj.Scanner(architecture="panoramic", unit_length=0.9),
         noise=(0.4e-3, 1e-4, 2e-4),
     )
-    doc = s.to_json(tmp_path / "set.json")
+    doc = tj.write_json(s, tmp_path / "set.json")
     assert doc["scanner"]["basis"]["B6"].startswith("sec(alpha) (full")
     back = tj.APSet.from_json(tmp_path / "set.json")
     assert back.names == s.names and back.noise == s.noise
@@ -407,7 +407,7 @@ def test_cli_compare_calibrate_json_and_ap_set_json(tmp_path, capsys):
     s = tj.APSet.from_json(cal)
     v = s.values.copy()
     v[s.names.index("B6")] += 30 * s.sigmas[s.names.index("B6")]
-    s.with_values(v).to_json(tmp_path / "moved.json")
+    tj.write_json(s.with_values(v), tmp_path / "moved.json")
     out = tmp_path / "moved_out.json"
     assert main(["compare", str(cal), str(tmp_path / "moved.json"), "--json", str(out), *fast]) == 1
     moved = _strict(out)
@@ -416,7 +416,7 @@ def test_cli_compare_calibrate_json_and_ap_set_json(tmp_path, capsys):
     # The same values as a panoramic scanner's set: B6 is then the full sec(alpha); the naive
     # test is marked not meaningful and the constant difference is one object space cannot see.
     pano = tj.APSet(s.names, s.values, s.covariance, scanner=tj.Scanner(architecture="panoramic"))
-    pano.to_json(tmp_path / "pano.json")
+    tj.write_json(pano, tmp_path / "pano.json")
     out = tmp_path / "pano_out.json"
     rc = main(["compare", str(cal), str(tmp_path / "pano.json"), "--json", str(out), *fast])
     result = _strict(out)

@@ -6,6 +6,9 @@ item 2): tilt readings of levelled and tilted scans, an observed kappa, AP prior
   degrees of freedom agree; the redundancy numbers sum to the dof.
 * The same for a target network (redundancy sum), the files (scans CSV kappa columns, AP priors
   as text, CSV and result JSON) and the command line.
+
+Private imports: ``tlsjax._cli.main`` (the console script) and the compensator model
+``compensator_reading``, which builds the tilt readings of the reference networks.
 """
 
 import dataclasses
@@ -19,9 +22,9 @@ from networks import APS, NumpyDrawer, oblique_case
 
 import tlsjax as tj
 from tlsjax._cli import main
-from tlsjax._io._priors import parse_ap_prior, read_ap_priors
-from tlsjax._io._tables import read_scans
 from tlsjax._model._levelling import compensator_reading
+
+pytestmark = pytest.mark.internal
 
 ARCSEC = np.pi / 180 / 3600
 
@@ -107,7 +110,7 @@ def test_constraints_equal_the_dense_gauss_helmert_oracle(plane_case):
     assert np.isnan(res.ap_prior_residuals[[0, 2, 3]]).all()
     # Every redundancy number of the network sums to the dof, the constraints' included.
     np.testing.assert_allclose(ref["r"].sum(), ref["dof"], rtol=1e-9)
-    summary = res.redundancy_summary()
+    summary = res.to_dict()["redundancy"]
     np.testing.assert_allclose(summary["total"]["sum"], res.dof, rtol=1e-9)
     assert summary["heading"]["sum"] == pytest.approx(r[n_t : n_t + n_s].sum(), abs=1e-6)
     # Their tests: w = v / (sigma sqrt(r)).
@@ -136,7 +139,7 @@ def test_target_network_with_constraints_sums_to_its_dof():
     )
     res = tj.calibrate(net, model)
     assert res.result == 0, res.message
-    assert res.redundancy_summary()["total"]["sum"] == pytest.approx(res.dof, rel=1e-9)
+    assert res.to_dict()["redundancy"]["total"]["sum"] == pytest.approx(res.dof, rel=1e-9)
     # Counting: three per target observation, two tilt readings and one heading per scan, one
     # prior; the datum defect is 3 (the heading fixes the rotation about the vertical).
     n_s = len(net.scans)
@@ -200,34 +203,34 @@ def test_orientation_argument_is_checked():
 
 
 def test_priors_from_text_csv_and_result_json(tmp_path):
-    name, v, s = parse_ap_prior("B6=40arcsec+-5arcsec")
+    name, v, s = tj.parse_ap_prior("B6=40arcsec+-5arcsec")
     assert name == "B6" and v == pytest.approx(40 * ARCSEC) and s == pytest.approx(5 * ARCSEC)
-    assert parse_ap_prior("A0 = -0.6mm ± 0.05")[1:] == pytest.approx((-0.6e-3, 0.05e-3))
-    assert parse_ap_prior("A1=12ppm+-3ppm")[1:] == pytest.approx((12e-6, 3e-6))
-    assert parse_ap_prior("B6[inst1]=0.001+-0.0001")[0] == "B6[inst1]"
+    assert tj.parse_ap_prior("A0 = -0.6mm ± 0.05")[1:] == pytest.approx((-0.6e-3, 0.05e-3))
+    assert tj.parse_ap_prior("A1=12ppm+-3ppm")[1:] == pytest.approx((12e-6, 3e-6))
+    assert tj.parse_ap_prior("B6[inst1]=0.001+-0.0001")[0] == "B6[inst1]"
     for bad, msg in (
         ("B6=40mm+-5mm", "does not fit B6"),
         ("B6=40", "expected NAME"),
         ("Q9=1+-1", "unknown AP"),
     ):
         with pytest.raises(ValueError, match=msg):
-            parse_ap_prior(bad)
+            tj.parse_ap_prior(bad)
     csv = tmp_path / "priors.csv"
     csv.write_text("ap,value,sigma,unit\nB6,40,5,arcsec\nA0,-0.6,0.05,mm\n")
-    got = read_ap_priors(csv)
+    got = tj.read_ap_priors(csv)
     assert set(got) == {"B6", "A0"}
     assert got["B6"] == pytest.approx((40 * ARCSEC, 5 * ARCSEC))
     assert got["A0"] == pytest.approx((-0.6e-3, 0.05e-3))
     csv.write_text("ap,value,sigma,unit\nB6,40,5,mm\n")
     with pytest.raises(ValueError, match="priors.csv, line 2: unit 'mm' does not fit B6"):
-        read_ap_priors(csv)
+        tj.read_ap_priors(csv)
     res_json = tmp_path / "cal.json"
     res_json.write_text(
         json.dumps(
             {"aps": {"B6": {"value": 1e-4, "sigma": 2e-5}, "A1": {"value": None, "sigma": None}}}
         )
     )
-    assert read_ap_priors(res_json) == {"B6": (1e-4, 2e-5)}
+    assert tj.read_ap_priors(res_json) == {"B6": (1e-4, 2e-5)}
 
 
 def test_scans_csv_kappa_columns(tmp_path):
@@ -238,17 +241,17 @@ def test_scans_csv_kappa_columns(tmp_path):
         "S2,-45,0.5,10,10,80,30\n"
         "S3,,,,,120,30\n"
     )
-    scans = read_scans(path)
+    scans = tj.read_scans(path)
     assert "kappa" not in scans["S1"]
     assert scans["S2"]["omega"] == pytest.approx(-45 * np.pi / 180)
     assert scans["S2"]["kappa"] == pytest.approx(80 * np.pi / 180)
     assert scans["S3"] == pytest.approx({"kappa": 120 * np.pi / 180, "sigma_kappa": 30 * ARCSEC})
     path.write_text("scan,kappa_deg\nS1,1\n")
     with pytest.raises(ValueError, match="sigma_kappa"):
-        read_scans(path)
+        tj.read_scans(path)
     path.write_text("scan,kappa_deg,sigma_kappa_arcsec\nS1,1,\n")
     with pytest.raises(ValueError, match="kappa but no sigma_kappa"):
-        read_scans(path)
+        tj.read_scans(path)
 
 
 def test_constraints_through_the_command_line(tmp_path, capsys):
@@ -309,7 +312,7 @@ def test_each_kind_of_constraint_is_its_own_variance_group():
     net = dataclasses.replace(sim.network, heading_sigma=3 * sim.network.heading_sigma)
     prior = {"C0": (sim.true_aps.get("C0", 0.0), 5 * ARCSEC)}
     model = tj.CalibrationModel(tj.Scanner(aps="physical"), ap_priors=prior)
-    tested = tj.calibrate_and_test(net, model, testing=tj.TestingOptions(vce=True))
+    tested = tj.self_calibrate(net, model, tj.CalibrationOptions(snooping=tj.SnoopingOptions()))
     assert tested.ok, tested.message
     vc = {v.group: v for v in tested.variance_components}
     assert set(vc) == {"range", "hz", "el", "levelling", "heading", "ap_prior"}
@@ -327,4 +330,4 @@ def test_each_kind_of_constraint_is_its_own_variance_group():
         r_g = sum(c["redundancy"] for c in rows)
         assert r_g == pytest.approx(vc[group].redundancy, rel=1e-9)
         assert omega / r_g == pytest.approx(1.0, abs=0.05), group
-    assert res.redundancy_summary()["total"]["sum"] == pytest.approx(res.dof, rel=1e-9)
+    assert res.to_dict()["redundancy"]["total"]["sum"] == pytest.approx(res.dof, rel=1e-9)

@@ -17,14 +17,17 @@ import tlsjax as tj
 from tlsjax import (
     Calibration,
     CloudDesign,
+    cartesian_from_spherical,
     correct_points,
     read_point_clouds,
+    rotation_matrix,
     simulate_point_clouds,
 )
 from tlsjax._cli import main
 from tlsjax._io import _correct, _correct_files, _las
 from tlsjax._io._point_clouds import observations_from_points, to_object
-from tlsjax._model._geometry import cartesian_from_spherical, rotation_matrix
+
+pytestmark = pytest.mark.internal
 
 DEG = np.pi / 180
 APS = ("A0", "A3", "B6", "B7", "B8", "C0", "C6")

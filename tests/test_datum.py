@@ -48,7 +48,7 @@ def test_control_points_fix_position_orientation_and_scale():
     # 6 control points x 3 coordinates are observations; no datum defect remains.
     assert res.n_observations == 3 * len(net.scan_index) + 18 + int(net.is_levelled.sum()) * 2
     assert res.dof == res.n_observations - res.n_unknowns
-    assert np.isclose(res.redundancy_summary()["total"]["sum"], res.dof, rtol=1e-9)
+    assert np.isclose(res.to_dict()["redundancy"]["total"]["sum"], res.dof, rtol=1e-9)
 
 
 def test_two_instruments_get_their_own_ap_blocks():

@@ -18,10 +18,12 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
-from tlsjax._adjustment._network import ObservationTable
+from tlsjax import ObservationTable
 from tlsjax._cli import main
 from tlsjax._clouds._thin import take_rows, thin_indices
 from tlsjax._simulation._point_clouds import correlated_field
+
+pytestmark = pytest.mark.internal
 
 DEG = np.pi / 180
 

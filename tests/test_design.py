@@ -17,7 +17,6 @@ import pytest
 
 import tlsjax as tj
 from tlsjax._cli import main
-from tlsjax._design._criteria import criterion_of_result
 
 ROOM = tj.Room(n_targets=16)
 
@@ -26,10 +25,13 @@ ROOM = tj.Room(n_targets=16)
 def room():
     sim = tj.simulate(ROOM, tilted=True, aps="A0 B6 B7 C0", seed=1, noise=False)
     design = tj.TargetDesign.from_simulation(sim)
-    return sim, design, tj.DesignNetwork.targets(design, sim.scanner)
+    return sim, design, tj.DesignProblem.targets(design, sim.scanner)
 
 
+@pytest.mark.internal
 def test_predicted_covariance_equals_calibrate(room):
+    from tlsjax._design._criteria import criterion_of_result
+
     sim, design, dn = room
     Q = np.asarray(jax.jit(lambda d: tj.predicted_cofactor(dn, d))(design))
     res = tj.calibrate(dn.network(design, seed=2), dn.model, tj.SolverOptions(full_covariance=True))
@@ -66,12 +68,15 @@ def test_criterion_gradient_matches_finite_differences(room):
     assert an == pytest.approx(float(fd), rel=1e-6)
 
 
+@pytest.mark.internal
 def test_optimiser_beats_its_start_verified_by_calibrate(room):
+    from tlsjax._design._criteria import criterion_of_result
+
     sim, design, dn = room
     levelled = tj.simulate(ROOM, tilted=False, aps="A0 B6 B7 C0", noise=False, seed=1)
     start = tj.TargetDesign.from_simulation(levelled)
     mask = np.array([True, True, True, True, False, False])
-    dnl = tj.DesignNetwork.targets(start, levelled.scanner, levelled=mask)
+    dnl = tj.DesignProblem.targets(start, levelled.scanner, levelled=mask)
     crit = tj.DesignCriterion("max_sigma", aps="B6", tolerances={"B6": 4.848e-6})
     out = tj.optimize_design(
         dnl, crit, tj.DesignSpace(room=ROOM), starts=2, steps=25, progress=False, seed=1
@@ -96,7 +101,7 @@ def test_plane_design_derivative_matches_calibrate():
     """d estimate / d plane parameter and d / d station of a plane network (Gauss-Helmert,
     variances as functions of the solution), against calibrate of re-simulated networks."""
     pc = tj.simulate_point_clouds(tj.CloudDesign(angular_step=4 * np.pi / 180, noise=False), seed=0)
-    dn = tj.DesignNetwork.from_point_clouds(pc, max_points=12, seed=0)
+    dn = tj.DesignProblem.from_point_clouds(pc, max_points=12, seed=0)
     design = dn.design
     n = dn.scan_index.shape[0]
     z = jnp.asarray(np.random.default_rng(1).standard_normal((n, 3)))
@@ -175,7 +180,7 @@ def test_visibility_smooth_and_hard(room):
     agrees with the hard cut of network() away from the edges."""
     sim, design, _ = room
     fov, inc = (-40 * np.pi / 180, 60 * np.pi / 180), 70 * np.pi / 180
-    dn = tj.DesignNetwork.targets(
+    dn = tj.DesignProblem.targets(
         design, sim.scanner, fov=fov, max_incidence=inc, smooth_visibility=True
     )
     v = np.asarray(dn.visibility(design))

@@ -57,20 +57,13 @@ def test_a_second_solve_runs_one_compiled_program(network):
     np.testing.assert_allclose(res.ap_values, first.ap_values, rtol=1e-10, atol=1e-16)
 
 
-def test_a_second_calibrate_and_test_dispatches_nothing_eagerly(network):
-    first = tj.calibrate_and_test(network)
+@pytest.mark.parametrize("snooping", [False, True])
+def test_a_second_self_calibrate_dispatches_nothing_eagerly(network, snooping):
+    options = tj.CalibrationOptions(snooping=tj.SnoopingOptions() if snooping else None)
+    first = tj.self_calibrate(network, None, options)
     with executed_programs() as counts:
-        again = tj.calibrate_and_test(network)
+        again = tj.self_calibrate(network, None, options)
     assert _eager(counts) == {}, dict(counts)
     # It ran: one adjustment per step it took, as many as the first time.
     assert counts["jit(run)"] >= 2
     np.testing.assert_allclose(again.calibration.ap_values, first.calibration.ap_values, rtol=1e-12)
-
-
-@pytest.mark.skipif(not hasattr(tj, "self_calibrate"), reason="the one entry is not merged yet")
-def test_a_second_self_calibrate_dispatches_nothing_eagerly(network):
-    first = tj.self_calibrate(network)
-    with executed_programs() as counts:
-        tj.self_calibrate(network)
-    assert _eager(counts) == {}, dict(counts)
-    assert counts["jit(run)"] >= 1 and first is not None

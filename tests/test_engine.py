@@ -4,7 +4,7 @@
   with the scan as an axis) equal ``jacfwd`` of the whole point model; so do the plane
   family's (one instrument or two, away from the approximate values).
 * The grid layout of a family's sums (reshapes) gives the same adjustment as segment sums.
-* One engine behind calibrate, the analysed adjustment and calibrate_and_test, and one
+* One engine behind calibrate, the analysed adjustment and self_calibrate, and one
   cofactor function behind the quality of an adjustment and the design's prediction.
 
 Private modules are imported for properties of private algorithms (the structured Jacobians,
@@ -24,6 +24,8 @@ from tlsjax._adjustment import _families as F
 from tlsjax._adjustment._calibrate import _replace
 from tlsjax._adjustment._quality import pose_ap_cofactor
 from tlsjax._model._planes import condition_variance, projection_step
+
+pytestmark = pytest.mark.internal
 
 
 @pytest.mark.parametrize("architecture", ["hybrid", "panoramic"])
@@ -142,7 +144,7 @@ def test_grid_layout_is_chosen_from_the_structure():
 
 def test_one_engine_behind_every_entry_point():
     """calibrate, the analysed adjustment re-solved with the network's own weights, and
-    calibrate_and_test with nothing to test give the same estimates, sigmas and redundancy: one
+    self_calibrate with nothing to test give the same estimates, sigmas and redundancy: one
     compiled adjustment behind them. (Monte Carlo against calibrate of the same realisation is
     tests/test_montecarlo*.py; the design's predicted covariance against calibrate is
     tests/test_design.py.) The quality path and the design path are one function: the
@@ -155,8 +157,8 @@ def test_one_engine_behind_every_entry_point():
     again = tj.analyze(net, model, tj.SolverOptions(full_covariance=True)).solve(
         weights=1.0 / net.sigmas
     )
-    testing = tj.TestingOptions(vce=False, screening=False, snooping=False)
-    tested = tj.calibrate_and_test(net, model, testing=testing).calibration
+    nothing = tj.CalibrationOptions(vce=None, screening=None)
+    tested = tj.self_calibrate(net, model, nothing).calibration
     for other in (again, tested):
         np.testing.assert_allclose(other.ap_values, res.ap_values, rtol=1e-10, atol=1e-15)
         np.testing.assert_allclose(other.ap_sigmas, res.ap_sigmas, rtol=1e-8)

@@ -289,7 +289,7 @@ def test_angles_checked_against_the_model_at_calibration(rows):
     pan = tj.simulate(tj.Room(n_targets=24), aps="none", architecture="panoramic", noise=False)
     assert np.degrees(pan.network.observations[:, 2].max()) > 90  # second-face rows exist
     with pytest.raises(ValueError, match="beyond 90 deg: a hybrid scanner"):
-        tj.calibrate_and_test(pan.network, tj.CalibrationModel(tj.Scanner(aps="A0")))
+        tj.self_calibrate(pan.network, tj.CalibrationModel(tj.Scanner(aps="A0")))
     # Angles one turn off (a reading of 370 deg, or -10 deg) are directions, not errors.
     o = obs.copy()
     o[3, 1] += 2 * np.pi
@@ -357,8 +357,12 @@ def test_wrong_argument_types_name_the_argument(rows):
         tj.calibrate(net, tj.Scanner())
     with pytest.raises(TypeError, match="options must be a tlsjax SolverOptions"):
         tj.calibrate(net, None, {"max_iterations": 3})
-    with pytest.raises(TypeError, match="testing must be a TestingOptions"):
-        tj.calibrate_and_test(net, None, None, {"vce": False})
+    with pytest.raises(TypeError, match="options must be a tlsjax CalibrationOptions"):
+        tj.self_calibrate(net, None, {"vce": False})
+    with pytest.raises(
+        TypeError, match="CalibrationOptions.vce must be a tlsjax VCEOptions or None"
+    ):
+        tj.CalibrationOptions(vce=False)
     with pytest.raises(TypeError, match="observations_path must be a file path"):
         tj.read_network(net)
 

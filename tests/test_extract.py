@@ -20,17 +20,14 @@ from tlsjax import (
     ExtractionOptions,
     MatchingOptions,
     extract_planes,
-    load_planes,
     match_planes,
+    read_extracted_planes,
     read_observations,
-    save_planes,
     simulate_point_clouds,
+    write_extracted_planes,
     write_observations,
 )
 from tlsjax._cli import main
-from tlsjax._cli._extract import add_extract_parser
-from tlsjax._io._plane_files import read_poses
-from tlsjax._io._point_clouds import write_ptx
 
 DEG = np.pi / 180
 DATA = pathlib.Path(__file__).parent / "data"
@@ -229,8 +226,8 @@ def test_table_and_npz_round_trip(tmp_path, room, small):
     back = read_observations(tmp_path / "planes.csv")
     assert back.primitives == table.primitives and back.scans == table.scans
     np.testing.assert_allclose(back.observations, table.observations, rtol=0, atol=1e-12)
-    save_planes(tmp_path / "planes.npz", matched)
-    again = load_planes(tmp_path / "planes.npz")
+    write_extracted_planes(tmp_path / "planes.npz", matched)
+    again = read_extracted_planes(tmp_path / "planes.npz")
     assert again.scans == matched.scans
     for name in ("patch_plane", "point_index", "observations", "incidence", "planes", "poses"):
         np.testing.assert_array_equal(getattr(again, name), getattr(matched, name))
@@ -238,10 +235,13 @@ def test_table_and_npz_round_trip(tmp_path, room, small):
         extract_planes([matched.observations[:10]], ExtractionOptions(min_points=3)).to_table()
     (tmp_path / "bad.npz").write_bytes(b"not a zip")
     with pytest.raises(ValueError, match="bad.npz"):
-        load_planes(tmp_path / "bad.npz")
+        read_extracted_planes(tmp_path / "bad.npz")
 
 
+@pytest.mark.internal
 def test_read_poses(tmp_path):
+    from tlsjax._io._plane_files import read_poses
+
     p = tmp_path / "poses.csv"
     p.write_text("scan,x_m,y_m,z_mm,omega_deg,phi_deg,kappa_gon\nA,1,2,3000,90,0,100\n")
     poses = read_poses(p)
@@ -254,9 +254,12 @@ def test_read_poses(tmp_path):
         read_poses(p)
 
 
+@pytest.mark.internal
 def test_cli_extract_planes(tmp_path, room):
     # Two scans of different stations as one PTX file with their poses; CSV and npz out.
-    from tlsjax._model._geometry import cartesian_from_spherical
+    from tlsjax import cartesian_from_spherical
+    from tlsjax._cli._extract import add_extract_parser
+    from tlsjax._io._point_clouds import write_ptx
 
     scans = [(cartesian_from_spherical(room.observations[j], xp=np), room.eops[j]) for j in (0, 3)]
     write_ptx(tmp_path / "room.ptx", scans)
@@ -275,7 +278,7 @@ def test_cli_extract_planes(tmp_path, room):
         ]
     )
     assert args.func(args) == 0
-    planes = load_planes(tmp_path / "p.npz")
+    planes = read_extracted_planes(tmp_path / "p.npz")
     assert planes.scans == ("room_1", "room_2")
     assert len(planes.planes) == 9
     table = read_observations(tmp_path / "p.csv")
@@ -290,9 +293,11 @@ def test_cli_extract_planes(tmp_path, room):
     assert js["converged"] and set(js["aps"]) == {"A0", "B6", "B7", "C0"}
 
 
+@pytest.mark.internal
 def test_cli_with_poses_file(tmp_path, room, capsys):
+    from tlsjax import cartesian_from_spherical
+    from tlsjax._cli._extract import add_extract_parser
     from tlsjax._io._point_clouds import write_xyz
-    from tlsjax._model._geometry import cartesian_from_spherical
 
     rows = ["scan,x_m,y_m,z_m,omega_rad,phi_rad,kappa_rad"]
     files = []
@@ -323,7 +328,7 @@ def test_cli_with_poses_file(tmp_path, room, capsys):
     # Progress on stderr (no terminal here: one line per phase and per scan, with times).
     for line in ("extracting planes", f"scan {room.scans[4]}: ", "matched 9 planes"):
         assert line in printed.err, printed.err
-    planes = load_planes(tmp_path / "p.npz")
+    planes = read_extracted_planes(tmp_path / "p.npz")
     np.testing.assert_allclose(planes.poses, room.eops[[1, 4]], rtol=0, atol=1e-15)
     # Without poses two scans cannot be matched; asking for the CSV then is an error.
     args = parser.parse_args(
@@ -399,7 +404,7 @@ def test_clutter_gives_no_false_planes(room):
         len(extract_planes([observe(u * rng.uniform(2, 10, 20000)[:, None])], seed=0).patch_scan)
         == 0
     )
-    from tlsjax._model._geometry import rotation_matrix
+    from tlsjax import rotation_matrix
 
     j = 3
     X = rng.uniform([0.5, 0.5, 0.2], [13.5, 10.5, 2.8], size=(20000, 3))
@@ -432,7 +437,7 @@ def test_cli_on_a_real_scan(tmp_path, capsys):
     assert cli(["extract-planes", str(src), "--out", str(tmp_path / "p.npz")]) == 0
     out = capsys.readouterr().out
     assert "22172 of 22172 points" in out and "RMS [mm]" in out
-    planes = load_planes(tmp_path / "p.npz")
+    planes = read_extracted_planes(tmp_path / "p.npz")
     assert len(planes.planes) >= 5
     n, d = planes.planes[0, :3], planes.planes[0, 3]
     assert abs(n[2]) > np.cos(np.radians(1.0)) and 1.8 < abs(d) < 2.0

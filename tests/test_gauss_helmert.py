@@ -55,4 +55,4 @@ def test_plane_calibration_is_the_rigorous_gauss_helmert_solution(case):
     np.testing.assert_allclose(res.plane_redundancy, ref["r"][: 3 * m].reshape(m, 3), atol=1e-6)
     # Redundancy numbers sum to the degrees of freedom (points and levelling).
     np.testing.assert_allclose(ref["r"].sum(), ref["dof"], rtol=1e-9)
-    np.testing.assert_allclose(res.redundancy_summary()["total"]["sum"], res.dof, rtol=1e-9)
+    np.testing.assert_allclose(res.to_dict()["redundancy"]["total"]["sum"], res.dof, rtol=1e-9)

@@ -5,6 +5,11 @@ modified input.
 
 Each CLI case runs in a fresh folder holding copies of the fixture files; every file there is
 hashed before and after, and only the outputs the case names may change.
+
+Private imports: the console script's entry ``tlsjax._cli.main``, the cost estimate of
+``state_cost`` and the atomic writer ``atomic_output`` (mechanisms of the command line and the
+file writers), the pipeline's steps and the table reader's internals for the cases that patch
+them.
 """
 
 import csv
@@ -22,8 +27,6 @@ from strict_json import load_strict
 
 import tlsjax as tj
 from tlsjax._cli import main
-from tlsjax._cli._checks import state_cost
-from tlsjax._io._outputs import atomic_output
 
 N_TARGETS = 24
 
@@ -106,7 +109,7 @@ def base(tmp_path_factory):
     (d / "compare.json").write_text(json.dumps({"p_value": 0.3, "compatible": True, "runs": 10}))
     (d / "garbage.json").write_text("{not json")
     # Plane files: one cut short, one whose arrays disagree.
-    tj.save_planes(d / "planes.npz", tiny_planes(rng, 40))
+    tj.write_extracted_planes(d / "planes.npz", tiny_planes(rng, 40))
     raw = (d / "planes.npz").read_bytes()
     (d / "planes_truncated.npz").write_bytes(raw[: len(raw) // 2])
     with np.load(d / "planes.npz") as z:
@@ -337,6 +340,7 @@ def test_weakly_determined_aps_get_no_verdict(work, capsys):
     assert "for 23 APs" in err or "for 23 APs" in out  # the likely cause is named
 
 
+@pytest.mark.internal
 def test_a_run_whose_vce_failed_writes_no_estimates(work, capsys, monkeypatch):
     """VCE that oscillates (forced): exit 1, and the text, the JSON and the exit code agree
     that there is no calibration (issue 28: it used to say "valid" and hold B6). Private:
@@ -427,6 +431,12 @@ def test_calibrate_under_a_transformation_names_what_to_call(sim, transform):
     assert "\n" not in str(e.value)
     with pytest.raises(ValueError, match="make_network runs on the host"):
         jax.jit(lambda o: tj.make_network(["S1"] * 4, list("abcd"), o).sigmas)(obs[:4])
+    # The network closed over, nothing traced reaches it: still one line naming the entry.
+    outer = {"jit": jax.jit, "grad": jax.grad, "vmap": jax.vmap}[transform]
+    arg = np.ones(2) if transform == "vmap" else 1.0
+    for entry in (tj.calibrate, tj.self_calibrate):
+        with pytest.raises(ValueError, match=f"{entry.__name__} runs on the host.*differentiable"):
+            outer(lambda s, entry=entry: (entry(sim.network, model), s)[1])(arg)
 
 
 def test_api_misuse_is_a_clear_error(base, sim):
@@ -502,16 +512,19 @@ def test_t_tests_give_no_verdict_where_none_is_defined(sim):
     assert tests["A1"].describe().startswith("A1: not estimable")
     assert "nan" not in tests["A1"].describe()
     assert tests["A0"].note == "" and tests["A0"].significant
-    table = tj.ap_table(res)
+    table = res.summary()
     assert "nan" not in table.lower() and "A1       not estimable" in table
-    d = tj.result_to_dict(res)
+    d = res.to_dict()
     assert d["aps"]["A1"]["t"] is None and "not estimable" in d["aps"]["A1"]["note"]
 
 
 # --- cost, Ctrl-C and atomic writes -------------------------------------------------------------
 
 
+@pytest.mark.internal
 def test_a_long_run_states_its_cost_first(capsys):
+    from tlsjax._cli._checks import state_cost
+
     seconds = state_cost(
         "the Monte Carlo run", "--runs", 10**6, rows=2168, parameters=10, devices=2,
         result_bytes=224, usual="1,000 is usual",
@@ -523,7 +536,10 @@ def test_a_long_run_states_its_cost_first(capsys):
     assert capsys.readouterr().out == ""  # a short run says nothing
 
 
+@pytest.mark.internal
 def test_ctrl_c_leaves_no_half_written_file(tmp_path):
+    from tlsjax._io._outputs import atomic_output
+
     target = tmp_path / "out.csv"
     target.write_text("previous\n")
     with pytest.raises(KeyboardInterrupt):
@@ -536,11 +552,9 @@ def test_ctrl_c_leaves_no_half_written_file(tmp_path):
 
 
 def test_ctrl_c_exits_130(work, capsys, monkeypatch):
-    from tlsjax._io import _tables
-
     def interrupted(*a, **k):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(_tables, "read_network", interrupted)
+    monkeypatch.setattr(tj, "read_network", interrupted)  # what tlsjax calibrate calls
     code, out, err = run(["calibrate", work / "obs.csv", "--json", work / "c.json"], capsys)
     assert code == 130 and "interrupted" in err and not (work / "c.json").exists()

@@ -6,6 +6,9 @@ valid result, a clear one-line error (ValueError naming the file; exit code 2) o
 The profile is the fixed, derandomised one of ``conftest.py``; each test draws a modest number
 of examples so that CI stays fast (mutations keep the network's shape where they can, so the
 adjustments that do run reuse one compiled program).
+
+Private imports: ``tlsjax._cli.main`` (the console script) and the PTX/XYZ writers that
+build the point-cloud files the readers are given.
 """
 
 import contextlib
@@ -24,6 +27,8 @@ from hypothesis import strategies as st
 import tlsjax as tj
 from tlsjax._cli import main
 from tlsjax._io._point_clouds import write_ptx, write_xyz
+
+pytestmark = pytest.mark.internal
 
 N_TARGETS = 24
 
@@ -52,7 +57,7 @@ def files(tmp_path_factory):
     write_ptx(d / "c.ptx", [(x, None)])
     tj.write_ply(d / "c.ply", x)
     tj.write_las(d / "c.las", x, np.zeros(6))
-    tj.save_planes(d / "p.npz", tiny_planes(rng, 20))
+    tj.write_extracted_planes(d / "p.npz", tiny_planes(rng, 20))
     return d
 
 

@@ -11,8 +11,10 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
+from tlsjax import rotation_matrix, spherical_from_cartesian
 from tlsjax._model._aps import _REGISTRY
-from tlsjax._model._geometry import rotation_matrix, spherical_from_cartesian
+
+pytestmark = pytest.mark.internal
 
 
 @pytest.fixture(scope="module", autouse=True)

@@ -11,9 +11,7 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
-from tlsjax import read_observations, read_scans, write_observations
-from tlsjax._adjustment._network import ObservationTable
-from tlsjax._io._csv import parse_unit_column
+from tlsjax import ObservationTable, read_observations, read_scans, write_observations
 
 DEG = math.pi / 180.0
 GON = math.pi / 200.0
@@ -44,6 +42,7 @@ S2,T1,11.0,180.0,100.0
 # --------------------------------------------------------------------------------------------
 
 
+@pytest.mark.internal
 @pytest.mark.parametrize(
     "header, expected",
     [
@@ -58,18 +57,24 @@ S2,T1,11.0,180.0,100.0
     ],
 )
 def test_parse_unit_column(header, expected):
+    from tlsjax._io._csv import parse_unit_column
+
     q, u, f = parse_unit_column(header)
     assert (q, u) == expected[:2]
     assert f == pytest.approx(expected[2], rel=1e-15)
 
 
+@pytest.mark.internal
 def test_unit_factors_against_hand_values():
+    from tlsjax._io._csv import parse_unit_column
+
     assert 200.0 * parse_unit_column("hz_gon")[2] == pytest.approx(math.pi, rel=1e-15)
     assert 3600.0 * parse_unit_column("hz_arcsec")[2] == pytest.approx(DEG, rel=1e-15)
     assert 1500.0 * parse_unit_column("range_mm")[2] == pytest.approx(1.5, rel=1e-15)
     assert 180.0 * parse_unit_column("el_deg")[2] == pytest.approx(math.pi, rel=1e-15)
 
 
+@pytest.mark.internal
 @pytest.mark.parametrize(
     "header, message",
     [
@@ -80,6 +85,8 @@ def test_unit_factors_against_hand_values():
     ],
 )
 def test_parse_unit_column_errors(header, message):
+    from tlsjax._io._csv import parse_unit_column
+
     with pytest.raises(ValueError, match=message):
         parse_unit_column(header)
 
@@ -387,11 +394,6 @@ def test_wrong_delimiter(tmp_path):
         read_observations(path)
 
 
-def test_repeated_plane_rows_allowed(tmp_path):
-    plane = write(tmp_path, "scan,plane,range_m,hz_deg,el_deg\nS1,P,1,0,0\nS1,P,1,0,0\n", "p.csv")
-    assert len(read_observations(plane)) == 2
-
-
 def test_line_numbers_after_multiline_field(tmp_path):
     path = write(tmp_path, HEAD + 'S1,"T\n1",1,0,0\nS1,T2,1,bad,0\n')
     with pytest.raises(ValueError, match=where(path, 4, "hz_deg")):
@@ -557,3 +559,18 @@ def test_elevation_past_the_zenith_needs_a_panoramic_file(tmp_path):
         tj.read_network(path)
     with pytest.raises(ValueError, match=where(path, 13) + ".*a hybrid scanner observes"):
         tj.read_network(path, architecture="hybrid")
+
+
+def test_a_repeated_plane_point_is_refused_with_both_lines(tmp_path):
+    """Issue 39 item 7: one row of a plane file repeated would count one observation twice,
+    and the thinning of ``tlsjax calibrate`` would hide it: the reader names both lines."""
+    rows = ["scan,plane,range_m,hz_deg,el_deg", "S1,P1,5.0,10.0,-20.0", "S1,P1,5.1,11.0,-20.0"]
+    rows += ["S2,P1,5.0,10.0,-20.0", "S1,P1,5.1,11.0,-20.0"]  # same values in S2: not a repeat
+    path = tmp_path / "planes.csv"
+    path.write_text("\n".join(rows) + "\n")
+    with pytest.raises(
+        ValueError, match=r"line 5: duplicate point of plane 'P1' in scan 'S1' \(lines 3 and 5"
+    ):
+        tj.read_planes(path)
+    path.write_text("\n".join(rows[:4]) + "\n")
+    assert len(tj.read_planes(path)) == 3

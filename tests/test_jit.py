@@ -10,8 +10,11 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from tlsjax._jit import PREFERRED_OPTIONS, compiler_options, jit
+
+pytestmark = pytest.mark.internal
 
 
 @functools.partial(jit, static_argnums=1)

@@ -17,6 +17,8 @@ from helpers import DELTA0
 import tlsjax as tj
 from tlsjax._adjustment._normal import null_space
 
+pytestmark = pytest.mark.internal
+
 ROOM = tj.Room(n_targets=16)
 RTOL = 1e-4
 
@@ -119,7 +121,7 @@ def test_design_derivatives_match_calibrate(setup):
     simulated network with fixed noise draws, against calibrate of re-simulated networks."""
     sim = setup[0]
     design = tj.TargetDesign.from_simulation(sim)
-    dn = tj.DesignNetwork.targets(design, sim.scanner)
+    dn = tj.DesignProblem.targets(design, sim.scanner)
     rng = np.random.default_rng(5)
     n, s = dn.scan_index.shape[0], design.eops.shape[0]
     z, zl = jnp.asarray(rng.standard_normal((n, 3))), jnp.asarray(rng.standard_normal((s, 2)))
@@ -153,7 +155,7 @@ def test_design_derivatives_match_calibrate(setup):
 
 def _network_with_noise(dn, design, z, zl):
     """A network of ``design`` with the given standard-normal draws (the host path of
-    DesignNetwork.network, with the draws fixed across the perturbed designs)."""
+    DesignProblem.network, with the draws fixed across the perturbed designs)."""
     th = dn.inputs(design, z, zl)
     net = dn.template.network
     return dataclasses.replace(

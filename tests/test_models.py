@@ -28,6 +28,8 @@ from tlsjax._model._geometry import (
 )
 from tlsjax._model._points import point_geometry, point_misclosure, simulate_point_observations
 
+pytestmark = pytest.mark.internal
+
 DEG = np.pi / 180
 ARCSEC = DEG / 3600
 FULL_APS = resolve_aps("chow2013") + ("A5", "A6", "A7", "A8", "B11", "B12", "C9", "C10")

@@ -18,6 +18,8 @@ import tlsjax as tj
 from tlsjax import MonteCarloOptions, SimulationTruth, monte_carlo, monte_carlo_network
 from tlsjax._units import ARCSEC
 
+pytestmark = pytest.mark.internal
+
 DEG = np.pi / 180
 RUNS = 3
 APS = "A0 B6 B7 C0"

@@ -84,7 +84,7 @@ def test_point_clouds_of_a_design_are_those_of_its_cloud_design():
     assert list(c.levelling) == ["S1"]  # the levelled scan only
     with pytest.raises(ValueError, match="only Board planes"):
         tj.CloudDesign.from_design(
-            dataclasses.replace(nd, planes=(tj.DesignPlane((0, 0, 1), (1, 1, 1)),))
+            dataclasses.replace(nd, planes=(tj.RoomPlane((0, 0, 1), (1, 1, 1)),))
         )
 
 
@@ -108,9 +108,9 @@ def test_target_and_plane_designs_of_a_design():
                 (0, 0, -1, -3)}  # fmt: skip
     assert {tuple(float(v) for v in p) for p in np.asarray(pd.planes)} == expected
     np.testing.assert_allclose(pd.eops, td.eops, rtol=0, atol=0)
-    # The target design drives DesignNetwork: a noise-free network calibrates to its truth.
+    # The target design drives DesignProblem: a noise-free network calibrates to its truth.
     scanner = tj.Scanner(architecture="hybrid", aps=("A0", "B6"))
-    dn = tj.DesignNetwork.targets(td, scanner)
+    dn = tj.DesignProblem.targets(td, scanner)
     res = tj.calibrate(dn.network(td), dn.model)  # no seed: no noise
     assert res.ok
     np.testing.assert_allclose(res.ap_values, [0.010, 1e-4], rtol=0, atol=1e-9)

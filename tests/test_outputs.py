@@ -15,17 +15,13 @@ import pytest
 from strict_json import load_strict
 
 import tlsjax as tj
-from tlsjax._io._json import (
-    check_output_dir,
-    check_output_file,
-    dumps_strict,
-    to_json_value,
-    write_json_file,
-)
-from tlsjax._model._geometry import rotation_matrix, spherical_from_cartesian
+from tlsjax import rotation_matrix, spherical_from_cartesian
 
 
+@pytest.mark.internal
 def test_to_json_value_nulls_what_is_undefined():
+    from tlsjax._io._json import dumps_strict, to_json_value
+
     value = to_json_value(
         {
             "nan": float("nan"),
@@ -57,7 +53,10 @@ def test_to_json_value_nulls_what_is_undefined():
         to_json_value({"x": object()})
 
 
+@pytest.mark.internal
 def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path):
+    from tlsjax._io._json import write_json_file
+
     path = tmp_path / "out.json"
     write_json_file(path, {"a": 1})
     with pytest.raises(TypeError):
@@ -70,7 +69,10 @@ def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path):
     assert mode & 0o044, oct(mode)  # readable by others like any file (umask), not private
 
 
+@pytest.mark.internal
 def test_unwritable_paths_are_refused(tmp_path):
+    from tlsjax._io._json import check_output_dir, check_output_file, write_json_file
+
     afile = tmp_path / "afile"
     afile.write_text("x")
     with pytest.raises(ValueError, match="--json .*is a directory"):
@@ -142,12 +144,13 @@ def test_a_failed_adjustment_reports_no_numbers(rank_defect, tmp_path):
     for scan in d["eops"].values():
         assert all(scan[k] is None and scan["sigma"][k] is None for k in ("Xs", "kappa"))
     assert d["rank_deficient"] == list(res.rank_deficient)
-    table = tj.ap_table(res)
+    table = res.summary()
     assert "no estimates" in table and "mm" not in table.splitlines()[-1]
 
 
+@pytest.mark.internal
 def test_undetermined_scan_parameters_are_null_in_a_valid_result(rank_defect):
-    from tlsjax._report._json import _undetermined
+    from tlsjax._adjustment._json import _undetermined
 
     assert _undetermined(rank_defect) == {
         (n.split("[")[1].rstrip("]"), n.split("[")[0]) for n in rank_defect.rank_deficient

@@ -22,7 +22,8 @@ import tlsjax as tj
 from tlsjax._adjustment._families import Params, PlaneFamily, Problem, Spec
 from tlsjax._adjustment._quality import quality
 from tlsjax._adjustment._solver import adjust
-from tlsjax._report._json import result_to_dict
+
+pytestmark = pytest.mark.internal
 
 DEG = np.pi / 180
 APS = ("A0", "B6", "B7", "C0")
@@ -152,7 +153,7 @@ def test_plane_adjustment_equals_dense_gauss_helmert(network):
 def test_calibrate_of_a_plane_network_equals_dense_gauss_helmert(network):
     """The public path (make_plane_network, approximate values, calibrate) against the oracle:
     AP estimates and a posteriori sigmas, per-observation redundancy numbers and residuals."""
-    from tlsjax._adjustment._network import ObservationTable
+    from tlsjax import ObservationTable
 
     pc, obs, sig, plane, scan = network
     n_pl, n_s = len(pc.planes), len(pc.eops)
@@ -213,7 +214,7 @@ def _check_plane_precision(res, order, x, C, names):
         np.testing.assert_allclose(
             res.plane_covariance[order[k]], B[k], rtol=1e-5, atol=1e-6 * np.abs(B[k]).max()
         )
-    doc = result_to_dict(res)
+    doc = res.to_dict()
     for k, name in enumerate(names):
         p, P = doc["planes"][name], x[4 * k : 4 * k + 4]
         n = P[:3] / np.linalg.norm(P[:3])

@@ -1,5 +1,5 @@
 """Data snooping, internal and external reliability of plane points (SPEC sections 4 and 7):
-one Gauss-Helmert condition per point, screened and snooped by :func:`tlsjax.calibrate_and_test`
+one Gauss-Helmert condition per point, screened and snooped by :func:`tlsjax.self_calibrate`
 with the same critical values and removal rules as target observations; checked against gross
 errors planted at random points, against the identity ``w_i^2 = v^T P v - (v^T P v without
 point i)`` (the w-test is the score test of one more parameter, SPEC section 7), and in the
@@ -14,7 +14,6 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
-from tlsjax._report._plots import _rows
 
 SIGMA_FACTOR = 20.0  # size of the planted gross errors, in sigmas of the range
 
@@ -32,7 +31,8 @@ def planted():
     obs[bad, 0] += error
     bnet = dataclasses.replace(net, plane_observations=obs)
     model = tj.CalibrationModel(pc.scanner)
-    return pc, net, bnet, bad, model, tj.calibrate_and_test(bnet, model)
+    snooping = tj.CalibrationOptions(snooping=tj.SnoopingOptions())
+    return pc, net, bnet, bad, model, tj.self_calibrate(bnet, model, snooping)
 
 
 def test_planted_gross_errors_are_all_found_with_few_false_removals(planted):
@@ -47,7 +47,7 @@ def test_planted_gross_errors_are_all_found_with_few_false_removals(planted):
     screened = {o.row for o in points if o.reason.startswith("screening")}
     assert screened == set(bad.tolist())
     n_clean = net.plane_observations.shape[0] - len(bad)
-    expected = tested.options.alpha * n_clean
+    expected = tested.options.w_test_level * n_clean
     assert len(found - set(bad.tolist())) <= expected + 3 * np.sqrt(expected) + 1
     # The removed points have weight 0 and no test; the others a finite w below the critical
     # value, an MDB and an external reliability.
@@ -68,7 +68,10 @@ def test_planted_gross_errors_are_all_found_with_few_false_removals(planted):
     assert np.all(np.abs(res.ap_values - truth) < 4 * res.ap_sigmas)
 
 
+@pytest.mark.internal
 def test_removed_points_keep_their_misfit_in_the_residuals_and_the_plot(planted, tmp_path):
+    from tlsjax._report._plots import _rows
+
     _, _, _, bad, _, tested = planted
     res = tested.calibration
     v = res.plane_residuals[bad]
@@ -87,8 +90,8 @@ def test_plane_w_squared_is_the_drop_of_vtpv_without_the_point(planted):
     ``w_i^2`` equals the reduction of ``v^T P v`` when point i is left out (exact in the
     linear model; to 1e-3 here, the Gauss-Helmert conditions are slightly nonlinear)."""
     _, net, _, _, model, _ = planted
-    options = tj.TestingOptions(screening=False, snooping=False)
-    tested = tj.calibrate_and_test(net, model, testing=options)
+    options = tj.CalibrationOptions(screening=None, plane_screening=None)
+    tested = tj.self_calibrate(net, model, options)
     res = tested.calibration
     omega = res.sigma0**2 * res.dof
     adj = tj.analyze(net, model)

@@ -20,6 +20,8 @@ from tlsjax._model._planes import (
     whitened_condition,
 )
 
+pytestmark = pytest.mark.internal
+
 DEG = np.pi / 180
 
 

@@ -8,9 +8,13 @@ import numpy as np
 import pytest
 
 import tlsjax  # noqa: F401  (x64)
-from tlsjax import CloudDesign, PointCloudWarning, read_point_clouds, simulate_point_clouds
-from tlsjax._io._point_clouds import observations_from_points, write_ptx, write_xyz
-from tlsjax._model._geometry import cartesian_from_spherical
+from tlsjax import (
+    CloudDesign,
+    PointCloudWarning,
+    cartesian_from_spherical,
+    read_point_clouds,
+    simulate_point_clouds,
+)
 
 DEG = np.pi / 180
 
@@ -33,8 +37,11 @@ def _write_pcd_double(path, x):
         np.savetxt(fh, x, fmt="%.17g")
 
 
+@pytest.mark.internal
 @pytest.mark.parametrize("fmt", ["xyz", "ptx", "ply", "pcd"])
 def test_round_trip_equals_simulated_observations(tmp_path, clouds, fmt):
+    from tlsjax._io._point_clouds import write_ptx, write_xyz
+
     arch = clouds.scanner.architecture
     j = 4  # a tilted scan
     l = clouds.observations[j]
@@ -73,7 +80,10 @@ def test_open3d_pcd_is_single_precision(tmp_path, clouds):
     assert 1e-12 < err < 2e-6
 
 
+@pytest.mark.internal
 def test_ptx_several_scans_and_zero_points(tmp_path, clouds):
+    from tlsjax._io._point_clouds import write_ptx
+
     arch = clouds.scanner.architecture
     scans = [
         (cartesian_from_spherical(clouds.observations[j], xp=np), clouds.eops[j]) for j in (0, 5)
@@ -88,7 +98,7 @@ def test_ptx_several_scans_and_zero_points(tmp_path, clouds):
     np.testing.assert_allclose(b.observations, clouds.observations[5], rtol=0, atol=1e-9)
     np.testing.assert_allclose(b.pose, clouds.eops[5], rtol=0, atol=1e-12)
     # The pose maps the scanner-space points onto the simulation's object-space points.
-    from tlsjax._model._geometry import rotation_matrix
+    from tlsjax import rotation_matrix
 
     R = rotation_matrix(*b.pose[3:], xp=np)
     X = b.points @ R + b.pose[:3]
@@ -102,7 +112,7 @@ def test_e57_round_trip(tmp_path, clouds):
     import pye57
     from pyquaternion import Quaternion
 
-    from tlsjax._model._geometry import rotation_matrix
+    from tlsjax import rotation_matrix
 
     j = 3
     x = cartesian_from_spherical(clouds.observations[j], xp=np)
@@ -120,7 +130,10 @@ def test_e57_round_trip(tmp_path, clouds):
     np.testing.assert_allclose(scan.observations, clouds.observations[j], rtol=0, atol=2e-6)
 
 
+@pytest.mark.internal
 def test_panoramic_convention_by_hand():
+    from tlsjax._io._point_clouds import observations_from_points
+
     x = np.array([[1.0, 1.0, 0.0], [-1.0, -1.0, 0.0], [0.0, -2.0, 2.0]])
     hyb = observations_from_points(x, "hybrid")
     pan = observations_from_points(x, "panoramic")
@@ -131,7 +144,10 @@ def test_panoramic_convention_by_hand():
     np.testing.assert_allclose(cartesian_from_spherical(pan, xp=np), x, atol=1e-15)
 
 
+@pytest.mark.internal
 def test_bad_input_names_file_and_line(tmp_path):
+    from tlsjax._io._point_clouds import write_ptx
+
     p = tmp_path / "bad.xyz"
     p.write_text("# comment\n1 2 3\n\n4 five 6\n")
     with pytest.raises(ValueError, match=r"bad\.xyz, line 4: not a number"):
@@ -190,7 +206,7 @@ def test_ptx_transform_convention_by_hand(tmp_path):
     (tmp_path / "hand.ptx").write_text(text)
     (scan,) = read_point_clouds(tmp_path / "hand.ptx")
     np.testing.assert_allclose(scan.pose, [10, 20, 30, 0, 0, np.pi / 2], atol=1e-15)
-    from tlsjax._model._geometry import rotation_matrix
+    from tlsjax import rotation_matrix
 
     X = scan.points @ rotation_matrix(*scan.pose[3:], xp=np) + scan.pose[:3]
     np.testing.assert_allclose(X, [[10, 21, 30], [10, 20, 32]], atol=1e-14)

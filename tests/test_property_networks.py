@@ -77,9 +77,9 @@ OBLIQUE_ROOM = tj.NetworkDesign(
     scans=SIX_SCANS,
     faces_as_planes=True,
     planes=(
-        tj.DesignPlane((1, 1, 1), (5.0, 4.5, 2.1)),
-        tj.DesignPlane((-1, 2, 3), (9.5, 7.0, 2.6)),
-        tj.DesignPlane((2, -1, 1.5), (7.0, 5.5, 1.5)),
+        tj.RoomPlane((1, 1, 1), (5.0, 4.5, 2.1)),
+        tj.RoomPlane((-1, 2, 3), (9.5, 7.0, 2.6)),
+        tj.RoomPlane((2, -1, 1.5), (7.0, 5.5, 1.5)),
     ),
     points_per_plane=30,
 )

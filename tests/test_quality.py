@@ -13,9 +13,10 @@ import pytest
 from helpers import DELTA0, dense_oracle, dense_residuals, perturbed_start
 
 import tlsjax as tj
-from tlsjax._adjustment._quality import minimal_detectable_bias
+from tlsjax._adjustment._quality import minimal_detectable_bias, w_tests
 from tlsjax._inference._pipeline import Reweighter
-from tlsjax._inference._statistics import w_tests
+
+pytestmark = pytest.mark.internal
 
 APS = ("A0", "B6", "B7", "C0")
 ROW, COL = 11, 1  # the masked observation

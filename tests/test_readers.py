@@ -17,28 +17,32 @@ import tlsjax  # noqa: F401  (x64)
 from tlsjax import (
     CloudDesign,
     PointCloudWarning,
+    cartesian_from_spherical,
     read_point_clouds,
     simulate_point_clouds,
     write_las,
     write_ply,
 )
 from tlsjax._cli import main
-from tlsjax._io._point_clouds import to_object
-from tlsjax._model._geometry import cartesian_from_spherical
-from tlsjax._optional import missing_library_message, require
 
 DATA = pathlib.Path(__file__).parent / "data"
 DEG = np.pi / 180
 
 
+@pytest.mark.internal
 def test_optional_libraries_import():
     # CI must fail, not skip, when a library of the point-cloud formats cannot be imported
     # (e.g. open3d without the system library libusb-1.0-0).
+    from tlsjax._optional import require
+
     for module in ("open3d", "pye57", "laspy", "lazrs", "plyfile"):
         require(module, "the test suite")
 
 
+@pytest.mark.internal
 def test_missing_library_messages_name_the_fix():
+    from tlsjax._optional import missing_library_message, require
+
     err = OSError("libusb-1.0.so.0: cannot open shared object file: No such file or directory")
     msg = missing_library_message("open3d", "plane extraction", err)
     assert "libusb-1.0.so.0" in msg and "apt-get install -y libusb-1.0-0" in msg
@@ -82,7 +86,7 @@ def test_public_files_counts_and_poses(name, expected):
             lines = (DATA / name).read_text().splitlines()
             M = np.array([[float(v) for v in ln.split()] for ln in lines[6:10]])
             R_file = M[:3, :3]  # rows: the scanner's axes in object space, R = M[:3, :3]
-            from tlsjax._model._geometry import rotation_matrix
+            from tlsjax import rotation_matrix
 
             R = rotation_matrix(*scan.pose[3:], xp=np)
             np.testing.assert_allclose(R, R_file, atol=2e-5)  # the file's matrix has 6 digits
@@ -167,8 +171,11 @@ def scan():
     return pc.observations[j], pc.eops[j]
 
 
+@pytest.mark.internal
 @pytest.mark.parametrize("ext", ["las", "laz"])
 def test_las_round_trip_with_pose_in_header(tmp_path, scan, ext):
+    from tlsjax._io._point_clouds import to_object
+
     l, pose = scan
     x = cartesian_from_spherical(l, xp=np)
     X = to_object(x, pose)  # a LAS file holds object-space coordinates
@@ -187,7 +194,10 @@ def test_las_round_trip_with_pose_in_header(tmp_path, scan, ext):
     np.testing.assert_allclose(given.points, got.points, atol=1e-12)
 
 
+@pytest.mark.internal
 def test_map_coordinates_without_pose_are_reported(tmp_path, scan):
+    from tlsjax._io._point_clouds import to_object
+
     l, pose = scan
     x = cartesian_from_spherical(l, xp=np)
     shifted = dict(pose=np.r_[pose[:3] + [4.5e5, 5.2e6, 300.0], pose[3:]])

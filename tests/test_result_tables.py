@@ -16,7 +16,6 @@ from strict_json import load_strict
 
 import tlsjax as tj
 from tlsjax._cli import main
-from tlsjax._units import ARCSEC
 
 
 def _read_csv(path):
@@ -183,6 +182,7 @@ def test_report_shows_the_test_sequence_and_each_removal_with_its_stage(run):
         assert float(groups[g["group"]][2]) == pytest.approx(g["redundancy"], abs=0.06)
 
 
+@pytest.mark.internal
 def test_plain_calibration_tables_from_the_api():
     from tlsjax._report._tables import group_records, observation_records
 
@@ -202,8 +202,9 @@ def test_plain_calibration_tables_from_the_api():
     assert r_g == pytest.approx(sum(r["redundancy"] for r in recs), rel=1e-9)
 
 
+@pytest.mark.internal
 def test_every_confounding_is_named_once_and_alike_everywhere():
-    from tlsjax._report._text import confoundings, summary
+    from tlsjax._adjustment._text import confoundings, summary
 
     not_est = (("A1", "scale", "scale is undefined; add scale bars or control points"),)
     weak = (("C0", "C3", 0.9993), ("C3", "C0", 0.9993), ("C4", "C2", 0.9977), ("A1", "scale", 1.0))
@@ -218,7 +219,7 @@ def test_every_confounding_is_named_once_and_alike_everywhere():
     sim = tj.simulate(seed=1, aps="A0 B6 B7 C0", tilted=False)
     scanner = tj.Scanner(architecture="hybrid", aps="A0 A1 B6 B7 C0")
     res = tj.calibrate(sim.network, tj.CalibrationModel(scanner))
-    doc = tj.result_to_dict(res)
+    doc = res.to_dict()
     text = summary(res)
     assert doc["confoundings"] and all(f"warning: {c['text']}" in text for c in doc["confoundings"])
     assert text.count("warning:") == len(doc["confoundings"])
@@ -232,6 +233,7 @@ def test_version(capsys):
     json.dumps(tj.__version__)
 
 
+@pytest.mark.internal
 def test_dense_residual_panel_is_a_density_and_removed_points_never_set_the_scale():
     """Private import: ``tlsjax._report._plots._residual_panel`` draws one panel of
     ``tj.plot_residuals``; a plane network of 100k points is too slow to adjust in a unit test."""
@@ -265,9 +267,12 @@ def test_dense_residual_panel_is_a_density_and_removed_points_never_set_the_scal
     plt.close(fig)
 
 
+@pytest.mark.internal
 def test_plane_point_tables(tmp_path):
     """Plane points through a plane CSV: one row per point and component, lines of that file,
     redundancy numbers summing (with the levelling) to the degrees of freedom."""
+    from tlsjax._units import ARCSEC
+
     design = tj.CloudDesign(angular_step=4 * np.pi / 180, aps=("A0", "B6", "B7", "C0"))
     pc = tj.simulate_point_clouds(design, seed=1)
     path = tmp_path / "planes.csv"
@@ -289,7 +294,7 @@ def test_plane_point_tables(tmp_path):
     groups = {g["group"]: g for g in tj.group_records(res)}
     assert set(groups) == {"plane range", "plane hz", "plane el"}
     # planes.csv carries the JSON's plane precision in its display units (mm, arc seconds).
-    doc = tj.result_to_dict(res)
+    doc = res.to_dict()
     for r in _read_csv(tmp_path / "tab" / "planes.csv"):
         p = doc["planes"][r["plane"]]
         tilt = [_num(r[f"tilt_sigma_{i}_arcsec"]) * ARCSEC for i in (1, 2)]
@@ -299,6 +304,7 @@ def test_plane_point_tables(tmp_path):
         assert _num(r["sigma_d_mm"]) / 1e3 == pytest.approx(p["sigma"]["d"], rel=1e-9)
 
 
+@pytest.mark.internal
 def test_every_weighted_constraint_has_its_row():
     """Tilt readings, headings and an AP prior get rows with the target observations (JSON
     ``observation_table``): all redundancy numbers sum to the degrees of freedom, and each
@@ -306,6 +312,7 @@ def test_every_weighted_constraint_has_its_row():
     from tlsjax._model._geometry import wrap_angle
     from tlsjax._model._levelling import orientation_reading
     from tlsjax._report._tables import observation_records, pseudo_records, table_json
+    from tlsjax._units import ARCSEC
 
     sim = tj.simulate(seed=5, aps="A0 B6 B7 C0", sigma_tilt=5 * ARCSEC, sigma_heading=30 * ARCSEC)
     model = tj.CalibrationModel(sim.scanner, ap_priors={"A0": (0.0, 2e-3)})

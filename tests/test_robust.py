@@ -10,9 +10,9 @@ import dataclasses
 
 import numpy as np
 import pytest
+from helpers import printed_is_summary, same_run
 
 import tlsjax as tj
-from tlsjax._inference._robust import igg3
 
 
 @pytest.fixture(scope="module")
@@ -26,7 +26,10 @@ def clouds():
     return pc, net, dataclasses.replace(net, plane_observations=obs), bad
 
 
+@pytest.mark.internal
 def test_igg3_weights():
+    from tlsjax._inference._robust import igg3
+
     w = np.array([0.0, 1.0, 3.29, 3.8, 4.32, 9.0])
     f = igg3(w, 3.29, 4.32)
     assert np.all(f[:3] == 1.0) and f[4] == 0.0 and f[5] == 0.0
@@ -37,11 +40,12 @@ def test_igg3_weights():
 def test_blunders_on_planes_are_found_whatever_the_sigmas(clouds, sigma_factor):
     pc, _, net, bad = clouds
     net = dataclasses.replace(net, plane_sigmas=net.plane_sigmas * sigma_factor)
-    s = tj.screen_planes(net, tj.CalibrationModel(pc.scanner))
+    result = tj.self_calibrate(net, tj.CalibrationModel(pc.scanner))
+    s = result.plane_screening
     found = set(s.removed.tolist())
     assert set(bad.tolist()) <= found
     assert len(found - set(bad.tolist())) <= 3  # clean points near the family-wise limit
-    res = s.calibration
+    res = result.calibration
     assert res.ok, res.message
     assert not res.plane_used[s.removed].any()
     truth = np.array([pc.true_aps[a] for a in res.ap_names])
@@ -52,20 +56,20 @@ def test_blunders_on_planes_are_found_whatever_the_sigmas(clouds, sigma_factor):
 
 def test_clean_planes_lose_almost_nothing(clouds):
     pc, net, _, _ = clouds
-    s = tj.screen_planes(net, tj.CalibrationModel(pc.scanner))
+    result = tj.self_calibrate(net, tj.CalibrationModel(pc.scanner))
+    s = result.plane_screening
     plain = tj.calibrate(net, tj.CalibrationModel(pc.scanner))
     assert len(s.removed) <= 2
     assert np.isclose(s.scale, 1.0, atol=0.1)
     # Without removals the final adjustment is the plain one.
     if len(s.removed) == 0:
-        np.testing.assert_allclose(s.calibration.ap_values, plain.ap_values, rtol=1e-9)
+        np.testing.assert_allclose(result.calibration.ap_values, plain.ap_values, rtol=1e-9)
 
 
 def test_cli_screens_plane_points_by_default(clouds, tmp_path, capsys):
     import json
 
-    from tlsjax import write_observations
-    from tlsjax._adjustment._network import ObservationTable
+    from tlsjax import ObservationTable, write_observations
     from tlsjax._cli import main
 
     pc, _, net, bad = clouds
@@ -90,3 +94,9 @@ def test_cli_screens_plane_points_by_default(clouds, tmp_path, capsys):
     js = json.loads(out.read_text())
     assert js["plane_screening"]["n_removed"] >= len(bad)
     assert js["n_plane_points"] == len(net.plane_index) - js["plane_screening"]["n_removed"]
+    # What the command printed and wrote is the entry's result (plane networks: no VCE).
+    result = tj.self_calibrate(
+        tj.read_network(planes=str(path)), tj.CalibrationModel(), tj.CalibrationOptions(vce=None)
+    )
+    same_run(js, result.to_dict())
+    printed_is_summary(printed, result.summary())

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
-from tlsjax import TestingOptions as Opts
+from tlsjax import CalibrationOptions as Opts
 
 PHYSICAL = ("A0", "B6", "B7", "C0")
 MODEL = tj.CalibrationModel(tj.Scanner(aps=PHYSICAL))
@@ -54,7 +54,7 @@ def _removed(tested):
 def test_planted_blunders_found_on_their_observations_only(seed, aps):
     net, gross, changed = _plant_blunders(_room(seed).network, seed)
     model = tj.CalibrationModel(tj.Scanner(aps=aps))
-    r = tj.calibrate_and_test(net, model, testing=Opts(snooping=False))
+    r = tj.self_calibrate(net, model)
     assert r.ok and r.calibration.ok
     removed = _removed(r)
     assert gross <= removed  # every gross error found ...
@@ -64,13 +64,11 @@ def test_planted_blunders_found_on_their_observations_only(seed, aps):
 
 def test_screening_runs_without_vce_and_only_its_own_flag_turns_it_off():
     net, gross, changed = _plant_blunders(_room(4).network, 4)
-    on = tj.calibrate_and_test(net, MODEL, testing=Opts(vce=False, snooping=False))
+    on = tj.self_calibrate(net, MODEL, Opts(vce=None))
     assert on.calibration.ok and gross <= _removed(on) <= changed
     assert all(vc.factor == 1.0 for vc in on.variance_components)  # a priori weights kept
-    assert on.json_fields()["screening"]["enabled"]
-    off = tj.calibrate_and_test(
-        net, MODEL, testing=Opts(vce=False, snooping=False, screening=False)
-    )
+    assert on.to_dict()["screening"]["enabled"]
+    off = tj.self_calibrate(net, MODEL, Opts(vce=None, screening=None))
     assert not off.outliers
 
 
@@ -78,9 +76,7 @@ def test_one_dominant_blunder_is_named_not_a_unit_mix_up():
     net = _room(5).network
     obs = net.observations.copy()
     obs[7, 0] += 2.0
-    r = tj.calibrate_and_test(
-        net.with_observations(obs), MODEL, testing=Opts(screening=False, snooping=False)
-    )
+    r = tj.self_calibrate(net.with_observations(obs), MODEL, Opts(screening=None))
     text = " ".join(r.warnings)
     assert "unit mix-up" not in text
     assert "one observation holds" in text and net.targets[net.target_index[7]] in text
@@ -111,7 +107,7 @@ def test_score_statistic_is_the_vtpv_drop_of_the_refit(planted):
         assert np.isclose(t.share, t.statistic / vtpv)
     a1 = next(t for t in tests.tests if t.name == "A1")
     assert not a1.testable and not a1.significant  # scale: confounded without a scale bar
-    doc = tests.as_json()
+    doc = tests.to_dict()
     assert doc["significant"][0] in ("C2", "C4", "C1") and "C2" in doc["significant"]
 
 
@@ -145,14 +141,13 @@ def test_score_test_power_at_five_sigma_and_size_under_the_null():
 def test_selection_with_a_gross_error_ends_where_it_ends_on_the_clean_file():
     s = tj.simulate(ROOM, seed=1, aps="A0 B6 B7 C0 C4")
     net = s.network
-    none = tj.CalibrationModel(tj.Scanner(aps=()))
-    cands = "A3 B8 C2 C4 C9"
-    clean = tj.select_aps(net, none, start="physical", candidates=cands)
+    options = Opts(vce=None, selection=tj.SelectionOptions(candidates="A3 B8 C2 C4 C9"))
+    clean = tj.self_calibrate(net, MODEL, options).selection
     obs = net.observations.copy()
     obs[11, 0] += 2.0
-    dirty = tj.select_aps(net.with_observations(obs), none, start="physical", candidates=cands)
+    dirty = tj.self_calibrate(net.with_observations(obs), MODEL, options).selection
     assert clean.aps == dirty.aps and "C4" in clean.aps
-    assert [(o.row, o.group) for o in dirty.screened.outliers] == [(11, "range")]
-    assert not clean.screened.outliers
+    assert [(o.row, o.group) for o in dirty.screened] == [(11, "range")]
+    assert not clean.screened
     added = [st for st in dirty.steps if st.action == "add"]
     assert added[0].term == "C4" and np.isfinite(added[0].score)

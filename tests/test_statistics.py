@@ -13,11 +13,6 @@ import pytest
 from dispatch import compiled_programs
 
 import tlsjax as tj
-from tlsjax import TestingOptions as Opts
-from tlsjax import calibrate_and_test
-from tlsjax._inference._pipeline import Reweighter, _undetermined_targets
-from tlsjax._inference._statistics import critical_value
-from tlsjax._stats import confidence_scale, non_centrality
 
 APS = ("A0", "B6", "B7", "C0")
 MODEL = tj.CalibrationModel(tj.Scanner(aps=APS))
@@ -28,39 +23,45 @@ def sim():
     return tj.simulate(tj.Room(n_targets=36), seed=11, aps=" ".join(APS))
 
 
+@pytest.mark.internal
 def test_constants():
     from scipy import stats
 
+    from tlsjax._stats import confidence_scale, non_centrality, normal_critical_value
+
     # tlsjax._stats keeps scipy.stats out of ``import tlsjax``: the normal quantiles from the
     # standard library, the 95 % ellipsoid factors as scipy gives them.
-    assert critical_value(0.001) == pytest.approx(stats.norm.ppf(1 - 0.0005), rel=1e-15)
+    assert normal_critical_value(0.001) == pytest.approx(stats.norm.ppf(1 - 0.0005), rel=1e-15)
     assert non_centrality() == pytest.approx(
         stats.norm.ppf(0.9995) + stats.norm.ppf(0.8), rel=1e-15
     )
     for dim in (1, 2, 3):
         assert confidence_scale(dim) == np.sqrt(stats.chi2.ppf(0.95, dim))
     assert confidence_scale(3, 0.99) == pytest.approx(np.sqrt(stats.chi2.ppf(0.99, 3)), rel=1e-15)
-    assert np.isclose(critical_value(0.001), 3.2905, atol=1e-4)
+    assert np.isclose(normal_critical_value(0.001), 3.2905, atol=1e-4)
     assert np.isclose(non_centrality(0.001, 0.8), 4.1321, atol=1e-3)
-    with pytest.raises(ValueError, match="alpha"):
-        Opts(alpha=1.5)
+    with pytest.raises(ValueError, match="w_test_level"):
+        tj.SnoopingOptions(w_test_level=1.5)
     with pytest.raises(ValueError, match="removal"):
-        Opts(removal="scan")
+        tj.SnoopingOptions(removal="scan")
 
 
+@pytest.mark.internal
 def test_mdb_and_external_reliability_by_direct_readjustment(sim):
     """An error of one MDB in observation i shifts its w-test by delta0 and the APs by the
     reported external reliability (linear model: exact up to linearisation)."""
+    from tlsjax._stats import non_centrality
+
     net = sim.network
-    base = calibrate_and_test(net, MODEL, testing=Opts(vce=False, snooping=False, screening=False))
+    base = tj.self_calibrate(net, MODEL, tj.CalibrationOptions(screening=None, vce=None))
     delta0 = non_centrality()
     for i, g in ((5, 0), (40, 1), (77, 2)):
         obs = net.observations.copy()
         obs[i, g] += base.mdb[i, g]
-        r2 = calibrate_and_test(
+        r2 = tj.self_calibrate(
             net.with_observations(obs),
             MODEL,
-            testing=Opts(vce=False, snooping=False, screening=False),
+            tj.CalibrationOptions(screening=None, vce=None),
         )
         assert np.isclose(abs(r2.w[i, g] - base.w[i, g]), delta0, rtol=2e-3)
         s0 = base.calibration.sigma0
@@ -74,7 +75,7 @@ def test_mdb_and_external_reliability_by_direct_readjustment(sim):
 def test_vce_fixed_point_and_recovery(sim):
     net = sim.network
     wrong = dataclasses.replace(net, sigmas=net.sigmas * np.array([2.0, 0.5, 1.0]))
-    r = calibrate_and_test(wrong, MODEL, testing=Opts(snooping=False, vce_tolerance=1e-4))
+    r = tj.self_calibrate(wrong, MODEL, tj.CalibrationOptions(vce=tj.VCEOptions(tolerance=1e-4)))
     res = r.calibration
     # Fixed point: with the re-estimated sigmas every group's v^T P v / r_g is 1.
     for g, name in enumerate(("range", "hz", "el")):
@@ -92,9 +93,13 @@ def test_reweighting_and_masking_do_not_recompile(sim):
     obs[10, 0] += 30 * net.sigmas[10, 0]
     obs[50, 2] -= 30 * net.sigmas[50, 2]
     bad = net.with_observations(obs)
-    calibrate_and_test(bad, MODEL)  # compiles this (spec, shapes) once
+    tj.self_calibrate(
+        bad, MODEL, tj.CalibrationOptions(snooping=tj.SnoopingOptions())
+    )  # compiles this (spec, shapes) once
     with compiled_programs() as compiled:
-        r = calibrate_and_test(bad, MODEL, testing=Opts(alpha=0.0001))
+        r = tj.self_calibrate(
+            bad, MODEL, tj.CalibrationOptions(snooping=tj.SnoopingOptions(w_test_level=0.0001))
+        )
     assert r.n_adjustments > 3  # VCE iterations and removals all ran the compiled adjustment
     assert sum(compiled.values()) == 0, dict(compiled)
     found = {(o.row, o.group) for o in r.outliers}
@@ -125,15 +130,20 @@ def test_snooping_finds_blunders_without_false_removals(seed):
     obs = net.observations.copy()
     for i, c in zip(rows, cols):
         obs[i, c] += 20 * net.sigmas[i, c]
-    r = calibrate_and_test(
-        net.with_observations(obs), MODEL, testing=Opts(alpha=0.05, bonferroni=True)
+    r = tj.self_calibrate(
+        net.with_observations(obs),
+        MODEL,
+        tj.CalibrationOptions(snooping=tj.SnoopingOptions(w_test_level=0.05, bonferroni=True)),
     )
     removed = {(o.row, ("range", "hz", "el").index(o.group)) for o in r.outliers}
     assert removed == set(zip(rows.tolist(), cols.tolist()))
     assert r.calibration.ok
 
 
+@pytest.mark.internal
 def test_target_removal_and_undetermined_target(sim):
+    from tlsjax._inference._pipeline import Reweighter, _undetermined_targets
+
     net = sim.network
     rw = Reweighter(net, MODEL, tj.SolverOptions(full_covariance=False))
     w = 1.0 / net.sigmas
@@ -156,7 +166,7 @@ def test_target_removal_and_undetermined_target(sim):
 
 def test_ap_t_tests_and_insignificant_term():
     s = tj.simulate(tj.Room(n_targets=36), seed=4, aps="A0 B7 C0")
-    r = calibrate_and_test(s.network, MODEL, testing=Opts(snooping=False, vce=False))
+    r = tj.self_calibrate(s.network, MODEL, tj.CalibrationOptions(vce=None))
     t = {a.name: a for a in r.ap_tests}
     assert t["A0"].significant and t["B7"].significant and t["C0"].significant
     assert not t["B6"].significant  # B6 is not in the data
@@ -185,18 +195,20 @@ def test_checkpoints_noiseless_identity_and_improvement():
         assess_checkpoints(s.network, {"nope": (0, 0, 0)}, s.true_aps)
 
 
-def test_json_fields_are_strict_json(sim):
+def test_testing_fields_are_strict_json(sim):
     import json
 
     net = sim.network
     obs = net.observations.copy()
     obs[3, 1] += 40 * net.sigmas[3, 1]
-    r = calibrate_and_test(
+    r = tj.self_calibrate(
         net.with_observations(obs),
         MODEL,
-        testing=Opts(removal="target", alpha=0.05, bonferroni=True),
+        tj.CalibrationOptions(
+            snooping=tj.SnoopingOptions(removal="target", w_test_level=0.05, bonferroni=True)
+        ),
     )
-    d = r.json_fields()
+    d = r.testing_fields()
     text = json.dumps(d, allow_nan=False)
     assert len(d["outliers"]) == 3 and {o["group"] for o in d["outliers"]} == {"range", "hz", "el"}
     assert set(d["variance_components"]) == {"range", "hz", "el", "levelling"}
@@ -204,15 +216,13 @@ def test_json_fields_are_strict_json(sim):
 
 
 def test_stepwise_selection_adds_the_true_term_and_rejects_a_spurious_one():
-    from tlsjax import SelectionOptions, select_aps
-
     s = tj.simulate(tj.Room(n_targets=24), seed=5, aps="A0")
-    sel = select_aps(
+    selection = tj.SelectionOptions(candidates=("A0", "B7"), test_level=0.01)
+    sel = tj.self_calibrate(
         s.network,
         tj.CalibrationModel(tj.Scanner(aps=())),
-        candidates=("A0", "B7"),
-        options=SelectionOptions(alpha=0.01),
-    )
+        tj.CalibrationOptions(vce=None, selection=selection),
+    ).selection
     assert sel.aps == ("A0",)
     actions = [(st.action, st.term) for st in sel.steps if st.action != "try"]
     assert actions == [("start", ""), ("add", "A0"), ("final", "")]
@@ -224,6 +234,7 @@ def test_stepwise_selection_adds_the_true_term_and_rejects_a_spurious_one():
     assert sel.steps[1].sigma0 < sel.steps[0].sigma0
 
 
+@pytest.mark.internal
 def test_residual_plot_ap_curves(sim, tmp_path):
     from tlsjax import plot_residuals
     from tlsjax._report._plots import _ap_curves
@@ -256,15 +267,17 @@ def test_removed_observation_is_left_out_of_the_redundancy_means():
     net = sim.network
     obs = net.observations.copy()
     obs[7, 0] += 40 * net.sigmas[7, 0]
-    tested = tj.calibrate_and_test(
+    tested = tj.self_calibrate(
         net.with_observations(obs),
         tj.CalibrationModel(sim.scanner),
-        testing=tj.TestingOptions(vce=False, snooping=True, bonferroni=True, alpha=0.05),
+        tj.CalibrationOptions(
+            vce=None, snooping=tj.SnoopingOptions(bonferroni=True, w_test_level=0.05)
+        ),
     )
     res = tested.calibration
     assert [(o.row, o.group) for o in tested.outliers] == [(7, "range")]
     assert not res.used[7, 0] and res.used.sum() == res.used.size - 1 and res.redundancy[7, 0] == 0
-    summary = res.redundancy_summary()
+    summary = res.to_dict()["redundancy"]
     assert np.isclose(
         summary["range"]["mean"], np.delete(res.redundancy[:, 0], 7).mean(), rtol=1e-12
     )

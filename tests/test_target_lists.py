@@ -1,5 +1,10 @@
 """Vendor target lists in (issue 27 item 4): layouts, units, the panoramic fold, exact round
-trips, sigmas, refusals, and the file path ``import-targets`` -> ``calibrate``."""
+trips, sigmas, refusals, and the file path ``import-targets`` -> ``calibrate``.
+
+Private imports: ``tlsjax._cli.main`` (the console script), the polar sigma propagation
+``polar_sigmas`` checked against its closed form, and the scans-file writers that build the
+inputs.
+"""
 
 import pathlib
 
@@ -163,6 +168,7 @@ def test_units_explicit_detected_or_refused_with_the_fix(tmp_path):
         tj.read_target_list([tmp_path / "m.csv", tmp_path / "mm.csv"], "hybrid")
 
 
+@pytest.mark.internal
 def test_sigmas_from_the_file_are_propagated_to_range_and_angles(tmp_path):
     xyz = _points(4, 10)
     names = [f"T{i}" for i in range(10)]
@@ -228,6 +234,7 @@ def test_columns_override_and_two_files_of_one_scan_name(tmp_path):
         tj.read_target_list([tmp_path / "a" / "S1.txt", tmp_path / "b" / "S1.txt"], "hybrid")
 
 
+@pytest.mark.internal
 def test_import_targets_then_calibrate_equals_the_polar_file(tmp_path, capsys):
     """A panoramic simulation written as per-scan Cartesian lists in millimetres: import-targets
     gives the simulated observations back (to 1e-12), records the architecture, and calibrate

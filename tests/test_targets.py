@@ -1,5 +1,9 @@
 """Target centres from point clouds (issue 33): simulated spheres, checkerboards and circles
-extracted, matched and calibrated against the simulation's truth."""
+extracted, matched and calibrated against the simulation's truth.
+
+Private imports: ``tlsjax._cli.main`` (the console script) and the chunked scan reader
+``open_scans``, whose chunking is checked.
+"""
 
 import csv
 import dataclasses
@@ -9,9 +13,8 @@ import numpy as np
 import pytest
 
 import tlsjax as tj
+from tlsjax import cartesian_from_spherical, rotation_matrix
 from tlsjax._cli import main
-from tlsjax._io._scan_chunks import open_scans
-from tlsjax._model._geometry import cartesian_from_spherical, rotation_matrix
 
 DEG = np.pi / 180
 DATA = pathlib.Path(__file__).parent / "data"
@@ -285,7 +288,10 @@ def test_real_scan_without_targets_accepts_none(tmp_path):
     assert not out.exists()
 
 
+@pytest.mark.internal
 def test_streamed_readers_carry_intensity():
+    from tlsjax._io._scan_chunks import open_scans
+
     (scan,) = open_scans(DATA / "pump_every7th.e57")
     parts = list(scan.chunks(5000))
     pts = np.concatenate([p for p, _, _ in parts])

@@ -1,4 +1,4 @@
-"""``calibrate_and_test`` gives the same outputs as the reference run recorded in
+"""``self_calibrate`` gives the same outputs as the reference run recorded in
 ``tests/data/testing_regression.json`` (issue 34: the testing pipeline was split into the
 statistics and a pipeline of named steps; behaviour and results had to stay identical).
 
@@ -11,7 +11,10 @@ before the split (``python tests/test_testing_regression.py
 that are off by a factor (VCE), snooping with per-test and family-wise levels, removal of a
 whole target, no VCE, no screening. Discrete outputs (removals, masks, result codes, the
 number of adjustments) must match exactly; numbers to a relative 1e-6 (another CPU may round
-the last digits differently); the texts with their numbers masked.
+the last digits differently); the texts with their numbers masked. (Issue 39 moved the steps
+behind ``self_calibrate`` and split the settings by concern: each case's settings are the
+same as before, written as :class:`tlsjax.CalibrationOptions`; the summary compared is the
+testing part, :meth:`tlsjax.SelfCalibration.testing_summary`.)
 """
 
 from __future__ import annotations
@@ -30,14 +33,17 @@ import tlsjax as tj
 DATA = pathlib.Path(__file__).parent / "data" / "testing_regression.json"
 APS = "A0 B6 B7 C0"
 MODEL = tj.CalibrationModel(tj.Scanner(aps=APS))
+SNOOP = tj.SnoopingOptions()
 CASES = {
-    "defaults": {},
-    "target_removal_bonferroni": dict(removal="target", bonferroni=True, alpha=0.05),
-    "no_vce": dict(vce=False),
-    "no_screening": dict(screening=False),
-    "no_robust_start": dict(robust_start=False),
-    "vce_only": dict(snooping=False, vce_tolerance=1e-4),
-    "critical_value": dict(critical_value=2.5, max_removals=4),
+    "defaults": dict(snooping=SNOOP),
+    "target_removal_bonferroni": dict(
+        snooping=tj.SnoopingOptions(removal="target", bonferroni=True, w_test_level=0.05)
+    ),
+    "no_vce": dict(vce=None, snooping=SNOOP),
+    "no_screening": dict(screening=None, snooping=SNOOP),
+    "no_robust_start": dict(screening=tj.ScreeningOptions(robust_start=False), snooping=SNOOP),
+    "vce_only": dict(vce=tj.VCEOptions(tolerance=1e-4)),
+    "critical_value": dict(snooping=tj.SnoopingOptions(critical_value=2.5, max_removals=4)),
 }
 
 
@@ -62,7 +68,7 @@ def _masked(text: str) -> str:
     return re.sub(r"[-+]?\d+(\.\d+)?(e[-+]?\d+)?", "#", text)
 
 
-def outputs(t: tj.TestedCalibration) -> dict:
+def outputs(t: tj.SelfCalibration) -> dict:
     """What a user reads of a tested calibration, as plain JSON values."""
     c = t.calibration
     return {
@@ -109,14 +115,14 @@ def outputs(t: tj.TestedCalibration) -> dict:
         "ap_tests": [[a.name, a.significant] for a in t.ap_tests],
         "warnings": [_masked(w) for w in t.warnings],
         "message": _masked(t.message),
-        "summary": _masked(t.summary()),
+        "summary": _masked(t.testing_summary()),
     }
 
 
 def run_all() -> dict:
     net = network()
     return {
-        name: outputs(tj.calibrate_and_test(net, MODEL, testing=tj.TestingOptions(**kw)))
+        name: outputs(tj.self_calibrate(net, MODEL, tj.CalibrationOptions(**kw)))
         for name, kw in CASES.items()
     }
 
@@ -142,9 +148,9 @@ def reference():
 
 
 @pytest.mark.parametrize("case", list(CASES))
-def test_calibrate_and_test_matches_the_reference(case, reference):
+def test_self_calibrate_matches_the_reference(case, reference):
     net = network()
-    got = outputs(tj.calibrate_and_test(net, MODEL, testing=tj.TestingOptions(**CASES[case])))
+    got = outputs(tj.self_calibrate(net, MODEL, tj.CalibrationOptions(**CASES[case])))
     _compare(json.loads(json.dumps(got)), reference[case], case)
 
 

@@ -14,19 +14,11 @@ import pytest
 import scipy.stats
 
 import tlsjax as tj
-from tlsjax import TestingOptions as Opts
-from tlsjax import VCEResult, calibrate_and_test
-from tlsjax._inference import _steps
-from tlsjax._inference._statistics import (
-    group_variance_test,
-    implausible_factor,
-    suspected_units,
-)
-from tlsjax._io._json import dumps_strict
+from tlsjax import VCEResult
 
 APS = "A0 B6 B7 C0"
 MODEL = tj.CalibrationModel(tj.Scanner(aps=APS))
-NO_SNOOP = Opts(snooping=False)
+NO_SNOOP = tj.CalibrationOptions()
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +28,7 @@ def sim():
 
 def _strict(tested):
     """The testing fields as strict JSON (raises on NaN/inf) and the critical values finite."""
-    text = json.dumps(tested.json_fields(), allow_nan=False)
+    text = json.dumps(tested.testing_fields(), allow_nan=False)
     assert np.isfinite(tested.critical_value)
     return json.loads(text)
 
@@ -54,8 +46,8 @@ def test_blunders_are_screened_out_before_vce(sim):
     for (i, g), e in bad.items():
         obs[i, g] += e
     # Screening itself, without the robust start before it (tests/test_robust_start.py).
-    testing = dataclasses.replace(NO_SNOOP, robust_start=False)
-    r = calibrate_and_test(net.with_observations(obs), MODEL, testing=testing)
+    no_robust_start = tj.CalibrationOptions(screening=tj.ScreeningOptions(robust_start=False))
+    r = tj.self_calibrate(net.with_observations(obs), MODEL, no_robust_start)
     assert {(o.row, ("range", "hz", "el").index(o.group)) for o in r.outliers} == set(bad)
     assert all(o.reason.startswith("screening before VCE") for o in r.outliers)
     first, after = r.a_priori_tests
@@ -78,9 +70,7 @@ def test_without_screening_the_inflated_factors_are_named(sim):
     net = sim.network
     obs = net.observations.copy()
     obs[10, 0] += 1.0
-    r = calibrate_and_test(
-        net.with_observations(obs), MODEL, testing=Opts(snooping=False, screening=False)
-    )
+    r = tj.self_calibrate(net.with_observations(obs), MODEL, tj.CalibrationOptions(screening=None))
     assert r.outliers == () and r.a_priori_tests[0]["groups"]["range"]["accepted"] is False
     f = {vc.group: vc.factor for vc in r.variance_components}
     assert f["range"] > 25  # VCE absorbed the blunder ...
@@ -88,15 +78,15 @@ def test_without_screening_the_inflated_factors_are_named(sim):
     target = net.targets[net.target_index[10]]
     assert any(w.startswith("one observation holds") and target in w for w in r.warnings)
     assert not any(w.startswith("range: variance factor") for w in r.warnings)
-    assert "global_test" in r.json_fields() and not r.json_fields()["global_test"]["accepted"]
+    assert "global_test" in r.testing_fields() and not r.testing_fields()["global_test"]["accepted"]
 
 
 def test_vce_is_scale_equivariant_and_names_the_scale(sim):
     net = sim.network
-    base = calibrate_and_test(net, MODEL, testing=NO_SNOOP)
+    base = tj.self_calibrate(net, MODEL, NO_SNOOP)
     f0 = np.array([vc.factor for vc in base.variance_components])
     for scale in (1 / 40, 40.0):
-        r = calibrate_and_test(_scaled(net, scale), MODEL, testing=NO_SNOOP)
+        r = tj.self_calibrate(_scaled(net, scale), MODEL, NO_SNOOP)
         _strict(r)
         if r.vce_result == VCEResult.CONVERGED:
             f = np.array([vc.factor for vc in r.variance_components])
@@ -110,11 +100,11 @@ def test_vce_is_scale_equivariant_and_names_the_scale(sim):
 
 def test_unit_mixups_are_named(sim):
     net = sim.network
-    deg = calibrate_and_test(_scaled(net, np.degrees(1.0)), MODEL, testing=NO_SNOOP)
+    deg = tj.self_calibrate(_scaled(net, np.degrees(1.0)), MODEL, NO_SNOOP)
     hz = next(w for w in deg.warnings if w.startswith("hz:"))
     assert "degrees vs radians" in hz and "times too large" in hz
     mm = dataclasses.replace(net, sigmas=net.sigmas * np.array([1e-3, 1.0, 1.0]))
-    r = calibrate_and_test(mm, MODEL, testing=NO_SNOOP)
+    r = tj.self_calibrate(mm, MODEL, NO_SNOOP)
     (rng,) = [w for w in r.warnings if w.startswith("range:")]
     assert "millimetres vs metres" in rng and "degrees" not in rng
     assert not any(w.startswith(("hz:", "el:")) for w in r.warnings)
@@ -122,7 +112,7 @@ def test_unit_mixups_are_named(sim):
 
 def test_noise_free_data_stop_vce_with_a_reason():
     s = tj.simulate(tj.Room(n_targets=36), seed=11, aps=APS, noise=False)
-    r = calibrate_and_test(s.network, MODEL)
+    r = tj.self_calibrate(s.network, MODEL, tj.CalibrationOptions(snooping=tj.SnoopingOptions()))
     assert r.vce_result == VCEResult.NOISE_FREE and r.ok
     assert all(vc.factor == 1.0 and not vc.estimated for vc in r.variance_components)
     assert r.outliers == ()
@@ -134,7 +124,9 @@ def test_noise_free_data_stop_vce_with_a_reason():
 
 
 def test_sigmas_far_too_small_are_named_not_nan(sim):
-    r = calibrate_and_test(_scaled(sim.network, 1e-6), MODEL)
+    r = tj.self_calibrate(
+        _scaled(sim.network, 1e-6), MODEL, tj.CalibrationOptions(snooping=tj.SnoopingOptions())
+    )
     d = _strict(r)
     assert any("1e+06 times too small" in w or "1.0" in w and "too small" in w for w in r.warnings)
     if not r.calibration.ok:  # the adjustment with the a priori sigmas failed: a code, a reason
@@ -142,27 +134,31 @@ def test_sigmas_far_too_small_are_named_not_nan(sim):
         assert d["vce"]["result"] == int(VCEResult.ADJUSTMENT_FAILED)
 
 
+@pytest.mark.internal
 def test_safeguards_stop_with_their_codes(sim, monkeypatch):
+    from tlsjax._inference import _steps
+
     net = sim.network
-    r = calibrate_and_test(net, MODEL, testing=Opts(snooping=False, vce_min_redundancy=1e6))
+    r = tj.self_calibrate(net, MODEL, tj.CalibrationOptions(vce=tj.VCEOptions(min_redundancy=1e6)))
     assert r.vce_result == VCEResult.NO_REDUNDANCY and r.ok
     assert all("redundancy" in vc.note for vc in r.variance_components)
-    r = calibrate_and_test(
-        _scaled(net, 2.0), MODEL, testing=Opts(snooping=False, vce_max_iterations=1)
+    r = tj.self_calibrate(
+        _scaled(net, 2.0), MODEL, tj.CalibrationOptions(vce=tj.VCEOptions(max_iterations=1))
     )
     assert r.vce_result == VCEResult.MAX_ITERATIONS and not r.ok and r.calibration.ok
     monkeypatch.setattr(_steps, "VCE_FACTOR_LIMIT", 100.0)
-    r = calibrate_and_test(
-        _scaled(net, 1 / 40), MODEL, testing=Opts(snooping=False, screening=False)
-    )
+    r = tj.self_calibrate(_scaled(net, 1 / 40), MODEL, tj.CalibrationOptions(screening=None))
     assert r.vce_result == VCEResult.FACTOR_LIMIT and "beyond" in " ".join(r.warnings)
     assert all(vc.factor == 1.0 for vc in r.variance_components)
     _strict(r)
 
 
+@pytest.mark.internal
 def test_oscillating_factors_are_damped_and_reported(sim, monkeypatch):
     """A fake VCE step that alternates between s^2 = 4 and 1/4: the damping halves every
     change of direction, so the factors stay between 1/4 and 4 and the stop says why."""
+    from tlsjax._inference import _steps
+
     calls = {"n": 0}
     real = _steps.group_statistics
 
@@ -172,8 +168,10 @@ def test_oscillating_factors_are_damped_and_reported(sim, monkeypatch):
         return np.where(np.arange(len(s2)) < 3, 4.0 if calls["n"] % 2 else 0.25, s2), r_g, n_g
 
     monkeypatch.setattr(_steps, "group_statistics", alternating)
-    r = calibrate_and_test(
-        sim.network, MODEL, testing=Opts(snooping=False, screening=False, vce_max_iterations=8)
+    r = tj.self_calibrate(
+        sim.network,
+        MODEL,
+        tj.CalibrationOptions(screening=None, vce=tj.VCEOptions(max_iterations=8)),
     )
     assert r.vce_result == VCEResult.OSCILLATING
     f = np.array([h["factors"][:3] for h in r.history if "vce_iteration" in h])
@@ -182,8 +180,12 @@ def test_oscillating_factors_are_damped_and_reported(sim, monkeypatch):
     assert steps[-1] < steps[0] / 16  # each change of direction halves the step
 
 
+@pytest.mark.internal
 def test_group_variance_test_against_scipy():
-    t = group_variance_test(omega=350.0, redundancy=300.0, alpha=0.05)
+    from tlsjax._io._json import dumps_strict
+    from tlsjax._stats import group_variance_test
+
+    t = group_variance_test(omega=350.0, redundancy=300.0, level=0.05)
     assert np.isclose(t["factor"], 350 / 300)
     assert np.isclose(t["upper"], scipy.stats.chi2.ppf(0.975, 300))
     assert np.isclose(t["p_value"], 2 * scipy.stats.chi2.sf(350.0, 300), rtol=1e-8)
@@ -194,7 +196,10 @@ def test_group_variance_test_against_scipy():
     dumps_strict(empty)
 
 
+@pytest.mark.internal
 def test_unit_suspicion_table():
+    from tlsjax._inference._variance_factors import implausible_factor, suspected_units
+
     assert suspected_units(57.3) == ("degrees vs radians", "gon vs radians")
     assert suspected_units(1 / 1000.0, "length") == ("millimetres vs metres",)
     assert suspected_units(1000.0, "angle") == ()

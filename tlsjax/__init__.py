@@ -5,10 +5,12 @@ one per layer. Imports run one way, down this list: a module imports only from t
 below its own (and from modules of its own subpackage, without circles); nothing imports this
 module except the command line.
 
-1. ``_units``, ``_stats``, ``_jit``, ``_optional``, ``_summary``, ``_version``: units and
-   display factors, quantiles and the constants derived from them (scipy.stats), the compiler
-   settings, the optional libraries, the ``summary()``/``to_dict()`` convention of the result
-   types, the version. They import nothing of tlsjax.
+1. ``_version`` (the version, which imports nothing), then ``_units``, ``_stats``, ``_jit``,
+   ``_optional``, ``_summary``: units and display factors, quantiles and the constants derived
+   from them (scipy.stats), the compiler settings and the persistent compilation cache (keyed on
+   the version), the optional libraries, the ``summary()``/``to_dict()`` convention of the
+   result types and the ``to_dict()``/``from_dict()`` one of the settings. They import nothing
+   of tlsjax but the version.
 2. ``_model``: the mathematics of one observation (geometry, the AP registry, the scanner, the
    point and plane models, levelling, the datum).
 3. ``_adjustment``: one adjustment of a network (data and boundary checks, index plan,
@@ -17,8 +19,12 @@ module except the command line.
    layers 1-3.
 5. ``_inference`` (tests, VCE, snooping, selection, compatibility), ``_design`` (network
    design) and ``_clouds`` (planes and targets from point clouds): on layers 1-4.
-6. ``_report``: text, JSON, plots and the HTML report.
-7. this module (the public API), then ``_cli`` (the command line), which may use everything.
+6. ``_report``: the per-observation tables (CSV), the plots and the HTML report.
+7. ``_workflow``: the one tested entry of a self-calibration (:func:`self_calibrate`) and its
+   result, which composes the pipeline of layer 5 with the text and JSON of layer 6.
+8. this module (the public API), then ``_cli`` (the command line), which may use everything;
+   ``calibrate``, ``compare``, ``montecarlo`` and ``report`` use the public API only.
+   tests/test_layers.py holds the code to this.
 """
 
 import jax as _jax
@@ -27,6 +33,7 @@ import jax as _jax
 # README says so at the top, since it also changes the default dtype of a user's other JAX code.
 _jax.config.update("jax_enable_x64", True)
 
+from ._adjustment._ap_tests import ap_t_tests as ap_t_tests
 from ._adjustment._calibrate import Adjustment as Adjustment
 from ._adjustment._calibrate import analyze as analyze
 from ._adjustment._calibrate import calibrate as calibrate
@@ -37,6 +44,7 @@ from ._adjustment._implicit import NetworkInputs as NetworkInputs
 from ._adjustment._implicit import differentiable_adjustment as differentiable_adjustment
 from ._adjustment._implicit import network_inputs as network_inputs
 from ._adjustment._network import Network as Network
+from ._adjustment._network import ObservationTable as ObservationTable
 from ._adjustment._network import make_network as make_network
 from ._adjustment._network import make_plane_network as make_plane_network
 from ._adjustment._result import RESULT_MESSAGES as RESULT_MESSAGES
@@ -62,7 +70,7 @@ from ._clouds._thin import thin_planes as thin_planes
 from ._design._criteria import DesignCriterion as DesignCriterion
 from ._design._criteria import design_criterion as design_criterion
 from ._design._criteria import predicted_cofactor as predicted_cofactor
-from ._design._design import DesignNetwork as DesignNetwork
+from ._design._design import DesignProblem as DesignProblem
 from ._design._design import PlaneDesign as PlaneDesign
 from ._design._design import TargetDesign as TargetDesign
 from ._design._optimize import DesignOptimisation as DesignOptimisation
@@ -73,46 +81,52 @@ from ._inference._checkpoints import CheckpointReport as CheckpointReport
 from ._inference._checkpoints import TargetCheck as TargetCheck
 from ._inference._checkpoints import assess_checkpoints as assess_checkpoints
 from ._inference._checkpoints import check_targets as check_targets
-from ._inference._compat import CompatibilityOptions as CompatibilityOptions
-from ._inference._compat import CompatibilityResult as CompatibilityResult
-from ._inference._compat import compatibility_batch as compatibility_batch
-from ._inference._compat import compatibility_statistic as compatibility_statistic
-from ._inference._compat import compatibility_test as compatibility_test
+from ._inference._compatibility import CompatibilityOptions as CompatibilityOptions
+from ._inference._compatibility import CompatibilityResult as CompatibilityResult
+from ._inference._compatibility import compatibility_batch as compatibility_batch
+from ._inference._compatibility import compatibility_statistic as compatibility_statistic
+from ._inference._compatibility import compatibility_test as compatibility_test
+from ._inference._options import CalibrationOptions as CalibrationOptions
+from ._inference._options import ScreeningOptions as ScreeningOptions
+from ._inference._options import SnoopingOptions as SnoopingOptions
+from ._inference._options import TestOptions as TestOptions
+from ._inference._options import VCEOptions as VCEOptions
+from ._inference._outcome import Removal as Removal
+from ._inference._outcome import VarianceComponent as VarianceComponent
+from ._inference._outcome import VCEResult as VCEResult
 from ._inference._robust import PlaneScreening as PlaneScreening
 from ._inference._robust import PlaneScreeningOptions as PlaneScreeningOptions
-from ._inference._robust import screen_planes as screen_planes
+from ._inference._run import score_tests as score_tests
 from ._inference._score import ScoreTest as ScoreTest
 from ._inference._score import ScoreTests as ScoreTests
-from ._inference._score import score_tests as score_tests
 from ._inference._selection import SelectionOptions as SelectionOptions
 from ._inference._selection import SelectionResult as SelectionResult
-from ._inference._selection import select_aps as select_aps
 from ._inference._sensitivity import Sensitivity as Sensitivity
 from ._inference._sensitivity import ap_sensitivity as ap_sensitivity
-from ._inference._statistics import ap_t_tests as ap_t_tests
-from ._inference._statistics import global_test as global_test
-from ._inference._tested import TestedCalibration as TestedCalibration
-from ._inference._tested import TestingOptions as TestingOptions
-from ._inference._tested import VCEResult as VCEResult
-from ._inference._testing import calibrate_and_test as calibrate_and_test
 from ._io._correct import Calibration as Calibration
 from ._io._correct import correct_points as correct_points
 from ._io._correct_files import CorrectedScan as CorrectedScan
 from ._io._correct_files import correct_point_cloud as correct_point_cloud
 from ._io._extracted import ExtractedPlanes as ExtractedPlanes
+from ._io._json import read_result_json as read_result_json
+from ._io._json import write_json as write_json
 from ._io._las import write_las as write_las
 from ._io._outputs import check_outputs as check_outputs
-from ._io._plane_files import load_planes as load_planes
-from ._io._plane_files import save_planes as save_planes
+from ._io._plane_files import read_extracted_planes as read_extracted_planes
+from ._io._plane_files import write_extracted_planes as write_extracted_planes
 from ._io._ply import write_ply as write_ply
 from ._io._point_clouds import PointCloudScan as PointCloudScan
 from ._io._point_clouds import PointCloudWarning as PointCloudWarning
 from ._io._point_clouds import read_point_clouds as read_point_clouds
+from ._io._priors import parse_ap_prior as parse_ap_prior
+from ._io._priors import read_ap_priors as read_ap_priors
 from ._io._tables import read_network as read_network
 from ._io._tables import read_observations as read_observations
 from ._io._tables import read_planes as read_planes
 from ._io._tables import read_scans as read_scans
+from ._io._tables import write_network as write_network
 from ._io._tables import write_observations as write_observations
+from ._io._tables import write_scans as write_scans
 from ._io._target_files import write_target_table as write_target_table
 from ._io._target_lists import read_reference as read_reference
 from ._io._target_lists import read_target_list as read_target_list
@@ -120,24 +134,26 @@ from ._model._aps import PRESETS as PRESETS
 from ._model._aps import register_ap as register_ap
 from ._model._aps import registered_aps as registered_aps
 from ._model._aps import resolve_aps as resolve_aps
+from ._model._geometry import angles_from_matrix as angles_from_matrix
+from ._model._geometry import cartesian_from_spherical as cartesian_from_spherical
+from ._model._geometry import rotation_matrix as rotation_matrix
+from ._model._geometry import spherical_from_cartesian as spherical_from_cartesian
 from ._model._plausibility import PlausibilityWarning as PlausibilityWarning
 from ._model._scanner import Scanner as Scanner
 from ._report._html import report_from_json as report_from_json
 from ._report._html import write_html_report as write_html_report
-from ._report._json import result_to_dict as result_to_dict
-from ._report._json import write_json as write_json
 from ._report._plots import plot_ap_correlations as plot_ap_correlations
 from ._report._plots import plot_monte_carlo as plot_monte_carlo
 from ._report._plots import plot_residuals as plot_residuals
 from ._report._plots import plot_sensitivity as plot_sensitivity
 from ._report._tables import group_records as group_records
 from ._report._tables import observation_records as observation_records
+from ._report._tables import write_adjusted_targets as write_adjusted_targets
 from ._report._tables import write_tables as write_tables
 from ._report._target_plots import plot_targets as plot_targets
-from ._report._text import ap_table as ap_table
-from ._simulation._design import DesignPlane as DesignPlane
 from ._simulation._design import DesignSimulation as DesignSimulation
 from ._simulation._design import NetworkDesign as NetworkDesign
+from ._simulation._design import RoomPlane as RoomPlane
 from ._simulation._design import simulate_design as simulate_design
 from ._simulation._montecarlo import MonteCarloOptions as MonteCarloOptions
 from ._simulation._montecarlo import MonteCarloResult as MonteCarloResult
@@ -154,26 +170,7 @@ from ._simulation._room import Room as Room
 from ._simulation._room import Simulation as Simulation
 from ._simulation._room import simulate as simulate
 from ._simulation._truth import SimulationTruth as SimulationTruth
+from ._stats import global_test as global_test
 from ._version import __version__ as __version__
-
-# Names of earlier releases, kept one release with a DeprecationWarning (issue 34): notebooks that
-# use them keep working while they move to the one word for settings objects, "Options".
-_DEPRECATED = {
-    "ExtractionConfig": ("ExtractionOptions", ExtractionOptions),
-    "MatchingConfig": ("MatchingOptions", MatchingOptions),
-}
-
-
-def __getattr__(name):
-    if name in _DEPRECATED:
-        import warnings
-
-        new, obj = _DEPRECATED[name]
-        warnings.warn(
-            f"tlsjax.{name} is deprecated and will be removed in the next release; "
-            f"use tlsjax.{new}",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return obj
-    raise AttributeError(f"module 'tlsjax' has no attribute {name!r}")
+from ._workflow._self_calibration import SelfCalibration as SelfCalibration
+from ._workflow._self_calibration import self_calibrate as self_calibrate

@@ -2,8 +2,9 @@
 place: every critical value, non-centrality and consistency constant of tlsjax comes from here.
 
 Baarda's critical value and non-centrality (data snooping, reliability), Student's t for the AP
-tests, chi-square for the global test and the variance factors, and the normal consistency
-constant of the median absolute value (robust scales).
+tests, chi-square for the global test and the variance factors (:func:`global_test`,
+:func:`group_variance_test`), and the normal consistency constant of the median absolute value
+(robust scales).
 
 scipy.stats is imported at the first call that needs it (it takes longer to import than the
 rest of tlsjax); the normal quantiles of the constants come from the standard library
@@ -86,6 +87,70 @@ def confidence_scale(dim: int, level: float = 0.95) -> float:
     if level == 0.95 and dim in _CONFIDENCE_95:
         return _CONFIDENCE_95[dim]
     return float(np.sqrt(chi2_quantile(level, dim)))
+
+
+#: The factor from 1-sigma semi-axes of a 3D point's error ellipsoid to its 95 % confidence
+#: ellipsoid (:func:`confidence_scale` of three dimensions, 2.7955).
+ELLIPSOID_95 = round(confidence_scale(3), 4)
+
+
+def global_test(sigma0: float, dof: float, level: float = 0.05) -> dict:
+    """Global test of the adjustment: ``T = v^T P v = s0^2 r ~ chi^2(r)`` when the a priori
+    stochastic model is right (Koch 1999, sec. 4.2.2). Two-sided: the model is accepted when
+    ``chi^2_{level/2}(r) <= T <= chi^2_{1-level/2}(r)``; the p-value is two-sided too."""
+    if not (dof > 0 and np.isfinite(sigma0)):
+        return {
+            "statistic": None,
+            "dof": dof,
+            "level": level,
+            "lower": None,
+            "upper": None,
+            "p_value": None,
+            "accepted": None,
+        }
+    T = sigma0**2 * dof
+    lo, hi = chi2_quantile(level / 2, dof), chi2_quantile(1 - level / 2, dof)
+    cdf = chi2_cdf(T, dof)
+    return {
+        "statistic": T,
+        "dof": dof,
+        "level": level,
+        "lower": lo,
+        "upper": hi,
+        "p_value": 2 * min(cdf, 1 - cdf),
+        "accepted": bool(lo <= T <= hi),
+    }
+
+
+def group_variance_test(omega: float, redundancy: float, level: float = 0.05) -> dict:
+    """Test of one group's variance factor with its a priori sigmas (as JAG3D reports per
+    group): ``Omega_g = v_g^T P_g v_g ~ chi^2(r_g)`` when the group's a priori sigmas are right,
+    ``r_g`` the sum of its redundancy numbers; two-sided at ``level`` like :func:`global_test`.
+    ``factor`` is the estimate ``Omega_g / r_g`` (None where r_g is 0)."""
+    if not (redundancy > 0 and np.isfinite(omega)):
+        return {**global_test(float("nan"), 0.0, level), "dof": redundancy, "factor": None}
+    out = global_test(float(np.sqrt(omega / redundancy)), float(redundancy), level)
+    return {**out, "factor": float(omega / redundancy)}
+
+
+def snooping_critical_value(
+    alpha: float, n_tested: int, *, bonferroni: bool = False, given: float | None = None
+) -> float:
+    """Critical value of data snooping: ``given`` if set, else ``N^-1(1 - alpha'/2)`` with
+    ``alpha' = alpha / n_tested`` (Bonferroni: the family-wise level over the tested
+    observations) or ``alpha`` per test."""
+    if given is not None:
+        return float(given)
+    return normal_critical_value(alpha / max(n_tested, 1) if bonferroni else alpha)
+
+
+def robust_scale(u: np.ndarray, keep: np.ndarray, min_count: int) -> float:
+    """Robust scale of standardised residuals: ``median |u| / 0.6745`` over ``keep``
+    (:data:`MAD_TO_SIGMA`; a few blunders do not move a median), NaN with fewer
+    than ``min_count`` of them."""
+    if keep.sum() < min_count:
+        return float("nan")
+    return MAD_TO_SIGMA * float(np.median(np.abs(u[keep])))
 
 
 def weighted_chi2_sf(x: float, weights, noncentrality=None) -> float:

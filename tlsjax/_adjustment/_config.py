@@ -8,6 +8,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from .._model._scanner import Scanner
+from .._summary import Settings
 from ._families import Options
 
 DATUMS = ("auto", "inner", "fixed-scan", "control")
@@ -64,6 +65,74 @@ class CalibrationModel:
                 f"correlation_threshold must be in (0, 1], got {self.correlation_threshold}"
             )
 
+    def to_dict(self) -> dict:
+        """The model as strict JSON (SI units) that :meth:`from_dict` reads back: the scanner
+        (architecture, APs, unit lengths; per instrument for several), the datum, the fixed
+        APs and the AP priors."""
+        return {
+            "scanner": scanner_settings(self.scanner),
+            "datum": self.datum,
+            "fixed_scan": self.fixed_scan,
+            "correlation_threshold": self.correlation_threshold,
+            "fixed_aps": list(self.fixed_aps),
+            "ap_priors": [list(p) for p in self.ap_priors],
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict) -> CalibrationModel:
+        known = {
+            "scanner",
+            "datum",
+            "fixed_scan",
+            "correlation_threshold",
+            "fixed_aps",
+            "ap_priors",
+        }
+        if not isinstance(data, Mapping) or set(data) - known:
+            extra = sorted(set(data) - known) if isinstance(data, Mapping) else [repr(data)]
+            raise ValueError(f"CalibrationModel: unknown field(s) {', '.join(extra)}")
+        fields = dict(data)
+        if "scanner" in fields:
+            fields["scanner"] = _scanner_from_dict(fields["scanner"])
+        if "fixed_aps" in fields:
+            fields["fixed_aps"] = tuple(fields["fixed_aps"])
+        if "ap_priors" in fields:
+            fields["ap_priors"] = tuple(tuple(p) for p in fields["ap_priors"])
+        return cls(**fields)
+
+
+#: The fields of a :class:`Scanner` in a model's dict.
+_SCANNER_FIELDS = ("architecture", "aps", "unit_length", "unit_length_2")
+
+
+def scanner_settings(scanner) -> dict:
+    """Architecture, unit lengths and AP names of one :class:`~tlsjax.Scanner`, or of each
+    instrument (``{"instruments": {name: settings}}``, with the ``architecture`` they share) for
+    a mapping: what applying the APs needs (``tlsjax correct``,
+    :meth:`tlsjax.Calibration.from_json`) and what :meth:`CalibrationModel.from_dict` reads."""
+    if isinstance(scanner, Mapping):
+        per = {str(k): scanner_settings(v) for k, v in scanner.items()}
+        archs = {d["architecture"] for d in per.values()}
+        out = {"instruments": per}
+        if len(archs) == 1:
+            out["architecture"] = archs.pop()
+        return out
+    return {
+        "architecture": scanner.architecture,
+        "unit_length": scanner.unit_length,
+        "unit_length_2": scanner.unit_length_2,
+        "aps": list(scanner.aps),
+    }
+
+
+def _scanner_from_dict(data):
+    if "instruments" in data:
+        return {k: _scanner_from_dict(v) for k, v in data["instruments"].items()}
+    extra = sorted(set(data) - set(_SCANNER_FIELDS))
+    if extra:
+        raise ValueError(f"CalibrationModel.scanner: unknown field(s) {', '.join(extra)}")
+    return Scanner(**{k: tuple(v) if k == "aps" else v for k, v in data.items()})
+
 
 def _ap_priors(priors) -> tuple:
     """``((label, value, sigma), ...)`` from a mapping label -> (value, sigma), checked."""
@@ -89,7 +158,7 @@ def _ap_priors(priors) -> tuple:
 
 
 @dataclasses.dataclass(frozen=True)
-class SolverOptions:
+class SolverOptions(Settings):
     """Numerical settings of the adjustment (every float is a traced array of the compiled
     adjustment: changing it never recompiles).
 

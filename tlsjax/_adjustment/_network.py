@@ -302,16 +302,29 @@ def _names(values, argument: str, what: str, n: int, source: str) -> list[str]:
     return names
 
 
-def refuse_traced(value, where: str) -> None:
-    """A one-line ValueError when ``value`` holds JAX tracers: the network, its checks and
-    the approximate values are host-side numpy, so they cannot run under ``jax.jit``, ``grad``
-    or ``vmap``; the differentiable, jittable, vmappable adjustment is named instead."""
+def _inside_transformation() -> bool:
+    """True inside ``jax.jit``, ``grad`` or ``vmap`` even where no argument is traced (a network
+    closed over): the host-side entries would fail there on their first array conversion. JAX
+    has no public question for it; its trace state answers (False where it cannot be asked)."""
+    try:
+        from jax._src.core import trace_state_clean
+    except ImportError:  # pragma: no cover - a JAX without it: the tracer test alone
+        return False
+    return not trace_state_clean()
+
+
+def refuse_traced(value, where: str, *, entry: bool = False) -> None:
+    """A one-line ValueError when ``value`` holds JAX tracers (or, for an ``entry`` of the
+    calibration, when it is called inside a transformation at all, its network closed over):
+    the network, its checks and the approximate values are host-side numpy, so they cannot
+    run under ``jax.jit``, ``grad`` or ``vmap``; the differentiable, jittable, vmappable
+    adjustment is named instead."""
     import jax
 
     if isinstance(value, Network):
         value = [getattr(value, f.name) for f in dataclasses.fields(value)]
     leaves = jax.tree_util.tree_leaves(value)
-    if any(isinstance(x, jax.core.Tracer) for x in leaves):
+    if any(isinstance(x, jax.core.Tracer) for x in leaves) or (entry and _inside_transformation()):
         raise ValueError(
             f"{where} runs on the host and cannot be traced by jax.jit, grad or vmap; build the "
             "network outside the transformation and use f = tlsjax.differentiable_adjustment("
@@ -1031,7 +1044,7 @@ def check_calibration_arguments(network, model, options, where: str = "calibrate
     architecture of each instrument's scanner (SPEC section 1); one-line TypeError/ValueError."""
     from ._config import CalibrationModel, SolverOptions  # _config is above this module
 
-    refuse_traced(network, where)
+    refuse_traced(network, where, entry=True)
     if not isinstance(network, Network):
         hint = (
             f"read the file with tlsjax.read_network({os.fspath(network)!r})"

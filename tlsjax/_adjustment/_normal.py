@@ -38,7 +38,6 @@ from ._linalg import (
     cholesky_solve,
     constrained_spd_inverse,
     estimable_cholesky_damped,
-    forward_substitution,
     matvec_t,
     outer,
 )
@@ -417,28 +416,3 @@ def solve_step(spec, problem, params, blocks, red: Reduced, Hp, Hz):
     # The update as applied (after the retraction onto the constraints).
     dps = tuple(n - P for n, P in zip(new.prims, params.prims))
     return new, dps, dz
-
-
-def update_size(blocks, red: Reduced, dz, dps):
-    """Largest update in units of the parameter's precision: ``|dx_i| / sqrt(Q_ii)``.
-
-    For the scan poses and APs, Q_ii is the diagonal of the inverse of the Schur-reduced matrix
-    (from its Cholesky factor, r^3/3 flops), i.e. the parameter's actual cofactor; the
-    stand-alone ``1/N_ii`` would be far smaller than that for strongly correlated APs, and the
-    test would then chase rounding noise along their nearly singular directions. For the
-    eliminated primitives the stand-alone ``(N_pp^-1)_ii`` is used: it is a lower bound of their
-    cofactor, so the test is, if anything, stricter there.
-    """
-    Li = forward_substitution(red.L, jnp.eye(red.L.shape[0], dtype=red.L.dtype))
-    q = jnp.sum(Li * Li, axis=0) * red.scale**2
-    size = jnp.max(
-        jnp.where(red.dependent | (q <= 0), 0.0, jnp.abs(dz) / jnp.sqrt(jnp.where(q > 0, q, 1.0))),
-        initial=0.0,
-    )
-    for dp, Ninv in zip(dps, red.Npp_inv):
-        # A hard constraint can leave a component without variance (the z of a horizontal
-        # plane's normal); the step in it is then 0 as well.
-        qp = jnp.abs(jnp.diagonal(Ninv, axis1=-2, axis2=-1))
-        ratio = jnp.where(qp > 0, jnp.abs(dp) / jnp.sqrt(jnp.where(qp > 0, qp, 1.0)), 0.0)
-        size = jnp.maximum(size, jnp.max(ratio, initial=0.0))
-    return size

@@ -10,7 +10,7 @@
   is formed unless the dense matrix is asked for (``full_covariance``).
 * Redundancy numbers ``r_i = (Q_vv P)_ii = 1 - (J Q J^T)_ii`` in whitened form, datum
   invariant; their sum equals the degrees of freedom.
-* An observation with weight 0 is removed (data snooping masks, :mod:`._statistics`): it is not
+* An observation with weight 0 is removed (data snooping masks, :mod:`tlsjax._inference._steps`): it is not
   counted in the degrees of freedom, its redundancy number is 0, and its residual is still
   computed (the misclosure at the solution), so that a removed blunder can be reported.
 * AP influence (external reliability, Baarda 1968): the change of the APs caused by an error of
@@ -118,6 +118,68 @@ class Quality(eqx.Module):
     # not observed) and weights (0: not observed), for the result's table of constraints.
     orientation_residuals: object = None
     orientation_weight: object = None
+
+
+def w_tests(
+    residuals: np.ndarray,
+    sigmas: np.ndarray,
+    redundancy: np.ndarray,
+    *,
+    min_redundancy: float = MIN_TESTABLE_REDUNDANCY,
+) -> np.ndarray:
+    """Baarda's ``w_i = v_i / (sigma_i sqrt(r_i))`` (Baarda 1968); NaN where ``r_i`` is at most
+    ``min_redundancy`` (an observation with no redundancy cannot be tested; the minimal
+    detectable bias is infinite there, :func:`minimal_detectable_bias`)."""
+    r = np.asarray(redundancy, dtype=float)
+    ok = r > min_redundancy
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(
+            ok, np.asarray(residuals) / (np.asarray(sigmas) * np.sqrt(np.where(ok, r, 1.0))), np.nan
+        )
+
+
+def condition_w_tests(
+    residuals: np.ndarray,
+    sigmas: np.ndarray,
+    redundancy: np.ndarray,
+    *,
+    min_redundancy: float = MIN_TESTABLE_REDUNDANCY,
+) -> np.ndarray:
+    """Baarda's w-test of one Gauss-Helmert condition per point (a plane point, SPEC sections 4
+    and 7), (m,): ``w_i = e_i / sqrt(r_i)`` with ``e_i`` the whitened condition at the solution,
+    ``e_i^2 = sum_k (v_k / sigma_k)^2`` (its share of ``v^T P v``), and ``r_i = sum_k r_k`` the
+    condition's redundancy number; signed as the range residual. ``residuals``, ``sigmas``,
+    ``redundancy`` (m, 3). NaN where ``r_i`` is at most ``min_redundancy``."""
+    v, s = np.asarray(residuals, dtype=float), np.asarray(sigmas, dtype=float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        e = np.sqrt(np.sum(np.where(s > 0, v / np.where(s > 0, s, 1.0), 0.0) ** 2, axis=-1))
+    return w_tests(
+        np.where(v[:, 0] < 0, -e, e),
+        np.ones(len(e)),
+        np.sum(redundancy, axis=-1),
+        min_redundancy=min_redundancy,
+    )
+
+
+def external_reliability(influence, redundancy, mask, delta0: float, ap_names):
+    """Baarda's external reliability of every observation: the largest change of an AP caused
+    by an undetected MDB-sized error, ``delta0 / sqrt(r_i)`` times the AP influence of a
+    one-sigma error (:func:`quality_from`), in a priori AP sigmas, and the name of
+    that AP. ``influence`` (n, 3, a), ``redundancy`` and ``mask`` (n, 3). Inf where an observation
+    has no redundancy (no error of any size is detected), NaN where it is not used."""
+    n = mask.shape[0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = np.where(
+            redundancy > MIN_TESTABLE_REDUNDANCY,
+            delta0 / np.sqrt(np.where(redundancy > MIN_TESTABLE_REDUNDANCY, redundancy, 1.0)),
+            np.inf,
+        )
+    if not influence.shape[-1]:
+        return np.zeros((n, 3)), np.full((n, 3), "", dtype=object)
+    ext_all = np.abs(influence) * np.where(np.isfinite(scale), scale, 0.0)[..., None]
+    ext = np.where(mask & np.isfinite(scale), ext_all.max(axis=-1), np.where(mask, np.inf, np.nan))
+    ext_ap = np.array(ap_names, dtype=object)[ext_all.argmax(axis=-1)]
+    return ext, ext_ap
 
 
 def _quad(Jl, Q, Jr):

@@ -12,11 +12,17 @@ import numpy as np
 
 from .._model._aps import get_ap
 from .._model._plausibility import ap_findings, implausible_summary, likely_causes
+from .._stats import ALPHA0, normal_critical_value
 from ._diagnose import confounded_partners, failure_diagnosis
+from ._json import result_to_dict
 from ._network import Network
 from ._plan import Plan
+from ._quality import w_tests
+from ._text import ap_table, not_estimable_sentence, summary
 
-GROUP_NAMES = ("range", "hz", "el")
+#: The critical value of a weighted constraint's w-test: Baarda's, at the reliability level
+#: ALPHA0 (3.29 at 0.1 %).
+W_CRITICAL = normal_critical_value(ALPHA0)
 
 
 class ResultCode(enum.IntEnum):
@@ -165,71 +171,33 @@ class CalibrationResult:
             c = self.covariance / np.outer(s, s)
         return np.where(np.outer(s, s) > 0, c, 0.0)
 
-    def redundancy_summary(self) -> dict:
-        """Mean and sum of redundancy numbers per group, per scan and in total."""
-        net = self.network
-        r = self.redundancy
-        used = np.ones(r.shape, dtype=bool) if self.used is None else self.used
-        rp = np.zeros((0, 3)) if self.plane_redundancy is None else self.plane_redundancy
-        up = np.ones(rp.shape, dtype=bool) if self.plane_used is None else self.plane_used
-        # Means over the observations in the adjustment: a removed one has redundancy 0 by
-        # construction and would pull the mean down.
-        mean = lambda a, keep: float(a[keep].mean()) if keep.any() else float("nan")
-        out = {}
-        if r.shape[0] or not rp.shape[0]:
-            for g, name in enumerate(GROUP_NAMES):
-                out[name] = {"mean": mean(r[:, g], used[:, g]), "sum": float(r[:, g].sum())}
-        if rp.shape[0]:
-            # Plane points (Gauss-Helmert): a point's three numbers share one condition's
-            # redundancy, so the mean over plane observations never exceeds 1/3 (SPEC 4).
-            pl = {
-                name: {"mean": mean(rp[:, g], up[:, g]), "sum": float(rp[:, g].sum())}
-                for g, name in enumerate(GROUP_NAMES)
-            }
-            pl["all"] = {"mean": mean(rp, up), "sum": float(rp.sum())}
-            pl["per_point"] = {"mean": mean(rp.sum(axis=1), up.any(axis=1))}
-            out["planes"] = pl
-        lev = self.redundancy_levelling
-        active = net.is_levelled
-        if active.any():
-            out["levelling"] = {"mean": float(lev[active].mean()), "sum": float(lev[active].sum())}
-        extra = 0.0
-        for key, r_ in (
-            (
-                "heading",
-                None if self.redundancy_orientation is None else self.redundancy_orientation[:, 2],
-            ),
-            ("ap_priors", self.redundancy_ap_prior),
-        ):
-            if r_ is not None and np.isfinite(r_).any():
-                a = r_[np.isfinite(r_)]
-                out[key] = {"mean": float(a.mean()), "sum": float(a.sum())}
-                extra += float(a.sum())
-        per_scan = {}
-        for j, s in enumerate(self.scans):
-            a = np.concatenate(
-                [
-                    r[net.scan_index == j][used[net.scan_index == j]],
-                    rp[net.plane_scan_index == j][up[net.plane_scan_index == j]],
-                ]
-            )
-            per_scan[s] = {"mean": float(a.mean()) if a.size else float("nan")}
-        out["per_scan"] = per_scan
-        total = float(r.sum() + rp.sum() + lev.sum() + self.redundancy_prior_sum + extra)
-        out["total"] = {"mean": total / max(self.n_observations, 1), "sum": total}
-        return out
+    def summary(self) -> str:
+        """The result as text: result code, degrees of freedom, sigma0 and the global test,
+        mean redundancy numbers, weighted constraints, confoundings and implausible estimates,
+        then the papers' AP table (Chow et al. 2013, tables 3-6; no numbers for a failed
+        adjustment)."""
+        return summary(self) + "\n\n" + ap_table(self)
 
-    def weighted_constraints(self, critical_value: float = 3.29) -> list[dict]:
+    def to_dict(self) -> dict:
+        """The result JSON of SPEC section 11 (SI units, strict JSON): estimates, sigmas,
+        t-values and correlations of the APs, scan poses, targets and planes with their
+        precision, redundancy, the global test, confoundings; a failed adjustment's estimates
+        are null (``estimates`` says why)."""
+        return result_to_dict(self)
+
+    def weighted_constraints(self, critical_value: float = W_CRITICAL) -> list[dict]:
         """The weighted constraints with observed values (tilt readings, observed kappa, AP
         priors; eq. 7, SPEC section 6), one dict each: ``kind`` ("omega", "phi", "kappa" or
         "ap"), ``name`` (scan or AP), ``observed``, ``sigma`` (a priori), ``residual`` (``v =
         estimate - observed``), ``redundancy`` r, the w-test ``v / (sigma sqrt(r))`` (None where
-        r is 0: the constraint is not controlled) and whether ``|w|`` exceeds
-        ``critical_value``. SI units (m, rad, or 1)."""
+        r is 0: the constraint is not controlled; :func:`._quality.w_tests`) and whether ``|w|``
+        exceeds ``critical_value`` (Baarda's 3.29 at the reliability level 0.1 %). SI units (m,
+        rad, or 1)."""
         out = []
 
         def add(kind, name, observed, sigma, v, r):
-            w = float(v / (sigma * np.sqrt(r))) if r > 1e-12 else None
+            w = float(w_tests(np.array([v]), np.array([sigma]), np.array([r]))[0])
+            w = w if np.isfinite(w) else None
             out.append(
                 dict(
                     kind=kind,
@@ -383,13 +351,6 @@ def _result_code(state, q, rank_def, not_est):
         not_estimable=bool(not_est),
     )
     return ResultCode(int(code))
-
-
-def not_estimable_sentence(name: str, reason: str) -> str:
-    """The one sentence that names a non-estimable AP and why: the result's ``message`` and
-    :func:`tlsjax._report._text.confoundings` (the text summary, the JSON's ``confoundings``,
-    the HTML report) all print it."""
-    return f"{name} is not estimable: {reason}"
 
 
 def _message(code, rank_def, not_est, state, diagnosis):

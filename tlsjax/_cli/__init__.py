@@ -86,7 +86,9 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
 
 
 def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
+    args.argv = argv  # the command line, recorded in what a command writes
     if getattr(args, "devices", None):
         use_host_devices(args.devices)
     reset_warnings()

@@ -1,18 +1,24 @@
-"""``tlsjax calibrate``: self-calibration from target and/or plane observation files."""
+"""``tlsjax calibrate``: self-calibration from target and/or plane observation files.
+
+A thin layer over the public API: parse the options, read the files
+(:func:`tlsjax.read_network`), build the model and the :class:`tlsjax.CalibrationOptions`, call
+:func:`tlsjax.self_calibrate`, print its ``summary()`` and write its ``to_dict()`` and the
+other files. Everything it prints and writes of the calibration comes from that one result.
+"""
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
+import base64
+import hashlib
 import os
-import time
-import warnings
+import shlex
+import tempfile
 
 import numpy as np
 
-from .._clouds._thin import DEFAULT_PLANE_SPACING
-from .._model._plausibility import PlausibilityWarning
-from .._units import ARCSEC
+import tlsjax as tj
+
 from ._checks import correlation, positive_float, positive_int, probability, refuse_unless, warn
 from ._common import EXIT_FAILED, EXIT_OK, scanner_args
 
@@ -34,11 +40,18 @@ def add_calibrate_parser(sub):
     c.add_argument(
         "--plane-spacing",
         type=float,
-        default=DEFAULT_PLANE_SPACING,
+        default=tj.DEFAULT_PLANE_SPACING,
         metavar="M",
         help="thin the plane points to one per voxel of this side [m] per scan and plane "
-        f"(default {DEFAULT_PLANE_SPACING:g}: noise of points closer than about a third of it is "
+        f"(default {tj.DEFAULT_PLANE_SPACING:g}: noise of points closer than about a third of it is "
         "correlated, and the sigmas of all points would be too small; 0 keeps all points)",
+    )
+    c.add_argument(
+        "--from-json",
+        metavar="RESULT_JSON",
+        help="re-run the calibration a result JSON of tlsjax calibrate records (its input files, "
+        "how they were read, the model and every option): give only output options with it; an "
+        "input file that changed since is named",
     )
     c.add_argument(
         "--quiet", action="store_true", help="no progress lines (phases and times) on stderr"
@@ -132,7 +145,7 @@ def add_calibrate_parser(sub):
         "the selection runs on the screened observations. Default on; --no-screen turns it off. "
         "With planes: screen the plane points (IGG-III reweighting, family-wise removal, then "
         "the a priori weights); with planes and --snoop: the robust screening of "
-        "calibrate_and_test, then snooping, plane points and targets alike",
+        "tlsjax.self_calibrate, then snooping, plane points and targets alike",
     )
     c.add_argument(
         "--screen-alpha",
@@ -204,17 +217,23 @@ def add_calibrate_parser(sub):
     scanner_args(
         c, default=None, default_help="the one recorded in the observation file, else hybrid"
     )
-    c.set_defaults(func=_calibrate)
+    c.set_defaults(func=_calibrate, defaults=_parser_defaults(c))
     return c
+
+
+#: The options that may be given with --from-json: where the files go, and how the run talks.
+_RERUN_OPTIONS = ("from_json", "json", "plots", "report", "targets_out", "tables", "quiet")
+
+
+def _parser_defaults(parser) -> dict:
+    return {a.dest: a.default for a in parser._actions if a.dest != "help"}
 
 
 def _ap_priors(args) -> dict:
     """The AP priors of ``--ap-priors FILE`` and ``--ap-prior`` (SI units)."""
-    from .._io._priors import parse_ap_prior, read_ap_priors
-
-    priors = read_ap_priors(args.ap_priors) if args.ap_priors else {}
+    priors = tj.read_ap_priors(args.ap_priors) if args.ap_priors else {}
     for text in args.ap_prior:
-        name, value, sigma = parse_ap_prior(text)
+        name, value, sigma = tj.parse_ap_prior(text)
         if name in priors:
             raise ValueError(f"--ap-prior {text!r}: {name} has a prior already")
         priors[name] = (value, sigma)
@@ -237,6 +256,66 @@ _DEFAULTS = {
 PLOT_FILES = ("residuals.png", "ap_correlations.png")
 #: The files --tables may write.
 TABLE_FILES = ("observations.csv", "plane_points.csv", "groups.csv", "targets.csv", "planes.csv")
+#: Radians per arc second.
+ARCSEC = np.pi / (180.0 * 3600.0)
+
+
+def _recorded(args) -> dict:
+    """``--from-json``: the settings a result JSON records (``settings``: the inputs and how
+    they were read, the model, the options), put in ``args`` as if given; any other option
+    given is refused (the run takes its settings from the file), and an input whose SHA-256
+    differs from the one recorded is named (the re-run then reproduces nothing)."""
+    for dest, default in args.defaults.items():
+        if dest not in _RERUN_OPTIONS and getattr(args, dest) != default:
+            flag = dest if dest == "observations" else "--" + dest.replace("_", "-")
+            raise ValueError(
+                f"{flag}: not with --from-json (the run takes its inputs and settings from "
+                f"{args.from_json}); give only output options with it"
+            )
+    doc = tj.read_result_json(args.from_json)
+    settings = doc.get("settings") or {}
+    inputs = settings.get("inputs") or {}
+    if not {"model", "options"} <= set(settings) or not inputs:
+        raise ValueError(
+            f"{args.from_json}: records no settings to re-run (written by an earlier tlsjax, or "
+            "by tj.self_calibrate without with_inputs()); run tlsjax calibrate with the options"
+        )
+    for key in _INPUTS:
+        value = inputs.get(key, getattr(args, key))
+        if _DEFAULTS.get(key, object()) != value:  # a default stays "not given"
+            setattr(args, key, value)
+    version = settings.get("tlsjax_version")
+    if version != tj.__version__:
+        warn(f"{args.from_json} was made by tlsjax {version}; this is {tj.__version__}")
+    for f in (doc.get("provenance") or {}).get("inputs", []):
+        if not os.path.isfile(f["path"]) or _sha256(f["path"]) != f["sha256"]:
+            warn(
+                f"{f['path']} is not the file {args.from_json} was made from (its SHA-256 "
+                "differs or it is gone): the re-run does not reproduce that result"
+            )
+    return settings
+
+
+#: What ``settings.inputs`` records of how the network was read (``--from-json`` reads it back).
+_INPUTS = (
+    "observations",
+    "planes",
+    "scans",
+    "plane_spacing",
+    "drop_single_targets",
+    "sigma_range_mm",
+    "sigma_hz_arcsec",
+    "sigma_el_arcsec",
+    "architecture",
+)
+
+
+def _sha256(path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while chunk := fh.read(1 << 20):
+            h.update(chunk)
+    return h.hexdigest()
 
 
 def _check_options(args) -> None:
@@ -275,13 +354,10 @@ def _check_options(args) -> None:
             setattr(args, k, v)
 
 
-def _warn_ignored_sigmas(args, net) -> None:
+def _warn_ignored_sigmas(args, tables) -> None:
     """A --sigma-* option given while every row of the files has its own sigma of that group
     changes nothing: say so (the file's sigmas are used)."""
-    from .._io._tables import read_observations
-
-    paths = [p for p in (args.observations, args.planes) if p and p.lower().endswith(".csv")]
-    tables = [read_observations(p) for p in paths]
+    tables = [t for t in tables if t is not None and str(t.source).lower().endswith(".csv")]
     for col, (option, unit) in enumerate(
         (("sigma_range_mm", "mm"), ("sigma_hz_arcsec", '"'), ("sigma_el_arcsec", '"'))
     ):
@@ -291,17 +367,18 @@ def _warn_ignored_sigmas(args, net) -> None:
             flag = "--" + option.replace("_", "-")
             warn(
                 f"{flag} {getattr(args, option):g} {unit} is ignored: every row of "
-                f"{', '.join(paths)} has its own {('range', 'hz', 'el')[col]} sigma"
+                f"{', '.join(t.source for t in tables)} has its own {('range', 'hz', 'el')[col]} sigma"
             )
 
 
 def _read(args):
-    from .._io._tables import read_network
-
+    """The network of the files, with what reading decided printed (single targets dropped,
+    the architecture a file records, the counts)."""
     observations, planes = read_tables(
         args.observations, args.planes, args.plane_spacing, args.phases
     )
-    net = read_network(
+    args.architecture = _architecture(args.architecture, observations, planes)
+    net = tj.read_network(
         observations,
         args.scans,
         planes=planes,
@@ -320,7 +397,7 @@ def _read(args):
         )
     if not net.has_planes and not args.vce:
         refuse_unless("screen_alpha" not in args.given, "--screen-alpha", "--vce (or --planes)")
-    _warn_ignored_sigmas(args, net)
+    _warn_ignored_sigmas(args, (observations, planes))
     if net.dropped:
         print(
             f"dropped {len(net.dropped)} target(s) seen in one scan only: {', '.join(net.dropped)}"
@@ -334,14 +411,73 @@ def _read(args):
     return net
 
 
+def _architecture(given, *tables) -> str:
+    """``given``, else the architecture recorded in the first table whose file records one
+    (files tlsjax writes), else hybrid; a mismatch is refused by ``read_network``."""
+    if given is not None:
+        return given
+    for t in tables:
+        if t is not None and t.architecture is not None:
+            print(f"{t.source}: {t.architecture} scanner (recorded in the file)")
+            return t.architecture
+    return "hybrid"
+
+
+def _model(args, net) -> tj.CalibrationModel:
+    if args.fixed_scan is not None and args.fixed_scan not in net.scans:
+        raise ValueError(
+            f"--fixed-scan {args.fixed_scan}: no such scan (scans: {', '.join(net.scans)})"
+        )
+    return tj.CalibrationModel(
+        tj.Scanner(architecture=args.architecture, aps=args.aps, unit_length=args.unit_length),
+        datum=args.datum,
+        fixed_scan=args.fixed_scan,
+        correlation_threshold=args.correlation_threshold,
+        ap_priors=_ap_priors(args),
+    )
+
+
+def _options(args) -> tj.CalibrationOptions:
+    """The :class:`tlsjax.CalibrationOptions` of the command's options (one concern each)."""
+    return tj.CalibrationOptions(
+        solver=tj.SolverOptions(max_iterations=args.max_iterations),
+        screening=tj.ScreeningOptions(family_level=args.screen_alpha) if args.screen else None,
+        plane_screening=tj.PlaneScreeningOptions() if args.screen else None,
+        vce=tj.VCEOptions() if args.vce else None,
+        snooping=(
+            tj.SnoopingOptions(
+                w_test_level=args.snoop_alpha,
+                bonferroni=args.bonferroni,
+                removal=args.snoop_removal,
+            )
+            if args.snoop
+            else None
+        ),
+        selection=(
+            tj.SelectionOptions(
+                candidates=args.select_candidates,
+                test_level=args.select_alpha,
+                max_correlation=args.max_correlation,
+            )
+            if args.select
+            else None
+        ),
+    )
+
+
+def _inputs(args, argv) -> dict:
+    """How the network was read, recorded in the result (``settings.inputs`` of the JSON), so
+    that ``--from-json`` reads it again the same way, and the command line."""
+    inputs = {key: getattr(args, key) for key in _INPUTS}
+    return {**inputs, "command": " ".join(shlex.quote(a) for a in argv)}
+
+
 def _calibrate(args) -> int:
-    """Run ``tlsjax calibrate``: check the options and outputs, read, adjust (or adjust and
-    test), print and write; one sequence of steps, each a call."""
-    from .._adjustment._config import CalibrationModel
-    from .._adjustment._network import network_design_warnings
-    from .._model._scanner import Scanner
+    """Run ``tlsjax calibrate``: check the options and outputs, read, build the model and the
+    options, self-calibrate, print and write; one sequence of steps, each a call."""
     from ._progress import Phases
 
+    recorded = _recorded(args) if args.from_json else None
     _check_options(args)
     check_outputs(  # before any work: fails in a second
         args.json,
@@ -354,93 +490,35 @@ def _calibrate(args) -> int:
         ),
         more=[("--targets-out", args.targets_out), ("--tables", args.tables, TABLE_FILES)],
     )
-    args.architecture = file_architecture(args.architecture, args.observations, args.planes)
-    scanner = Scanner(architecture=args.architecture, aps=args.aps, unit_length=args.unit_length)
     args.phases = Phases(enabled=not args.quiet)
     args.phases.hold()  # shown once the input is accepted
     net = _read(args)
     args.phases.release()
-    model = CalibrationModel(
-        scanner,
-        datum=args.datum,
-        fixed_scan=args.fixed_scan,
-        correlation_threshold=args.correlation_threshold,
-        ap_priors=_ap_priors(args),
-    )
-    for note in network_design_warnings(net, model):
-        warn(note)
-    if args.fixed_scan is not None and args.fixed_scan not in net.scans:
-        raise ValueError(
-            f"--fixed-scan {args.fixed_scan}: no such scan (scans: {', '.join(net.scans)})"
-        )
-    t0 = time.perf_counter()
-    args.phases.start(_adjusting(net, args))
-    extra, res, tested, mask, mdb = _run(args, net, model, scanner)
-    args.phases.done(f"adjusted: {res.iterations} iterations in the last adjustment, {res.message}")
-    print(f"({time.perf_counter() - t0:.2f} s)")
-    withheld = None
-    if tested is not None and res.ok and not tested.ok:
-        withheld = (
-            f"the variance components failed ({tested.vce_result.message}); the adjustment with "
-            "the last weights that worked converged, but those weights are not estimated, so its "
-            "estimates and sigmas are not a calibration"
-        )
-    report(res, after_vce=tested is not None and tested.weights_fitted, withheld=withheld)
-    extra.update(_report_fields(res, scanner, args, mask, mdb))
-    failed = not res.ok or withheld is not None or impossible(res)
-    extra.update(_table_fields(res, tested, failed))
-    write_outputs(
-        res, args.json, args.plots, extra=extra, scanner=scanner, mask=mask, withheld=withheld
-    )
-    if (
-        args.targets_out and failed and res.ok
-    ):  # no target estimates of a run that is no calibration
-        print(f"--targets-out {args.targets_out}: not written (the run is no calibration)")
-    elif args.targets_out:
-        write_targets(res, args.targets_out)
-    if args.tables:
-        _write_tables(res, args.tables, tested, failed)
-    if args.report:
-        _write_report(res, args.report, extra, scanner, mask, withheld)
-    return EXIT_FAILED if failed else EXIT_OK
-
-
-def impossible(res) -> bool:
-    """True when an estimated AP has a magnitude no working instrument has (_plausibility):
-    the run is then no calibration (exit 1, JSON ``estimates`` says why)."""
-    return any(f.level == "impossible" for f in res.plausibility()[0])
-
-
-def _run(args, net, model, scanner):
-    """Selection, then plane screening, testing (VCE, snooping) or a plain calibration."""
-    from .._adjustment._calibrate import calibrate
-    from .._adjustment._config import SolverOptions
-
-    solver = SolverOptions(max_iterations=args.max_iterations)
-    extra, mask, tested, mdb = {}, None, None, None
-    if args.select:
-        model, scanner = _select(args, net, model, scanner, extra)
-    if net.has_planes and args.screen and not args.snoop:
-        res = _screen(net, model, solver, extra)
-    elif args.vce or args.snoop or args.screen:
-        tested = _test(args, net, model, solver)
-        res, mask, mdb = tested.calibration, tested.mask, tested.mdb
-        extra.update(tested.json_fields())
+    if recorded is None:
+        model, options = _model(args, net), _options(args)
     else:
-        with warnings.catch_warnings():  # the summary names implausible estimates itself
-            warnings.simplefilter("ignore", PlausibilityWarning)
-            res = calibrate(net, model, solver)
-    if tested is None:
-        _missing_terms(net, model, solver, res, extra)
-    return extra, res, tested, mask, mdb
+        model = tj.CalibrationModel.from_dict(recorded["model"])
+        options = tj.CalibrationOptions.from_dict(recorded["options"])
+    args.phases.start(_adjusting(net, options))
+    result = tj.self_calibrate(net, model, options)
+    result = result.with_inputs(**_inputs(args, ["tlsjax", *args.argv]))
+    args.phases.done(
+        f"adjusted: {result.calibration.iterations} iterations in the last adjustment, "
+        f"{result.calibration.message}"
+    )
+    for note in result.design_warnings:
+        warn(note)
+    print(result.summary())
+    _write(result, args)
+    return EXIT_OK if result.ok else EXIT_FAILED
 
 
-def _adjusting(net, args) -> str:
+def _adjusting(net, options) -> str:
     """The progress line of the adjustment phase: what runs, on how many observations."""
     what = "adjusting"
-    if net.has_planes and (args.screen or args.snoop):
+    if net.has_planes and options.plane_screening is not None and options.snooping is None:
         what = "screening the plane points (IGG-III reweighting, one adjustment per round)"
-    elif args.vce or args.snoop:
+    elif options.vce is not None or options.snooping is not None:
         what = "adjusting and testing (screening, VCE, snooping: one adjustment per step)"
     counts = []
     if net.has_targets:
@@ -454,228 +532,86 @@ def read_tables(observations, planes, spacing, phases):
     """The observation and plane tables of ``calibrate``, the plane points thinned to
     ``spacing`` (:func:`tlsjax.thin_planes`; a plane CSV given as the observation file counts
     as the planes), with progress lines; target files are read as they are."""
-    from .._clouds._thin import thin_planes
-    from .._io._tables import read_observations, read_planes
-
     if observations is not None:
         phases.start(f"reading {observations}")
-        observations = read_observations(observations)
+        observations = tj.read_observations(observations)
         phases.done(f"read {len(observations)} {observations.kind} observation rows")
         if observations.kind == "plane" and planes is None:
             observations, planes = None, observations
     if planes is not None and not hasattr(planes, "kind"):
         phases.start(f"reading {planes}")
-        planes = read_planes(planes)
+        planes = tj.read_planes(planes)
         phases.done(f"read {len(planes)} plane points")
     if planes is not None and spacing != 0:
         phases.start(f"thinning {len(planes)} plane points to one per {spacing:g} m voxel")
         n = len(planes)
-        planes = thin_planes(planes, spacing)
+        planes = tj.thin_planes(planes, spacing)
         phases.done(f"kept {len(planes)} of {n} plane points")
         if len(planes) < n:
             print(planes.notes[-1])
     return observations, planes
 
 
-def file_architecture(given, *paths) -> str:
-    """``given``, else the architecture recorded in the first observation CSV that records
-    one (files tlsjax writes), else hybrid; a mismatch is refused by ``read_network``."""
-    from .._io._tables import recorded_architecture
+def _write(result, args) -> None:
+    """The files of the run: the JSON (``result.to_dict()``), the plots, the adjusted targets,
+    the tables and the HTML report; the targets and tables only of a run that is a
+    calibration."""
+    res = result.calibration
+    if args.json:
+        tj.write_json(result, args.json)
+        print(f"wrote {args.json}")
+    if args.plots:
+        a, b = (os.path.join(args.plots, name) for name in PLOT_FILES)
+        tj.plot_residuals(res, a, scanner=result.model.scanner, mask=result.mask)
+        tj.plot_ap_correlations(res, b)
+        print(f"wrote {a} and {b}")
+    if args.targets_out:
+        _write_targets(result, args.targets_out)
+    if args.tables:
+        paths = tj.write_tables(res, args.tables, result) if result.ok else []
+        if paths:
+            names = ", ".join(map(os.path.basename, paths))
+            print(f"wrote {len(paths)} tables into {args.tables}: {names}")
+        else:
+            print(f"--tables {args.tables}: not written (the run is no calibration: no estimates)")
+    if args.report:
+        _write_report(result, args.report)
 
-    if given is not None:
-        return given
-    for p in paths:
-        if p is not None and str(p).lower().endswith(".csv") and os.path.isfile(p):
-            arch = recorded_architecture(p)
-            if arch is not None:
-                print(f"{p}: {arch} scanner (recorded in the file)")
-                return arch
-    return "hybrid"
 
-
-def write_targets(res, path):
-    """The adjusted targets as CSV (``--targets-out``); none for a failed adjustment."""
-    from .._report._tables import targets_csv
-
+def _write_targets(result, path) -> None:
+    """The adjusted targets as CSV (``--targets-out``); none of a run that is no calibration."""
+    res = result.calibration
     if not res.ok:
         print(f"--targets-out {path}: not written (the adjustment failed: no estimates)")
-        return
-    if not len(res.targets):
+    elif not result.ok:
+        print(f"--targets-out {path}: not written (the run is no calibration)")
+    elif not len(res.targets):
         print(f"--targets-out {path}: not written (no targets in this network)")
-        return
-    targets_csv(res, path)
-    print(f"wrote {path}")
-
-
-def _select(args, net, model, scanner, extra):
-    """Stepwise AP selection on the observations the robust start and screening keep (with
-    --screen); the chosen set is then weighted and tested."""
-    from .._inference._selection import SelectionOptions, select_aps
-
-    sel = select_aps(
-        net,
-        model,
-        start=args.aps,
-        candidates=args.select_candidates,
-        options=SelectionOptions(
-            alpha=args.select_alpha, max_correlation=args.max_correlation, screening=args.screen
-        ),
-    )
-    print(sel.report())
-    print()
-    scanner = dataclasses.replace(scanner, aps=tuple(sel.aps))
-    finite = lambda x: float(x) if x == x and abs(x) != float("inf") else None
-    extra["selection"] = {
-        "aps": list(sel.aps),
-        "n_fits": sel.n_fits,
-        "steps": [
-            {"action": st.action, "term": st.term, "score": finite(st.score), "reason": st.reason}
-            for st in sel.steps
-            if st.action != "try"
-        ],
-        "n_screened": 0 if sel.screened is None else len(sel.screened.outliers),
-    }
-    return dataclasses.replace(model, scanner=scanner), scanner
-
-
-def _missing_terms(net, model, solver, res, extra):
-    """Score tests of the terms missing from the model (tj.score_tests), printed and in the
-    JSON's ``score_tests``; none for a failed adjustment, several instruments or planes."""
-    from .._inference._score import score_tests
-    from .._model._scanner import Scanner
-
-    if not (res.ok and isinstance(model.scanner, Scanner)) or net.has_planes:
-        return
-    tests = score_tests(net, model, res, solver=solver)
-    print(tests.summary())
-    extra["score_tests"] = tests.as_json()
-
-
-def _screen(net, model, solver, extra):
-    """Outlier screening of the plane points (tj.screen_planes); the final adjustment."""
-    from .._inference._robust import screen_planes
-
-    screened = screen_planes(net, model, solver)
-    print(screened.summary())
-    extra.update(screened.json_fields())
-    return screened.calibration
-
-
-def _test(args, net, model, solver):
-    from .._inference._testing import TestingOptions, calibrate_and_test
-
-    tested = calibrate_and_test(
-        net,
-        model,
-        solver,
-        TestingOptions(
-            vce=args.vce,
-            screening=args.screen,
-            screening_alpha=args.screen_alpha,
-            snooping=args.snoop,
-            alpha=args.snoop_alpha,
-            bonferroni=args.bonferroni,
-            removal=args.snoop_removal,
-        ),
-    )
-    print(tested.summary())
-    return tested
-
-
-def report(res, *, after_vce: bool = False, truth=None, withheld=None):
-    """Print the summary and the AP table; a failed adjustment prints no estimates (they would
-    look plausible and be wrong), nor does a run whose estimates are ``withheld`` (the reason)."""
-    from .._report._text import ap_table, summary
-
-    print(summary(res, after_vce=after_vce))
-    if withheld:
-        print(f"error: {withheld}")
-    print()
-    print(ap_table(res, truth=truth, withheld=withheld))
+    else:
+        tj.write_adjusted_targets(res, path)
+        print(f"wrote {path}")
 
 
 def check_outputs(json_path=None, plots_dir=None, report_path=None, *, inputs=(), more=()):
     """Refuse, before any work, output paths that cannot be written, that are one of the
     ``inputs`` ((label, path)) or that two outputs share (one line naming the path)."""
-    from .._io._outputs import check_outputs as check
-
-    check(
+    tj.check_outputs(
         [("--json", json_path), ("--plots", plots_dir, PLOT_FILES), ("--report", report_path)]
         + list(more),
         inputs,
     )
 
 
-def _report_fields(res, scanner, args, mask, mdb) -> dict:
-    """JSON fields for ``tlsjax correct`` (scanner settings) and the report (reliability,
-    provenance with the input files' SHA-256)."""
-    from .._report._html import provenance, reliability_summary, scanner_settings
-
-    fields = {
-        "scanner": scanner_settings(scanner),
-        "provenance": provenance([args.observations, args.planes, args.scans]),
-    }
-    if res.network is not None and res.network.has_targets:
-        fields["reliability"] = reliability_summary(res, mdb=mdb, mask=mask)
-    return fields
-
-
-def _table_fields(res, tested, failed: bool) -> dict:
-    """The per-observation and per-group tables in the JSON (none for a run that is no
-    calibration), and the input file's line beside each removal's row."""
-    from .._report._tables import table_json, with_lines
-
-    out = {} if failed else table_json(res, tested)
-    if tested is not None and tested.outliers:
-        out["outliers"] = with_lines(tested.outliers_json(), res)
-    return out
-
-
-def _write_tables(res, folder, tested, failed: bool):
-    from .._report._tables import write_tables
-
-    paths = [] if failed else write_tables(res, folder, tested)
-    if paths:
-        print(f"wrote {len(paths)} tables into {folder}: {', '.join(map(os.path.basename, paths))}")
-    else:
-        print(f"--tables {folder}: not written (the run is no calibration: no estimates)")
-
-
-def _write_report(res, path, extra, scanner, mask, withheld=None):
-    import base64
-    import tempfile
-
-    from .._report._html import write_html_report
-    from .._report._json import result_to_dict, withhold_estimates
-    from .._report._plots import plot_residuals
-
-    doc = result_to_dict(res)
-    doc.update(extra)
-    if withheld:
-        withhold_estimates(doc, withheld)
+def _write_report(result, path) -> None:
+    """The HTML report of ``result.to_dict()``, with the residual plot embedded."""
     with tempfile.TemporaryDirectory() as tmp:  # the AP correlations are drawn from the JSON
-        png = plot_residuals(res, os.path.join(tmp, "residuals.png"), scanner=scanner, mask=mask)
+        png = tj.plot_residuals(
+            result.calibration,
+            os.path.join(tmp, "residuals.png"),
+            scanner=result.model.scanner,
+            mask=result.mask,
+        )
         with open(png, "rb") as fh:
             plots = {"residuals": base64.b64encode(fh.read()).decode("ascii")}
-    write_html_report(doc, path, plots=plots)
+    tj.write_html_report(result.to_dict(), path, plots=plots)
     print(f"wrote {path}")
-
-
-def write_outputs(res, json_path, plots_dir, *, extra=None, scanner=None, mask=None, withheld=None):
-    """The result JSON (estimates nulled with the reason when ``withheld``) and the plots."""
-    from .._io._json import write_json_file
-    from .._report._json import result_to_dict, withhold_estimates
-    from .._report._plots import plot_ap_correlations, plot_residuals
-
-    if json_path:
-        doc = result_to_dict(res)
-        doc.update(extra or {})
-        if withheld:
-            withhold_estimates(doc, withheld)
-        write_json_file(json_path, doc, "--json ")
-        print(f"wrote {json_path}")
-    if plots_dir:
-        a, b = (os.path.join(plots_dir, name) for name in PLOT_FILES)
-        plot_residuals(res, a, scanner=scanner, mask=mask)
-        plot_ap_correlations(res, b)
-        print(f"wrote {a} and {b}")

@@ -1,17 +1,17 @@
 """``tlsjax compare A.json B.json``: the AP-set compatibility test of SPEC section 9.
 
-Each file is an AP-set JSON (``APSet.to_json``) or the result JSON of ``tlsjax calibrate
+Each file is an AP-set JSON (:func:`tlsjax.write_json` of an ``APSet``) or the result JSON of
+``tlsjax calibrate
 --json`` (values, full AP covariance and scanner settings). Exit code 0: compatible, 1: not
 compatible, 2: bad input.
 """
 
 from __future__ import annotations
 
-from .._inference._apset import APSet
-from .._inference._compat import CompatibilityOptions, compatibility_test
-from .._model._scanner import Scanner
-from .._simulation._room import Room
-from .._units import ARCSEC
+import numpy as np
+
+import tlsjax as tj
+
 from ._checks import (
     non_negative_float,
     non_negative_int,
@@ -82,16 +82,16 @@ def add_compare_parser(subparsers):
     return p
 
 
-def _scanner_override(args, s: APSet):
+def _scanner_override(args, s: tj.APSet):
     if args.architecture is None and args.unit_length is None:
         return s
     sc = s.scanner
-    return APSet(
+    return tj.APSet(
         s.names,
         s.values,
         s.covariance,
         s.source,
-        Scanner(
+        tj.Scanner(
             architecture=args.architecture or sc.architecture,
             aps=s.names,
             unit_length=args.unit_length or sc.unit_length,
@@ -104,12 +104,9 @@ def _scanner_override(args, s: APSet):
 
 def cli_compare(args) -> int:
     """CLI handler: prints the report; exit code 0 compatible, 1 not compatible."""
-    from .._io._json import write_json_file
-    from .._io._outputs import check_outputs
-
-    check_outputs([("--json", args.json)], [("set1", args.set1), ("set2", args.set2)])
+    tj.check_outputs([("--json", args.json)], [("set1", args.set1), ("set2", args.set2)])
     sets = [
-        _scanner_override(args, APSet.from_json(f, instrument=args.instrument))
+        _scanner_override(args, tj.APSet.from_json(f, instrument=args.instrument))
         for f in (args.set1, args.set2)
     ]
     a = len(set(sets[0].names) | set(sets[1].names))
@@ -123,27 +120,29 @@ def cli_compare(args) -> int:
         result_bytes=8.0 * args.targets * 3 * (2 + 2 * a),
         usual="1,000 is usual",
     )
-    room = Room.parse(args.room)
-    options = CompatibilityOptions(
+    room = tj.Room.parse(args.room)
+    options = tj.CompatibilityOptions(
         runs=args.runs,
-        alpha=args.alpha,
+        level=args.alpha,
         n_targets=args.targets,
         n_control=args.control,
         seed=args.seed,
         progress=not args.no_progress,
         null_draws=args.draws,
     )
-    res = compatibility_test(
+    res = tj.compatibility_test(
         *sets,
         room,
         options=options,
         sigma_range=None if args.sigma_range_mm is None else args.sigma_range_mm * 1e-3,
-        sigma_angle=None if args.sigma_angle_arcsec is None else args.sigma_angle_arcsec * ARCSEC,
+        sigma_angle=None
+        if args.sigma_angle_arcsec is None
+        else np.deg2rad(args.sigma_angle_arcsec / 3600.0),
     )
-    print(res.table())
+    print(res.summary())
     if args.json:
         doc = res.to_dict()
         doc["files"] = [args.set1, args.set2]
         doc["room_m"] = [room.length, room.width, room.height]
-        write_json_file(args.json, doc, "--json ")  # strict: undefined values are null
+        tj.write_json(doc, args.json)  # strict: undefined values are null
     return 0 if res.compatible else 1

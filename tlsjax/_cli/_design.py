@@ -109,7 +109,7 @@ def _build(args):
         fov = (lo, hi)
     inc = None if args.max_incidence_deg is None else args.max_incidence_deg * DEG
     design = tj.TargetDesign.from_simulation(sim)
-    dn = tj.DesignNetwork.targets(
+    dn = tj.DesignProblem.targets(
         design,
         sim.scanner,
         levelled=levelled,

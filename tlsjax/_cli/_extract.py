@@ -99,7 +99,7 @@ def cli_extract(args) -> int:
     from .._clouds._extract import ExtractionOptions, extract_planes
     from .._clouds._match import match_planes
     from .._io._outputs import check_outputs
-    from .._io._plane_files import save_planes
+    from .._io._plane_files import write_extracted_planes
     from .._io._tables import write_observations
 
     check_outputs(  # before the extraction runs
@@ -156,7 +156,7 @@ def cli_extract(args) -> int:
         phases.start("matching the patches across scans")
         planes = match_planes(planes, poses)
         phases.done(f"matched {len(planes.planes)} planes")
-    save_planes(args.out, planes)
+    write_extracted_planes(args.out, planes)
     if args.csv:
         table = dataclasses.replace(planes.to_table(), architecture=args.architecture)
         write_observations(args.csv, table)

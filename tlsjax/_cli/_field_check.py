@@ -119,5 +119,5 @@ def cli_field_check(args) -> int:
     )
     print(result.summary())
     if args.json:
-        result.write_json(args.json)  # strict, atomic; checked before the extraction
+        tj.write_json(result, args.json)  # strict, atomic; checked before the extraction
     return EXIT_OK if result.passed else EXIT_FAILED

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from .._simulation._montecarlo import MonteCarloOptions
+import tlsjax as tj
+
 from ._checks import non_negative_int, positive_int, state_cost
 from ._common import devices_arg
 
@@ -27,7 +28,7 @@ def add_montecarlo_parser(subparsers):
     p.add_argument(
         "--chunk-size",
         type=positive_int,
-        default=MonteCarloOptions.chunk_size,
+        default=tj.MonteCarloOptions().chunk_size,
         help="realisations per compiled call (default: from the design, about 4 MB of Jacobian rows per device)",
     )
     p.add_argument(
@@ -48,19 +49,13 @@ def cli_montecarlo(args) -> int:
     """CLI handler: prints the table; exit code 0 when every realisation converged. Failed
     realisations are explained by a plain calibration of the noise-free design (the reason
     ``tlsjax calibrate`` would give, e.g. an AP that needs an independent scale)."""
-    from .._io._json import write_json_file
-    from .._io._outputs import check_outputs
-    from .._report._plots import plot_monte_carlo
-    from .._simulation._montecarlo import monte_carlo
-    from .._simulation._room import Room, simulate
-
-    check_outputs([("--json", args.json), ("--png", args.png)])  # before the realisations run
+    tj.check_outputs([("--json", args.json), ("--png", args.png)])  # before the realisations run
     if args.runs < 2:
         raise ValueError(
             f"--runs {args.runs}: an empirical sigma needs at least 2 realisations (1,000 is usual)"
         )
-    room = Room.parse(args.room, n_targets=args.targets)
-    sim = simulate(
+    room = tj.Room.parse(args.room, n_targets=args.targets)
+    sim = tj.simulate(
         room, architecture=args.architecture, tilted=not args.levelled, aps=args.aps, seed=0
     )
     a = len(sim.scanner.aps)
@@ -74,10 +69,10 @@ def cli_montecarlo(args) -> int:
         result_bytes=8.0 * (a * a + 3 * a + 4),  # values, sigmas, truth, covariance, s0^2, code
         usual="1,000 is usual",
     )
-    res = monte_carlo(
+    res = tj.monte_carlo(
         sim,
         None,
-        MonteCarloOptions(
+        tj.MonteCarloOptions(
             runs=args.runs,
             chunk_size=args.chunk_size,
             seed=args.seed,
@@ -91,19 +86,16 @@ def cli_montecarlo(args) -> int:
         summary["diagnosis"] = _diagnose(sim)
         print(f"why realisations fail: {summary['diagnosis']}")
     if args.png:
-        plot_monte_carlo(res, args.png)  # atomic; the folder is created if missing
+        tj.plot_monte_carlo(res, args.png)  # atomic; the folder is created if missing
     if args.json:
-        write_json_file(args.json, summary, "--json ")  # strict: undefined values are null
+        tj.write_json(summary, args.json)  # strict: undefined values are null
         print(f"wrote {args.json}")
     return 0 if res.ok.all() else 1
 
 
 def _diagnose(sim) -> str:
     """The message of a plain calibration of the design's own (noise-free) network."""
-    from .._adjustment._calibrate import calibrate
-    from .._adjustment._config import CalibrationModel
-
-    res = calibrate(sim.network, CalibrationModel(sim.scanner))
+    res = tj.calibrate(sim.network, tj.CalibrationModel(sim.scanner))
     if res.result == 0:
         return "the design itself calibrates (converged); the failures depend on the noise draws"
     return res.message

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import tlsjax as tj
+
 from ._common import EXIT_OK
 
 
@@ -25,12 +27,9 @@ def add_report_parser(sub):
 def cli_report(args) -> int:
     import os
 
-    from .._io._outputs import check_outputs
-    from .._report._html import report_from_json
-
     pngs = []
     if args.plots and os.path.isdir(args.plots):
         pngs = [("--plots", os.path.join(args.plots, n)) for n in os.listdir(args.plots)]
-    check_outputs([("--html", args.html)], [("calibration", args.calibration)] + pngs)
-    print(f"wrote {report_from_json(args.calibration, args.html, plots_dir=args.plots)}")
+    tj.check_outputs([("--html", args.html)], [("calibration", args.calibration)] + pngs)
+    print(f"wrote {tj.report_from_json(args.calibration, args.html, plots_dir=args.plots)}")
     return EXIT_OK

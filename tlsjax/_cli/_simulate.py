@@ -7,7 +7,7 @@ import os
 import time
 
 from .._units import ARCSEC
-from ._calibrate import check_outputs, report, write_outputs
+from ._calibrate import PLOT_FILES, check_outputs
 from ._checks import non_negative_int, positive_int
 from ._common import EXIT_FAILED, EXIT_OK, scanner_args
 
@@ -90,22 +90,18 @@ def _write_simulation(
     sim, obs_path, scans_path, truth_path=None, length_unit="m", angle_unit="deg"
 ):
     from .._io._json import write_json_file
-    from .._io._tables import (
-        levelling_of_network,
-        table_from_network,
-        write_observations,
-        write_scans,
-    )
+    from .._io._tables import write_network
 
-    write_observations(
+    write_network(
         obs_path,
-        table_from_network(sim.network, sim.scanner.architecture),
+        sim.network,
+        scans_path=scans_path,
+        architecture=sim.scanner.architecture,
         length_unit=length_unit,
         angle_unit=angle_unit,
     )
-    write_scans(scans_path, levelling_of_network(sim.network))
     if truth_path:
-        from .._report._json import scanner_settings
+        from .._adjustment._config import scanner_settings
 
         net = sim.network
         write_json_file(
@@ -191,3 +187,26 @@ def _demo(args) -> int:
         f"`tlsjax calibrate {args.out}/observations.csv --scans {args.out}/scans.csv --aps {args.aps}`"
     )
     return EXIT_OK if res.ok else EXIT_FAILED
+
+
+def report(res, *, truth=None):
+    """Print the summary and the AP table with the true values beside the estimates; a failed
+    adjustment prints no estimates (they would look plausible and be wrong)."""
+    from .._adjustment._text import ap_table, summary
+
+    print(summary(res))
+    print()
+    print(ap_table(res, truth=truth))
+
+
+def write_outputs(res, json_path, plots_dir, *, scanner=None):
+    """The result JSON and the plots of the demo's calibration."""
+    from .._io._json import write_json
+    from .._report._plots import plot_ap_correlations, plot_residuals
+
+    write_json(res, json_path)
+    print(f"wrote {json_path}")
+    a, b = (os.path.join(plots_dir, name) for name in PLOT_FILES)
+    plot_residuals(res, a, scanner=scanner)
+    plot_ap_correlations(res, b)
+    print(f"wrote {a} and {b}")

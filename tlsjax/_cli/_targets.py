@@ -131,13 +131,13 @@ def add_check_targets_parser(sub):
 
 
 def _check_targets(args) -> int:
+    from .._adjustment._config import scanner_settings
     from .._inference._checkpoints import check_targets
     from .._io._correct import Calibration
     from .._io._json import write_json_file
     from .._io._outputs import check_outputs
     from .._io._tables import read_observations, read_scans
     from .._io._target_lists import read_reference
-    from .._report._json import scanner_settings
 
     check_outputs(
         [("--json", args.json)],
@@ -173,7 +173,7 @@ def _check_targets(args) -> int:
     )
     aps = ", ".join(cal.scanner.aps) or "none"
     print(f"{args.calibration}: {arch} scanner, APs {aps}; reference {args.reference}")
-    print(chk.table())
+    print(chk.summary())
     worst = chk.worst()
     if worst:
         print(

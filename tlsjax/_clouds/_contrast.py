@@ -43,6 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._model._targets import checkerboard_white
+from .._stats import MAD_TO_SIGMA
 from ._lsq import FIT_POINTS, covariance, fit_batch
 from ._spheres import disc_coverage
 from ._voxels import crop
@@ -99,7 +100,7 @@ def _robust_plane(P, w, noise, draws: int = 96):
     if n is None:
         n = np.linalg.eigh((P - c).T @ (P - c))[1][:, 0]
     floor = 3.0 * noise if np.isfinite(noise) else 0.0
-    keep = np.abs((P - c) @ n) <= max(3.0 * 1.4826 * best, floor, 1e-9)
+    keep = np.abs((P - c) @ n) <= max(3.0 * MAD_TO_SIGMA * best, floor, 1e-9)
     for _ in range(2):
         if keep.sum() < 4:
             keep = np.ones(len(P), dtype=bool)
@@ -108,7 +109,7 @@ def _robust_plane(P, w, noise, draws: int = 96):
         Q = P - c
         n = np.linalg.eigh((ww[:, None] * Q).T @ Q)[1][:, 0]
         r = Q @ n
-        scale = 1.4826 * _weighted_median(np.abs(r[keep]), w[keep])
+        scale = MAD_TO_SIGMA * _weighted_median(np.abs(r[keep]), w[keep])
         keep = np.abs(r) <= max(3.0 * scale, floor, 1e-9)
     return keep, n, r, scale
 
@@ -267,7 +268,7 @@ def _effective_weights(y, uv, inten, sigma_pos):
         for dx in (np.array([h, 0.0]), np.array([0.0, h]))
     ]
     res = inten - _checker_model(y, uv, np)
-    s_i = max(1.4826 * np.median(np.abs(res)), 1e-6 * abs(y[4] - y[3]))
+    s_i = max(MAD_TO_SIGMA * np.median(np.abs(res)), 1e-6 * abs(y[4] - y[3]))
     return 1.0 / np.sqrt(s_i**2 + (g[0] ** 2 + g[1] ** 2) * sigma_pos**2), res
 
 
@@ -413,7 +414,7 @@ def fit_circle(uv, inten, area, options, sigma_pos):
     res = np.concatenate(
         [inten[win][rr < 0.7 * r_eff] - bright, inten[win][rr > 1.3 * r_eff] - dark]
     )
-    sig_i = 1.4826 * np.median(np.abs(res)) / (bright - dark) if len(res) else 0.0
+    sig_i = MAD_TO_SIGMA * np.median(np.abs(res)) / (bright - dark) if len(res) else 0.0
     live = (w[win] > 0) & (w[win] < 1)
     g = (area[win] * live)[:, None] * d / W
     C = sig_i**2 * g.T @ g + np.eye(2) * np.sum((wa / W) ** 2 * sigma_pos[win] ** 2)
@@ -466,10 +467,10 @@ def _in_plane(P, inten, frame, sigma_angle):
     r = dist / c  # the range error that would put the point on the plane
     dark_level, bright_level = _levels(inten) if len(inten) >= 4 else (0.0, 1.0)
     bright = inten > 0.5 * (dark_level + bright_level)
-    pooled = 1.4826 * np.median(np.abs(r)) if len(r) else 0.0
+    pooled = MAD_TO_SIGMA * np.median(np.abs(r)) if len(r) else 0.0
     s_r = np.empty(len(P))
     for cls in (bright, ~bright):
-        s_r[cls] = 1.4826 * np.median(np.abs(r[cls])) if cls.sum() >= 5 else pooled
+        s_r[cls] = MAD_TO_SIGMA * np.median(np.abs(r[cls])) if cls.sum() >= 5 else pooled
     s_r = np.maximum(s_r, 1e-6)
     s_p = np.maximum(rho * sigma_angle, 1e-7)
     Sn = (s_r**2 * c)[:, None] * u + (s_p**2)[:, None] * (n[None, :] - c[:, None] * u)

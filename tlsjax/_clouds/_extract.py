@@ -35,10 +35,11 @@ import numpy as np
 from .._io._extracted import ExtractedPlanes
 from .._model._geometry import cartesian_from_spherical, fit_plane
 from .._optional import require
+from .._summary import Settings
 
 
 @dataclasses.dataclass(frozen=True)
-class ExtractionOptions:
+class ExtractionOptions(Settings):
     """Settings of the per-scan plane extraction (lengths in metres).
 
     ``distance_threshold``: RANSAC inlier distance; it must cover noise and the plane's
@@ -190,7 +191,7 @@ def _extract_scan(o3d, obs, config: ExtractionOptions, seed_seq, bar=None):
 
 def extract_planes(
     scans: Sequence,
-    config: ExtractionOptions | None = None,
+    options: ExtractionOptions | None = None,
     *,
     names: Sequence[str] | None = None,
     seed: int = 0,
@@ -211,7 +212,7 @@ def extract_planes(
     from tqdm.auto import tqdm
 
     o3d = _require_open3d()
-    config = config or ExtractionOptions()
+    options = options or ExtractionOptions()
     names = tuple(names) if names is not None else tuple(f"S{j + 1}" for j in range(len(scans)))
     if len(names) != len(scans):
         raise ValueError(f"{len(names)} scan names for {len(scans)} scans")
@@ -240,13 +241,13 @@ def extract_planes(
         rng = np.random.default_rng(budget_seed)
         x = cartesian_from_spherical(obs, xp=np)
         bar.set_description(f"planes of scan {names[j]}")
-        found = _extract_scan(o3d, obs, config, ransac_seed, bar)
+        found = _extract_scan(o3d, obs, options, ransac_seed, bar)
         if on_scan is not None:
             on_scan(names[j], len(found), sum(len(f[0]) for f in found), len(obs))
         for members, n, d, rms in found:
             sel = members
-            if config.budget is not None and len(members) > config.budget:
-                sel = np.sort(rng.choice(members, size=int(config.budget), replace=False))
+            if options.budget is not None and len(members) > options.budget:
+                sel = np.sort(rng.choice(members, size=int(options.budget), replace=False))
             p = len(p_scan)
             p_scan.append(j)
             p_n.append(n)

@@ -34,9 +34,9 @@ import dataclasses
 import itertools
 
 import numpy as np
-from scipy import stats
 
-from .._summary import finite_or_none
+from .._stats import chi2_quantile
+from .._summary import Settings, to_json_value
 
 #: The guideline's target names, in its order (section 2.3).
 DVW_TARGETS = ("T1", "T2", "T3", "T4")
@@ -45,7 +45,7 @@ DVW_PAIRS = (("T1", "T2"), ("T1", "T4"), ("T3", "T4"))
 
 
 @dataclasses.dataclass(frozen=True)
-class FieldCheckOptions:
+class FieldCheckOptions(Settings):
     """Settings of :func:`field_check` (lengths in metres).
 
     ``u_t``: type B uncertainty of a target centre (e.g. the maker's figure for its targets);
@@ -70,6 +70,19 @@ class FieldCheckOptions:
             raise ValueError("FieldCheckOptions.dvw_targets must name T1, T2, T3 and T4")
         if self.stations is not None and len(self.stations) != 2:
             raise ValueError("FieldCheckOptions.stations must name two stations (S1, S2)")
+
+    def to_dict(self) -> dict:
+        # JSON has no tuple keys: the reference distances as [name_a, name_b, distance_m] rows.
+        out = super().to_dict()
+        if self.reference is not None:
+            out["reference"] = [[a, b, float(d)] for (a, b), d in self.reference.items()]
+        return out
+
+    @classmethod
+    def _field_from_dict(cls, name: str, value):
+        if name == "reference" and value is not None:
+            return {(a, b): float(d) for a, b, d in value}
+        return super()._field_from_dict(name, value)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -116,24 +129,16 @@ class FieldCheck:
                 s: {t: [float(v) for v in c] for t, c in d.items()} for s, d in self.centres.items()
             },
             "repeats": {s: dict(d) for s, d in self.repeats.items()},
-            "u_a_m": finite_or_none(self.u_a),
-            "u_b_m": finite_or_none(self.u_b),
-            "u_t_m": finite_or_none(self.u_t),
+            "u_a_m": to_json_value(self.u_a),
+            "u_b_m": to_json_value(self.u_b),
+            "u_t_m": to_json_value(self.u_t),
             "rows": [
-                {k: (finite_or_none(v) if isinstance(v, float) else v) for k, v in r.items()}
+                {k: (to_json_value(v) if isinstance(v, float) else v) for k, v in r.items()}
                 for r in self.rows
             ],
             "passed": bool(self.passed),
             "messages": list(self.messages),
         }
-
-    def write_json(self, path) -> dict:
-        """Write :meth:`to_dict` to ``path`` as strict JSON, atomically (the file is complete
-        or untouched; its folder is created); a path that cannot be written is a one-line
-        ValueError naming it. Returns the dict written."""
-        from .._io._json import write_json_file
-
-        return write_json_file(path, self.to_dict())
 
 
 def _type_a(repeats):
@@ -219,7 +224,7 @@ def field_check(centres, options: FieldCheckOptions | None = None) -> FieldCheck
                 lim = options.k * np.sqrt(2.0) * u_t
                 rows.append(_row("ISO reference", f"{a}{b}({s})-ref", d, lim))
     if np.isfinite(u_b) and dof:
-        lim = u_b * np.sqrt(stats.chi2.ppf(0.95, dof) / dof)
+        lim = u_b * np.sqrt(chi2_quantile(0.95, dof) / dof)
         rows.append(_row("ISO repeatability", f"s of a coordinate (nu={dof})", u_a, lim))
     judged = [r["passed"] for r in rows if r["passed"] is not None]
     return FieldCheck(

@@ -24,11 +24,12 @@ from .._model._geometry import (
     plane_from_moments,
     rotation_matrix,
 )
+from .._summary import Settings
 from .._units import DEG
 
 
 @dataclasses.dataclass(frozen=True)
-class MatchingOptions:
+class MatchingOptions(Settings):
     """Thresholds for joining patches into global planes: ``max_angle`` [rad] between normals,
     ``max_offset`` [m] of a centroid from the other plane, ``overlap_distance`` h [m] between
     the nearest points of two patches, tested on a voxel grid of size h (patches closer than h
@@ -136,7 +137,7 @@ def _overlapping(X, point_patch, P, iu, ju, h):
 
 
 def match_planes(
-    planes: ExtractedPlanes, poses, config: MatchingOptions | None = None
+    planes: ExtractedPlanes, poses, options: MatchingOptions | None = None
 ) -> ExtractedPlanes:
     """Join the patches of all scans into global planes, given scan poses (s, 6) =
     (Xs, Ys, Zs, omega, phi, kappa) with ``x = R (X - S)`` (SPEC section 1).
@@ -148,7 +149,7 @@ def match_planes(
     (A little over 60 lines: candidate pairs, joining, the object-space fit and the numbering,
     one sequence.)
     """
-    config = config or MatchingOptions()
+    options = options or MatchingOptions()
     poses = np.asarray(poses, dtype=np.float64)
     if poses.shape != (len(planes.scans), 6) or not np.all(np.isfinite(poses)):
         raise ValueError(
@@ -173,19 +174,19 @@ def match_planes(
 
     # Candidate pairs by orientation and offset, all pairs at once.
     cos = N @ N.T
-    angle_ok = np.abs(cos) >= np.cos(config.max_angle)
+    angle_ok = np.abs(cos) >= np.cos(options.max_angle)
     off_ij = np.abs(C @ N.T - D[None, :])  # centroid i from plane j
-    close = angle_ok & (np.maximum(off_ij, off_ij.T) <= config.max_offset)
+    close = angle_ok & (np.maximum(off_ij, off_ij.T) <= options.max_offset)
     iu, ju = np.nonzero(np.triu(close, 1))
     keep = np.ones(len(iu), dtype=bool)
-    if config.overlap_distance is not None:
-        keep = _overlapping(X, planes.point_patch, P, iu, ju, config.overlap_distance)
-        if config.merge_coplanar_in_scan:
+    if options.overlap_distance is not None:
+        keep = _overlapping(X, planes.point_patch, P, iu, ju, options.overlap_distance)
+        if options.merge_coplanar_in_scan:
             keep |= planes.patch_scan[iu] == planes.patch_scan[ju]
     iu, ju = iu[keep], ju[keep]
     order = np.lexsort((off_ij[iu, ju] + off_ij[ju, iu], -np.abs(cos[iu, ju])))
     moments = _Moments(X, planes.point_patch, P)
-    group = _join(P, zip(iu[order], ju[order]), N, D, C, moments, config)
+    group = _join(P, zip(iu[order], ju[order]), N, D, C, moments, options)
     uniq, group = np.unique(group, return_inverse=True)
     counts = np.bincount(group[planes.point_patch], minlength=len(uniq))
     order = np.argsort(-counts, kind="stable")

@@ -34,6 +34,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
+from .._stats import MAD_TO_SIGMA
 from ._lsq import FIT_POINTS, covariance, fit_batch
 from ._voxels import NEIGHBOURS as _NEIGHBOURS
 from ._voxels import voxel_keys
@@ -239,7 +240,7 @@ def fit_spheres(crops, starts, radii, options, rng):
             centres[q] = y[q, :3]
             res = np.linalg.norm(pts[q] - centres[q], axis=1) - radii[q]
             sig = radial_sigma(pts[q], centres[q], options.sigma_range, options.sigma_angle)
-            scale = 1.4826 * np.median(np.abs(res[inl[q]])) if inl[q].any() else 0.0
+            scale = MAD_TO_SIGMA * np.median(np.abs(res[inl[q]])) if inl[q].any() else 0.0
             lim = np.maximum(3.0 * max(scale, 1e-12), 3.0 * sig)
             new = (np.abs(res) <= lim) & _shell(pts[q], centres[q], radii[q], tol[q])
             changed |= not np.array_equal(new, inl[q])

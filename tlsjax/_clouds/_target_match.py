@@ -60,10 +60,12 @@ import itertools
 import numpy as np
 
 from .._model._geometry import angles_from_matrix, rigid_fit
+from .._summary import Settings, to_json_value
+from ._targets import ExtractedTargets
 
 
 @dataclasses.dataclass(frozen=True)
-class TargetMatchingOptions:
+class TargetMatchingOptions(Settings):
     """Thresholds of :func:`match_targets` (lengths in metres).
 
     ``tolerance`` + ``relative_tolerance`` x distance: how far two distances between the same
@@ -130,6 +132,25 @@ class TargetMatching:
             for s in self.status
         ]
         return "\n".join(lines + list(self.messages))
+
+    def to_dict(self) -> dict:
+        """Strict JSON: per scan its status, common targets, fit RMS [m] and pose (6,); the
+        targets' coordinates [m] in the matching frame; the messages."""
+        return to_json_value(
+            {
+                "scans": {
+                    s: {
+                        "status": self.status[s],
+                        "n_common": self.n_common[s],
+                        "rms": self.rms[s],
+                        "pose": self.pose[s],
+                    }
+                    for s in self.status
+                },
+                "targets": self.targets,
+                "messages": list(self.messages),
+            }
+        )
 
 
 @dataclasses.dataclass
@@ -384,7 +405,7 @@ def match_targets(
     options: TargetMatchingOptions | None = None,
     *,
     target_list=None,
-):
+) -> ExtractedTargets:
     """Name the accepted detections of :func:`~tlsjax.extract_targets` consistently across
     scans (module docstring). ``target_list``: optional mapping name -> (x, y, z) [m] (or
     name -> (x, y, z, kind) with kind "sphere", "checkerboard", "circle"), e.g. from

@@ -34,6 +34,7 @@ from .._io._scan_chunks import CHUNK_POINTS, ScanChunks, open_scans, scan_from_o
 from .._jit import jit
 from .._model._geometry import spherical_from_cartesian
 from .._model._scanner import ARCHITECTURES
+from .._summary import Settings, to_json_value
 from .._units import DEG
 from . import _spheres
 from ._voxels import crop, intensity_normaliser, voxelise
@@ -42,7 +43,7 @@ KINDS = ("sphere", "checkerboard", "circle")
 
 
 @dataclasses.dataclass(frozen=True)
-class TargetExtractionOptions:
+class TargetExtractionOptions(Settings):
     """What to look for and when to reject it (lengths in metres, angles in radians).
 
     ``spheres``: nominal radii of the sphere targets (e.g. ``(0.0725, 0.1)``);
@@ -284,6 +285,37 @@ class ExtractedTargets:
                 }
             )
         return rows
+
+    def summary(self) -> str:
+        """The detections per scan and kind, accepted and rejected (with the reasons), and the
+        notes."""
+        lines = [
+            f"{len(self)} target candidate(s) in {len(self.scans)} scan(s), {self.architecture}"
+        ]
+        for j, scan in enumerate(self.scans):
+            rows = self.scan_index == j
+            for kind in sorted(set(self.kind[rows].tolist())):
+                k = rows & (self.kind == kind)
+                ok = int((k & self.accepted).sum())
+                lines.append(f"  {scan}: {kind}: {ok} accepted, {int(k.sum()) - ok} rejected")
+        reasons = sorted(set(str(r) for r in self.reason[~self.accepted]))
+        lines += [f"  rejected: {r}" for r in reasons if r]
+        if self.matching is not None:
+            lines.append(self.matching.summary())
+        return "\n".join(lines + [f"note: {n}" for n in self.notes])
+
+    def to_dict(self) -> dict:
+        """Strict JSON: the scans, the architecture, one record per detection (:meth:`table`,
+        SI units), the matching's report and the notes."""
+        return to_json_value(
+            {
+                "scans": list(self.scans),
+                "architecture": self.architecture,
+                "targets": self.table(),
+                "matching": None if self.matching is None else self.matching.to_dict(),
+                "notes": list(self.notes),
+            }
+        )
 
     def to_table(self) -> ObservationTable:
         """The target observations (SPEC section 11) of the accepted, named detections, with

@@ -44,7 +44,7 @@ def default_tolerance(name: str) -> float:
 
 def predicted_cofactor(dn, design, information=None):
     """A priori covariance (sigma0 = 1) of the scan poses and APs, (6s + a, 6s + a), of
-    ``design`` on the :class:`~tlsjax._design._design.DesignNetwork` ``dn``, in the
+    ``design`` on the :class:`~tlsjax._design._design.DesignProblem` ``dn``, in the
     inner-constraint datum on the primitives (free network) or the template's datum.
 
     ``information`` (n,): optional factor on the information of every row (sigma divided by

@@ -11,7 +11,7 @@ simulation turns into the inputs of an analysed adjustment.
   ``rho = (d - n . S) / (n . R^T u)`` (Chow et al. 2013, eq. 3 read backwards), so a point
   slides on its plane when the station, the tilt or the plane moves.
 
-A :class:`DesignNetwork` holds what is static (which rows exist, which scans carry a
+A :class:`DesignProblem` holds what is static (which rows exist, which scans carry a
 compensator, the scanner, the calibration model; built once on the host as a template network
 and analysed adjustment) and maps a design to :class:`~tlsjax.NetworkInputs` and to the true
 parameters, both pure functions: ``jax.grad`` of anything computed from them w.r.t. the design
@@ -19,7 +19,7 @@ works (the implicit adjustment of :mod:`tlsjax._adjustment._implicit` for estima
 data; a linearisation at the truth for predicted covariances, :mod:`._criteria`).
 
 Visibility (field of view in elevation, largest incidence angle) is hard in :meth:`network`
-(rows outside it are dropped) and smooth in :meth:`DesignNetwork.inputs` when
+(rows outside it are dropped) and smooth in :meth:`DesignProblem.inputs` when
 ``smooth_visibility`` is set: the information of an observation is multiplied by
 ``sigmoid((alpha - alpha_min) / tau) sigmoid((alpha_max - alpha) / tau) sigmoid((beta_max -
 beta) / tau)`` (floored at 1e-6 so that every target stays determined), which lets an optimiser
@@ -100,7 +100,7 @@ class TargetDesign(eqx.Module):
         :func:`tlsjax.simulate_design` places them with ``seed``: its scans, the targets of
         its network with their faces' normals, its true APs (in the order of
         ``simulate_design(design).scanner.aps``) and its a priori sigmas (``sigma_scale`` x
-        nominal). :meth:`DesignNetwork.targets` observes every target from every scan: build
+        nominal). :meth:`DesignProblem.targets` observes every target from every scan: build
         the design with ``common_targets=True`` for the same rows as ``simulate_design``."""
         sim = simulate_design(design, seed=seed)
         if len(sim.true_targets) == 0 or np.isnan(sim.target_normals).any():
@@ -165,9 +165,12 @@ def _observe(X, eop, aps, noise, scanner: Scanner):
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
-class DesignNetwork:
-    """The static part of a design: rows (scan, primitive), compensator scans, scanner, model,
-    visibility limits; and the pure maps design -> inputs / truth (module docstring).
+class DesignProblem:
+    """The design problem that :func:`tlsjax.optimize_design` and :func:`tlsjax.design_criterion`
+    work on: the static part of a design (rows (scan, primitive), compensator scans, scanner,
+    model, visibility limits) and the pure maps from the design arrays (:class:`TargetDesign`,
+    :class:`PlaneDesign`) to inputs and truth (module docstring). (A :class:`tlsjax.NetworkDesign`
+    describes a network to simulate; this is what optimisation varies.)
 
     ``levelled`` (s,): scans with compensator observations (default: those with omega = phi =
     0 in the design). ``fov`` (alpha_min, alpha_max) [rad] in scanner space and
@@ -198,7 +201,7 @@ class DesignNetwork:
         fov=None,
         max_incidence=None,
         smooth_visibility: bool = False,
-    ) -> DesignNetwork:
+    ) -> DesignProblem:
         """Every target observed from every scan (rows scan-major, as :func:`tlsjax.simulate`)."""
         s, t = design.eops.shape[0], design.targets.shape[0]
         si, ti = np.repeat(np.arange(s), t), np.tile(np.arange(t), s)
@@ -217,7 +220,7 @@ class DesignNetwork:
         model: CalibrationModel | None = None,
         *,
         levelled=None,
-    ) -> DesignNetwork:
+    ) -> DesignProblem:
         """Plane rows: scan, plane and the scanner-space direction (theta, alpha) of each point."""
         return cls._build(
             design,
@@ -235,7 +238,7 @@ class DesignNetwork:
     @classmethod
     def from_point_clouds(
         cls, clouds, *, max_points: int = 20, seed: int = 0, model=None
-    ) -> DesignNetwork:
+    ) -> DesignProblem:
         """The plane design of simulated point clouds (:func:`tlsjax.simulate_point_clouds`):
         at most ``max_points`` random points of each plane in each scan (``seed``), each a fixed
         scanner-space direction of its true point; planes, poses, APs and sigmas of the clouds."""

@@ -23,7 +23,7 @@ import numpy as np
 
 from .._jit import jit
 from .._simulation._room import Room
-from .._summary import SummaryText, finite_or_none
+from .._summary import to_json_value
 from .._units import DEG
 from ._criteria import DesignCriterion, predicted_cofactor
 
@@ -182,7 +182,7 @@ class DesignOptimisation:
         (s, 3) [m], ``omega_deg``, ``phi_deg``, ``kappa_deg`` (s,) [deg], ``compile_s``,
         ``run_s`` [s]."""
         eops = np.asarray(self.design.eops)
-        return finite_or_none(
+        return to_json_value(
             {
                 "criterion": self.criterion,
                 "value": float(self.value),
@@ -199,8 +199,7 @@ class DesignOptimisation:
 
     def summary(self) -> str:
         """Text: the criterion, its value at the start and at the best design, and the best
-        design's stations [m] and attitudes [deg]. (Indexing it like the dict of earlier
-        releases still works for one release, with a DeprecationWarning: use :meth:`to_dict`.)"""
+        design's stations [m] and attitudes [deg]."""
         eops = np.asarray(self.design.eops)
         lines = [
             f"Design optimisation: {self.criterion}",
@@ -214,7 +213,7 @@ class DesignOptimisation:
                 f"S{j + 1:<4d} {e[0]:8.3f} {e[1]:8.3f} {e[2]:8.3f} "
                 f"{e[3] / DEG:11.2f} {e[4] / DEG:9.2f} {e[5] / DEG:11.2f}"
             )
-        return SummaryText("\n".join(lines), self.to_dict())
+        return "\n".join(lines)
 
 
 def optimize_design(
@@ -227,10 +226,10 @@ def optimize_design(
     learning_rate: float = 0.1,
     seed: int = 0,
     progress: bool = True,
-):
+) -> DesignOptimisation:
     """Minimise ``criterion`` of the predicted AP covariance over ``space`` (module docstring).
 
-    ``design_network``: a :class:`~tlsjax.DesignNetwork` (its design is the start and fixes the
+    ``design_network``: a :class:`~tlsjax.DesignProblem` (its design is the start and fixes the
     number of scans and targets; build it with ``smooth_visibility=True`` to honour a field of
     view and an incidence limit). ``starts`` random starts (the first is the start design),
     ``steps`` Adam steps each, all starts in one vmapped compiled step; ``progress`` shows a bar

@@ -25,6 +25,7 @@ import numpy as np
 
 from .._model._aps import get_ap, on_reregistration, resolve_aps
 from .._model._scanner import ARCHITECTURES, Scanner
+from .._units import display
 
 FORMAT = "tlsjax AP set"
 FORMAT_VERSION = 1
@@ -211,7 +212,8 @@ class APSet:
         )
 
     def to_dict(self) -> dict:
-        """The AP-set JSON document (SI units; strict JSON through :meth:`to_json`)."""
+        """The AP-set JSON document (SI units; :func:`tlsjax.write_json` writes it, and
+        :meth:`from_json` reads it back)."""
         sc = self.scanner
         noise = None
         if self.noise is not None:
@@ -236,11 +238,17 @@ class APSet:
             "notes": list(self.notes),
         }
 
-    def to_json(self, path) -> dict:
-        """Write :meth:`to_dict` as strict JSON, atomically; returns what was written."""
-        from .._io._json import write_json_file
-
-        return write_json_file(path, self.to_dict())
+    def summary(self) -> str:
+        """The set as text: one line per AP with its value and sigma (mm, arc seconds or ppm),
+        the scanner and where the set came from."""
+        lines = [
+            f"AP set of a {self.scanner.architecture} scanner ({len(self.names)} APs)"
+            + (f" from {self.source}" if self.source else "")
+        ]
+        for n, v, s, u in zip(self.names, self.values, self.sigmas, self.units):
+            (dv, unit), (ds, _) = display(v, u), display(s, u)
+            lines.append(f"  {n:8s} {dv:12.4f} +- {ds:.4f} {unit}")
+        return "\n".join(lines + [f"note: {n}" for n in self.notes])
 
     def on(self, names) -> tuple[np.ndarray, np.ndarray]:
         """Values and covariance on ``names`` (a superset): absent terms are zero, zero variance."""

@@ -30,6 +30,7 @@ from .._model._geometry import (
     spherical_from_cartesian,
 )
 from .._model._scanner import Scanner
+from .._summary import to_json_value
 from .._units import ARCSEC
 
 KEYS = ("range_mm", "hz_arcsec", "el_arcsec", "x_mm", "y_mm", "z_mm", "xyz_mm")
@@ -54,7 +55,8 @@ class CheckpointReport:
     differences_with: np.ndarray
     skipped_scans: tuple
 
-    def table(self) -> str:
+    def summary(self) -> str:
+        """RMS differences without and with the correction, one line each."""
         head = f"{'':22s}" + "".join(f"{k:>11s}" for k in KEYS)
         lines = [head]
         for name, d in (
@@ -63,6 +65,19 @@ class CheckpointReport:
         ):
             lines.append(f"{name:22s}" + "".join(f"{d[k]:11.3f}" for k in KEYS))
         return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        """Strict JSON: the RMS differences without and with the correction (mm, arc seconds),
+        per scan, the number of check points and the scans skipped."""
+        return to_json_value(
+            {
+                "without": self.without,
+                "with": self.with_correction,
+                "scans": self.per_scan,
+                "n_points": self.n_points,
+                "skipped_scans": list(self.skipped_scans),
+            }
+        )
 
 
 #: ``transform`` names -> with scale (7-parameter Helmert) or not (rigid body).
@@ -207,7 +222,9 @@ class TargetCheck:
             return {}
         return {k: 100.0 * (a[k] - b[k]) / a[k] if a[k] > 0 else None for k in NETWORK_KEYS}
 
-    def table(self) -> str:
+    def summary(self) -> str:
+        """The RMS differences from the reference without and with the calibration, the
+        improvement, per scan where computed, and the notes."""
         lines = [
             f"reference fit: {self.transform}, {len(self.names)} common targets"
             + (f" ({len(self.excluded)} excluded)" if self.excluded else "")
@@ -231,7 +248,7 @@ class TargetCheck:
             )
         if self.per_scan is not None:
             lines += ["", "each scan fitted on its own (Lichti & Licht 2006, table 4):"]
-            lines.append(self.per_scan.table())
+            lines.append(self.per_scan.summary())
         lines += [f"note: {n}" for n in self.notes]
         return "\n".join(lines)
 
@@ -253,15 +270,8 @@ class TargetCheck:
             "notes": list(self.notes),
         }
         if self.per_scan is not None:
-            p = self.per_scan
-            out["per_scan"] = {
-                "without": p.without,
-                "with": p.with_correction,
-                "scans": p.per_scan,
-                "n_points": p.n_points,
-                "skipped_scans": list(p.skipped_scans),
-            }
-        return out
+            out["per_scan"] = self.per_scan.to_dict()
+        return to_json_value(out)
 
 
 def _index_view(obs):
@@ -372,7 +382,7 @@ def check_targets(
     exclude=(),
     levelling=None,
     min_points: int = 4,
-    solver=None,
+    options=None,
 ) -> TargetCheck:
     """The accuracy assessment of SPEC section 10 and Lichti & Licht (2006, tables 3 and 4)
     without and with a calibration, on targets observed by scans and surveyed independently.
@@ -418,7 +428,7 @@ def check_targets(
         names = tuple(common)
         idx = np.array([net.targets.index(t) for t in common])
         X_ref = np.stack([ref[t] for t in common])
-        for case, res in _place(net, calibration, solver).items():
+        for case, res in _place(net, calibration, options).items():
             entry = network[case]
             entry["message"] = res.message
             if not res.ok:

@@ -1,5 +1,5 @@
-"""The testing pipeline of :func:`tlsjax.calibrate_and_test`: an explicit state, the transitions
-of it that the steps share, and the compiled adjustment they re-solve (SPEC sections 5 and 7).
+"""The pipeline of :func:`tlsjax.self_calibrate`: an explicit state, the transitions of it that
+the steps share, and the compiled adjustment they re-solve (SPEC sections 5 and 7).
 
 * :class:`TestingState` (frozen) is everything a step reads and writes: the variance factors of
   the groups, the mask of the observations in use, the targets held by a pin, the removals, the
@@ -7,12 +7,16 @@ of it that the steps share, and the compiled adjustment they re-solve (SPEC sect
   warnings and how VCE ended. A step never changes a state in place: it returns a new one
   (``dataclasses.replace``; arrays are copied before they change), so what a step did is its
   return value, and an earlier state can be kept and gone back to.
-* :class:`TestingContext` (frozen) is what stays fixed during a run: the network, the options,
-  the a priori sigmas and the analysed adjustment (:class:`Reweighter`).
+* :class:`TestingContext` (frozen) is what stays fixed while the model does: the network, the
+  options (:class:`._options.CalibrationOptions`), the a priori sigmas and the analysed
+  adjustment of the model (:class:`Reweighter`). A step that changes the model (selection) puts
+  the new model in the state; the context of that model (:meth:`TestingContext.for_state`,
+  analysed once) serves the steps after it.
 * A step is a function ``step(ctx, state) -> state`` (:data:`Step`). The steps and their order
   are listed in one place, :data:`._steps.PIPELINE`, and :func:`run_pipeline` runs them. Each
-  step reads from ``ctx.options`` whether it has work to do and otherwise returns the state it
-  was given; a new step joins by being written as such a function and put in the list.
+  step reads from ``ctx.options`` whether it has work to do (its concern is None when not) and
+  otherwise returns the state it was given; a new step joins by being written as such a
+  function and put in the list.
 
 Every re-adjustment is the same compiled adjustment with other weights (traced arrays) and
 pinned targets: nothing recompiles. The weights are ``1 / (sigma sqrt(factor_g))`` for the
@@ -35,14 +39,16 @@ import numpy as np
 from .._adjustment._calibrate import analyze
 from .._adjustment._config import CalibrationModel, SolverOptions
 from .._adjustment._network import Network
+from .._adjustment._quality import condition_w_tests
 from .._adjustment._result import CalibrationResult, assemble
 from .._model._levelling import compensator_reading
 from .._model._planes import observation_residuals
 from .._model._scanner import Scanner
 from .._units import display_group
+from ._options import CalibrationOptions
+from ._outcome import GROUPS, Removal, VCEResult
 from ._score import ScoreTester
-from ._statistics import condition_w_tests, variance_factor
-from ._tested import GROUPS, Removal, TestingOptions, VCEResult
+from ._variance_factors import variance_factor
 
 #: Pseudo-observation sigma [m] that holds a target which lost all its testable observations
 #: at its last estimate; it carries no information about anything else (see :func:`remove`).
@@ -125,14 +131,14 @@ class Reweighter:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class TestingContext:
-    """What stays fixed during one run of the pipeline: the network, the testing options, the
-    analysed adjustment and the a priori sigmas of the observations (n, 3), of the levelling
-    readings (s, 2; inf where a scan is not levelled), of the observed headings (s,) and AP
-    priors (a,) (inf where none) and of the plane points (m, 3; held fixed: no variance
+    """What stays fixed while the model does: the network, the options, the analysed
+    adjustment of the model and the a priori sigmas of the observations (n, 3), of the
+    levelling readings (s, 2; inf where a scan is not levelled), of the observed headings (s,)
+    and AP priors (a,) (inf where none) and of the plane points (m, 3; held fixed: no variance
     component, SPEC section 5)."""
 
     network: Network
-    options: TestingOptions
+    options: CalibrationOptions
     reweighter: Reweighter
     base_sigma: np.ndarray
     levelling_sigma: np.ndarray
@@ -157,15 +163,30 @@ class TestingContext:
         return sig[np.isfinite(sig)]
 
     @property
+    def model(self) -> CalibrationModel:
+        return self.reweighter.model
+
+    @property
     def vce(self) -> bool:
         """Variance components are estimated: asked for, and the network has target
         observations (a plane network keeps its weights, SPEC section 5)."""
-        return bool(self.options.vce and self.network.observations.shape[0])
+        return bool(self.options.vce is not None and self.network.observations.shape[0])
+
+    @property
+    def plane_igg3(self) -> bool:
+        """The plane points are screened by IGG-III reweighting (:mod:`._robust`) instead of the
+        robust start and screening: a network with planes, ``plane_screening`` on and no
+        snooping (with snooping, plane points and targets go through the same screening and
+        tests)."""
+        o = self.options
+        return bool(
+            self.network.has_planes and o.plane_screening is not None and o.snooping is None
+        )
 
     @classmethod
-    def make(cls, net: Network, model, solver: SolverOptions, options: TestingOptions):
+    def make(cls, net: Network, model: CalibrationModel, options: CalibrationOptions):
         lev = np.asarray(net.levelling_sigma, dtype=float)
-        reweighter = Reweighter(net, model, solver)
+        reweighter = Reweighter(net, model, options.solver)
         wa = reweighter.plan.problem.ap_prior_weight
         wa = np.zeros(reweighter.plan.spec.n_aps) if wa is None else np.asarray(wa, dtype=float)
         return cls(
@@ -180,6 +201,19 @@ class TestingContext:
             np.where(wa > 0, 1.0 / np.where(wa > 0, wa, 1.0), np.inf),
         )
 
+    def for_state(self, state: TestingState) -> TestingContext:
+        """The context of the model in use in ``state`` (this one, or that of the model a step
+        chose, analysed at its first use and kept)."""
+        if state.model is None or state.model is self.model:
+            return self
+        derived = self.__dict__.setdefault("_derived", {})
+        if id(state.model) not in derived:
+            derived[id(state.model)] = (
+                state.model,
+                TestingContext.make(self.network, state.model, self.options),
+            )
+        return derived[id(state.model)][1]
+
     @functools.cached_property
     def score_tester(self) -> ScoreTester | None:
         """The model analysed with the candidate terms held at zero (:mod:`._score`), built at
@@ -187,7 +221,9 @@ class TestingContext:
         model = self.reweighter.model
         if not isinstance(model.scanner, Scanner):
             return None
-        return ScoreTester(self.network, model, self.options.candidates, self.reweighter.options)
+        return ScoreTester(
+            self.network, model, self.options.tests.candidates, self.reweighter.options
+        )
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -209,6 +245,8 @@ class TestingState:
     say how VCE went. ``score_tests``: the score tests of the missing terms at the end
     (:mod:`._score`). ``robust_factor`` (n, 3): weight factors of a robust reweighting (the
     robust start; None: none); ``fixed_aps``: AP labels held at zero (None: the model's).
+    ``model``: the model a step chose (selection; None: the context's); ``selection`` and
+    ``plane_screening``: what those steps found (:mod:`._selection`, :mod:`._robust`).
     """
 
     factor: np.ndarray
@@ -233,6 +271,9 @@ class TestingState:
     score_tests: object = None
     robust_factor: np.ndarray | None = None
     fixed_aps: tuple | None = None
+    model: CalibrationModel | None = None
+    selection: object = None
+    plane_screening: object = None
 
     @classmethod
     def initial(cls, ctx: TestingContext, critical_value: float) -> TestingState:
@@ -272,9 +313,10 @@ class NamedStep:
 
 
 def run_pipeline(ctx: TestingContext, state: TestingState, steps) -> TestingState:
-    """Run ``steps`` (:class:`NamedStep`, in order) from ``state``."""
+    """Run ``steps`` (:class:`NamedStep`, in order) from ``state``, each with the context of
+    the model in use (:meth:`TestingContext.for_state`)."""
     for step in steps:
-        state = step.run(ctx, state)
+        state = step.run(ctx.for_state(state), state)
     return state
 
 
@@ -349,7 +391,7 @@ def score_tests_at(ctx: TestingContext, state: TestingState):
         weights=w,
         levelling_weights=lw,
         control=control,
-        alpha=ctx.options.score_alpha,
+        alpha=ctx.options.tests.score_test_level,
     )
 
 
@@ -404,7 +446,7 @@ def add_history(state: TestingState, entry: dict) -> TestingState:
 def group_statistics(ctx: TestingContext, state: TestingState):
     """Per group (:data:`GROUPS`: range, hz, el, levelling, heading, AP priors) at the latest
     adjustment and the weights in use: the variance factor estimate
-    ``s_g^2 = v_g^T P_g v_g / r_g`` (Förstner 1979; :func:`._statistics.variance_factor`), the
+    ``s_g^2 = v_g^T P_g v_g / r_g`` (Förstner 1979; :func:`._variance_factors.variance_factor`), the
     group redundancy ``r_g`` and the number of observations used ``n_g``."""
     res, mask, ng = state.result, state.mask, len(GROUPS)
     e2 = np.where(mask, (res.residuals / sigmas(ctx, state)) ** 2, 0.0)
@@ -529,7 +571,7 @@ MIN_PAIR_POINTS = 3
 
 def plane_w(ctx: TestingContext, state: TestingState) -> np.ndarray:
     """The w-test of every plane point's condition at the latest adjustment (m,)
-    (:func:`._statistics.condition_w_tests`); NaN where removed or untestable."""
+    (:func:`tlsjax._adjustment._quality.condition_w_tests`); NaN where removed or untestable."""
     res = state.result
     if res.plane_residuals is None:
         return np.zeros(0)

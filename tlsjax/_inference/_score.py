@@ -80,12 +80,12 @@ class ScoreTest:
 @dataclasses.dataclass(frozen=True)
 class ScoreTests:
     """Score tests of every candidate (:class:`ScoreTest`, largest statistic first), with the
-    misfit ``vtpv`` they share, the family-wise ``alpha`` and ``critical`` value (chi^2(1)
-    quantile at ``1 - alpha / k``, k testable candidates)."""
+    misfit ``vtpv`` they share, the ``family_level`` of the tests and their ``critical`` value
+    (chi^2(1) quantile at ``1 - family_level / k``, k testable candidates)."""
 
     tests: tuple
     vtpv: float
-    alpha: float
+    family_level: float
     critical: float
 
     @property
@@ -99,7 +99,7 @@ class ScoreTests:
     def summary(self) -> str:
         n = sum(t.testable for t in self.tests)
         head = (
-            f"missing terms (score tests of {n} candidate(s), family-wise alpha = {self.alpha:g}, "
+            f"missing terms (score tests of {n} candidate(s), family-wise alpha = {self.family_level:g}, "
             f"chi^2(1) > {self.critical:.2f}):"
         )
         sig = self.significant
@@ -115,13 +115,13 @@ class ScoreTests:
             )
         return "\n".join(lines)
 
-    def as_json(self) -> dict:
+    def to_dict(self) -> dict:
         """The result JSON's ``score_tests`` section (strict JSON: non-finite values are null)."""
         fin = lambda x: float(x) if np.isfinite(x) else None
         return {
             "method": "score (Lagrange-multiplier) test of each candidate term not in the model: "
             "T = (c^T P v)^2 / (c^T P Q_vv P c) ~ chi2(1); share = T / vTPv",
-            "alpha": self.alpha,
+            "family_level": self.family_level,
             "critical_value": fin(self.critical),
             "vtpv": fin(self.vtpv),
             "significant": [t.name for t in self.significant],
@@ -262,29 +262,3 @@ def _tests(K, rhs, vtpv, nzz, free, names, cand_index, n_pose, alpha, tol) -> Sc
     out = [dataclasses.replace(t, significant=t.testable and t.statistic > crit) for t in out]
     out.sort(key=lambda t: -t.statistic if t.testable else np.inf)
     return ScoreTests(tuple(out), vtpv, alpha, float(crit))
-
-
-def score_tests(
-    network: Network,
-    model: CalibrationModel | None,
-    result,
-    *,
-    candidates=None,
-    alpha: float = 0.05,
-    solver: SolverOptions | None = None,
-) -> ScoreTests:
-    """Score tests of the terms missing from ``model`` at ``result`` (a
-    :class:`tlsjax.CalibrationResult` of ``network`` with the network's weights). ``candidates``:
-    names (default :func:`default_candidates`). See the module docstring."""
-    from .._adjustment._plan import initial_params
-
-    if network.has_planes:
-        raise ValueError(
-            f"{network.source}: score tests of missing terms are for target networks (the plane "
-            "conditions are not tested yet)"
-        )
-    model = model or CalibrationModel()
-    tester = ScoreTester(network, model, candidates, solver)
-    p = initial_params(network, tester.adjustment.plan, result.target_xyz, result.eops)
-    narrow = Params(p.prims, p.eops, jnp.asarray(result.ap_values))
-    return tester(narrow, alpha=alpha)

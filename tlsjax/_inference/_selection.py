@@ -1,10 +1,10 @@
 """Stepwise selection of additional parameters (Chow et al. 2013, section on AP selection),
 on observations freed of gross errors, entering terms by their score test (SPEC section 7).
 
-First, with ``screening``, the start set is calibrated with the robust start and screening of
-:func:`tlsjax.calibrate_and_test` (no VCE, no snooping): the observations it removes stay out of
-every fit of the selection, so a blunder can neither pose as a term nor push one out. Then the
-procedure alternates
+It runs as the selection step of :func:`tlsjax.self_calibrate` (:mod:`._steps`), after the robust
+start and screening of the start set: the observations they removed stay out of every fit of
+the selection (the weights and pinned targets it is given), so a blunder can neither pose as a
+term nor push one out. The procedure alternates
 
 * backward: remove a term the network cannot determine, else the least significant one
   (``|t| <`` Student's critical value at ``alpha``), refit, one at a time;
@@ -36,31 +36,38 @@ from .._adjustment._result import CalibrationResult, assemble
 from .._model._aps import resolve_aps
 from .._model._scanner import Scanner
 from .._stats import t_critical_value
+from .._summary import Settings, to_json_value
 from .._units import ARCSEC
 from ._score import tests_in
 
 
 @dataclasses.dataclass(frozen=True)
-class SelectionOptions:
-    """``alpha``: two-sided level of the AP t-tests and family-wise level of the score tests of
-    the candidates (1 %: each forward step tests many candidates); ``max_correlation``: a term
-    entered with a larger absolute correlation with another unknown is reported as such
-    (Chow et al. 2013 read the correlation table; the term stays, since it explains the
-    misfit); ``max_steps``: bound on add/remove steps; ``screening``: select on the
-    observations that the robust start and screening keep (module docstring)."""
+class SelectionOptions(Settings):
+    """Stepwise AP selection, starting from the model's APs. ``candidates``: the terms that may
+    be added (names or presets); ``test_level``: two-sided level of the AP t-tests and
+    family-wise level of the score tests of the candidates (1 %: each forward step tests many
+    candidates); ``max_correlation``: a term entered with a larger absolute correlation with
+    another unknown is reported as such (Chow et al. 2013 read the correlation table; the term
+    stays, since it explains the misfit); ``max_steps``: bound on add/remove steps."""
 
-    alpha: float = 0.01
+    candidates: tuple = ("chow2013-noscale",)
+    test_level: float = 0.01
     max_correlation: float = 0.9
     max_steps: int = 30
-    screening: bool = True
 
     def __post_init__(self):
-        if not 0 < self.alpha < 1:
-            raise ValueError(f"alpha must be in (0, 1), got {self.alpha}")
+        if isinstance(self.candidates, str):
+            object.__setattr__(self, "candidates", tuple(self.candidates.replace(",", " ").split()))
+        if not 0 < self.test_level < 1:
+            raise ValueError(
+                f"SelectionOptions.test_level must be in (0, 1), got {self.test_level}"
+            )
         if not 0 < self.max_correlation <= 1:
-            raise ValueError(f"max_correlation must be in (0, 1], got {self.max_correlation}")
+            raise ValueError(
+                f"SelectionOptions.max_correlation must be in (0, 1], got {self.max_correlation}"
+            )
         if self.max_steps < 1:
-            raise ValueError(f"max_steps must be >= 1, got {self.max_steps}")
+            raise ValueError(f"SelectionOptions.max_steps must be >= 1, got {self.max_steps}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -85,29 +92,30 @@ class SelectionStep:
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class SelectionResult:
-    """``aps`` chosen, their ``calibration`` (on the screened observations), every step, the
-    number of distinct fits, the t critical value, ``removed``: the (row, group) observations
-    screening left out (their :class:`tlsjax.TestedCalibration` ``outliers`` in ``screened``),
-    and ``score_tests`` of the candidates left at the final set."""
+    """``aps`` chosen, every step, the number of distinct fits, the t critical value,
+    ``screened``: the removals (:class:`Removal`) of the robust start and screening before the
+    selection (left out of every fit), and ``score_tests`` of the candidates left at the final
+    set. The calibration of the chosen set is the ``calibration`` of the
+    :func:`tlsjax.self_calibrate` result that ran the selection."""
 
     aps: tuple
-    calibration: CalibrationResult
     steps: tuple
     n_fits: int
     critical: float
-    screened: object = None
+    screened: tuple = ()
     score_tests: object = None
 
-    def report(self) -> str:
+    def summary(self) -> str:
         lines = [
             f"final APs: {' '.join(self.aps) or '(none)'} after {self.n_fits} fits (|t| > {self.critical:.2f})"
         ]
-        if self.screened is not None:
-            n = len(self.screened.outliers)
-            lines.append(f"  on the screened observations: {n} removed before selection")
+        if self.screened:
+            lines.append(
+                f"  on the screened observations: {len(self.screened)} removed before selection"
+            )
             lines += [
                 f"    scan {o.scan} target {o.target} {o.group}: v = {o.residual:.4g} {o.unit}"
-                for o in self.screened.outliers[:20]
+                for o in self.screened[:20]
             ]
         for s in self.steps:
             if s.action == "try":
@@ -117,6 +125,22 @@ class SelectionResult:
                 f'hz {s.rms["hz_arcsec"]:.2f}", el {s.rms["el_arcsec"]:.2f}"  max AP corr {s.max_ap_corr:.2f}: {s.reason}'
             )
         return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        """The result JSON's ``selection``: the chosen terms, the number of fits, the steps that
+        changed the set (with the score a term entered by) and the removals before it."""
+        return to_json_value(
+            {
+                "aps": list(self.aps),
+                "n_fits": self.n_fits,
+                "steps": [
+                    {"action": s.action, "term": s.term, "score": s.score, "reason": s.reason}
+                    for s in self.steps
+                    if s.action != "try"
+                ],
+                "n_screened": len(self.screened),
+            }
+        )
 
 
 def _rms(res: CalibrationResult) -> dict:
@@ -239,7 +263,7 @@ def _forward(fit, current, removed, candidates, options, steps):
     refit cannot estimate is recorded as tried and not offered again."""
     left = [c for c in candidates if c not in current and c not in removed]
     while left:
-        tests = fit.score(current, left, options.alpha)
+        tests = fit.score(current, left, options.test_level)
         best = tests.best()
         if best is None or not best.significant:
             return None
@@ -269,62 +293,31 @@ def _forward(fit, current, removed, candidates, options, steps):
     return None
 
 
-def _screened_data(network, model, start, solver, options):
-    """The robust start and screening of the start set (no VCE, no snooping): the weights
-    (a priori, 0 where removed) and pinned targets of every fit, and the tested calibration."""
-    from ._testing import TestingOptions, calibrate_and_test
-
-    if not (options.screening and network.has_targets and not network.has_planes):
-        return {}, None
-    m = dataclasses.replace(model, scanner=dataclasses.replace(model.scanner, aps=start))
-    tested = calibrate_and_test(
-        network,
-        m,
-        solver,
-        TestingOptions(vce=False, snooping=False, score_tests=True),
-    )
-    if not tested.calibration.ok:
-        return {}, tested
-    w = np.where(tested.mask, 1.0 / np.asarray(network.sigmas), 0.0)
-    pins = {
-        network.targets.index(t): (tested.calibration.target_xyz[network.targets.index(t)], 1.0)
-        for t in tested.pinned_targets
-    }
-    return {"weights": w, "control": pins or None}, tested
-
-
-def select_aps(
+def select_terms(
     network: Network,
-    model: CalibrationModel | None = None,
-    *,
-    start=(),
-    candidates="chow2013-noscale",
-    options: SelectionOptions | None = None,
-    solver: SolverOptions | None = None,
+    model: CalibrationModel,
+    options: SelectionOptions,
+    solver: SolverOptions,
+    data: dict,
+    screened: tuple = (),
 ) -> SelectionResult:
-    """Stepwise AP selection (forward with backward elimination) for one instrument.
-
-    ``model.scanner`` gives the architecture and unit lengths (its ``aps`` are ignored);
-    ``start`` the initial set; ``candidates`` the terms that may be added (names or presets).
-    Returns the selected set, its calibration and every step.
-    """
-    model = model or CalibrationModel()
-    options = options or SelectionOptions()
-    solver = solver or SolverOptions(full_covariance=False)
+    """Stepwise AP selection (forward with backward elimination) for one instrument, from
+    ``model.scanner.aps`` over ``options.candidates``, every fit with the weights and pinned
+    targets ``data`` (keyword arguments of :meth:`tlsjax.Adjustment.problem`; ``screened``:
+    the removals they hold, reported). Returns the selected set and every step."""
     if not isinstance(model.scanner, Scanner):
         raise ValueError(
             "model.scanner: stepwise selection works on one instrument; pass one Scanner"
         )
-    start = resolve_aps(start)
-    candidates = resolve_aps(candidates)
-    data, screened = _screened_data(network, model, start, solver, options)
+    start = tuple(model.scanner.aps)
+    candidates = resolve_aps(options.candidates)
     fit = _Fits(network, model, tuple(dict.fromkeys(start + candidates)), solver, data)
     current = list(start)
     res = fit(current)
     steps = [_record("start", "", current, res, "initial set")]
     removed: set = set()
     for _ in range(options.max_steps):
-        res = _backward(fit, current, res, removed, options.alpha, steps)
+        res = _backward(fit, current, res, removed, options.test_level, steps)
         best = _forward(fit, current, removed, candidates, options, steps)
         if best is None:
             break
@@ -332,14 +325,9 @@ def select_aps(
         res = best[1]
         steps.append(_record("add", best[0], current, res, best[2], best[3]))
     left = [c for c in candidates if c not in current]
-    final_tests = fit.score(current, left, options.alpha) if left and res.ok else None
+    final_tests = fit.score(current, left, options.test_level) if left and res.ok else None
     steps.append(_record("final", "", current, res, "no significant candidate left"))
-    # The chosen set once more as a model of its own, so the result carries only its terms.
-    final_model = dataclasses.replace(
-        model, scanner=dataclasses.replace(model.scanner, aps=tuple(current))
-    )
-    final = analyze(network, final_model, solver).solve(**data)
-    crit = t_critical_value(options.alpha, res.dof)
+    crit = t_critical_value(options.test_level, res.dof)
     return SelectionResult(
-        tuple(current), final, tuple(steps), len(fit.cache), crit, screened, final_tests
+        tuple(current), tuple(steps), len(fit.cache), crit, screened, final_tests
     )

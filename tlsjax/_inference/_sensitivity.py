@@ -22,6 +22,7 @@ import numpy as np
 from .._adjustment._calibrate import Adjustment, analyze
 from .._adjustment._implicit import differentiable_adjustment, network_inputs
 from .._jit import jit
+from .._summary import to_json_value
 
 GROUPS = ("range", "hz", "el")
 
@@ -38,7 +39,7 @@ class Sensitivity:
     targets: tuple
     ap_names: tuple
 
-    def table(self, top: int = 20, ap: str | None = None) -> str:
+    def summary(self, top: int = 20, ap: str | None = None) -> str:
         """The ``top`` observations with the largest |influence| (on ``ap``, or on any AP)."""
         v = self.values
         k = None if ap is None else self.ap_names.index(ap)
@@ -55,6 +56,21 @@ class Sensitivity:
             row = " ".join(f"{x:8.3f}" for x in v[i, g])
             lines.append(f"{self.scans[i]:>6} {self.targets[i]:>8} {GROUPS[g]:>5} {row}")
         return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        """Strict JSON: the AP names, the largest influence on each AP and where it comes from
+        (:meth:`largest`), and ``values`` per target row (n, 3, a: rows in network order, range,
+        hz, el, the APs in ``ap_names`` order)."""
+        return to_json_value(
+            {
+                "units": "AP sigmas per observation sigma",
+                "ap_names": list(self.ap_names),
+                "largest": self.largest(),
+                "scans": list(self.scans),
+                "targets": list(self.targets),
+                "values": self.values,
+            }
+        )
 
     def largest(self) -> dict:
         """Per AP: the largest |influence| and the observation (scan, target, group) it comes from."""

@@ -1,9 +1,13 @@
-"""The named steps of :func:`tlsjax.calibrate_and_test`, and their order (:data:`PIPELINE`).
+"""The named steps of :func:`tlsjax.self_calibrate`, and their order (:data:`PIPELINE`).
 
 Each step is ``step(ctx, state) -> state`` over the explicit :class:`._pipeline.TestingState`
-(see :mod:`._pipeline`); the statistics they call are pure functions in :mod:`._statistics`.
+(see :mod:`._pipeline`); the statistics they call are pure functions (:mod:`tlsjax._stats`,
+:mod:`tlsjax._adjustment._quality`, :mod:`._variance_factors`).
 
-1. **Robust start** (:func:`robust_start`, with ``screening`` and ``robust_start``): gross
+0. **Plane screening** (:func:`plane_screening`, with ``plane_screening``, plane points and no
+   snooping): IGG-III reweighting of the plane points' conditions (:mod:`._robust`); the points
+   beyond the family-wise value leave, the others keep their a priori weights.
+1. **Robust start** (:func:`robust_start`, with ``screening.robust_start``): gross
    errors out before the first least-squares adjustment, which would spread a blunder of
    metres over correct observations (or not converge). The misclosures at the approximate
    values give the first IGG-III weights (Yang 1999); iteratively reweighted adjustments
@@ -18,7 +22,8 @@ Each step is ``step(ctx, state) -> state`` over the explicit :class:`._pipeline.
    v_g ~ chi^2(r_g)`` (the group variance-factor test JAG3D reports). A global test computed
    after the variance factors were fitted to the same residuals cannot fail (its sigma0 is 1
    by construction), so these are the tests of the stochastic model.
-3. **Screening** (:func:`screening`, for any weighting): gross errors out before VCE (Koch
+3. **Screening** (:func:`screening`, with ``screening``, for any weighting): gross errors out
+   before VCE (Koch
    1999, sec. 3.8). VCE fitted to data with blunders inflates the factors until the blunders
    look normal (a 1 m range error turns the range factor into ~5,000 and hides itself). Each
    group's scale is estimated robustly, ``s_g = median |u_i| / 0.6745`` of ``u_i = v_i /
@@ -28,7 +33,11 @@ Each step is ``step(ctx, state) -> state`` over the explicit :class:`._pipeline.
    removed and the network re-adjusted, until none is, or until a candidate term's score
    statistic exceeds ``u_i^2`` (:func:`_systematic`: the misfit is systematic, and a warning
    names the term); the a priori tests are repeated on the screened observations.
-4. **Variance components** (:func:`variance_components`): VCE per group, range, horizontal
+4. **Selection** (:func:`selection`, with ``selection``): stepwise AP selection
+   (:func:`._selection.select_terms`) on the screened observations, entering terms by their
+   score tests; the chosen model is the model of every step after it, and its a priori tests
+   are recorded.
+5. **Variance components** (:func:`variance_components`, with ``vce``): VCE per group, range, horizontal
    direction, elevation angle and levelling (Förstner 1979; Koch 1999, sec. 3.6), ``s_g^2 =
    v_g^T P_g v_g / r_g``; the group's sigmas are multiplied by ``s_g`` and the adjustment is
    repeated until every ``s_g^2`` is 1 within tolerance. Safeguards: the iteration runs in log
@@ -37,15 +46,14 @@ Each step is ``step(ctx, state) -> state`` over the explicit :class:`._pipeline.
    beyond :data:`VCE_FACTOR_LIMIT` stops it. Every stop is a :class:`VCEResult` with its
    reason, never a NaN; only the weights change, and they are traced arrays of the compiled
    adjustment, so re-weighting never recompiles.
-5. **Data snooping** (:func:`data_snooping`; Baarda 1968): ``w_i = v_i / (sigma_i sqrt(r_i))``
+6. **Data snooping** (:func:`data_snooping`, with ``snooping``; Baarda 1968): ``w_i = v_i / (sigma_i sqrt(r_i))``
    with the sigmas in use (after VCE: the re-estimated group sigmas); the largest ``|w_i|``
    above the critical value (3.29 for alpha = 0.1 %) is removed, the network re-adjusted and
    the variance components re-estimated, until no test rejects. Every removal is reported.
-6. **Selection** (:func:`selection`): a slot for a step that changes the model on the tested
-   network; stepwise selection (:func:`tlsjax.select_aps`) runs the robust start and screening
-   itself and enters terms by their score tests.
-7. **Missing terms** (:func:`missing_terms`): the score test of every candidate term not in
-   the model at the final adjustment (:mod:`._score`).
+7. **Missing terms** (:func:`missing_terms`, with ``tests.score_tests``): the score test of
+   every candidate term not in the model at the final adjustment (:mod:`._score`).
+8. **Cross-validation** (:func:`cross_validation`): the slot of the prediction of held-out
+   scans (issue 41); it changes nothing yet.
 
 Both screening and the robust start weigh a removal against the candidate terms (Baarda's
 alternative hypotheses, SPEC section 7: the score test ``T_c`` of a term missing from the model
@@ -59,7 +67,18 @@ import dataclasses
 
 import numpy as np
 
+from .._adjustment._quality import w_tests
+from .._stats import (
+    global_test,
+    group_variance_test,
+    normal_critical_value,
+    robust_scale,
+    snooping_critical_value,
+)
+from ._options import SnoopingOptions
+from ._outcome import GROUPS, VCEResult
 from ._pipeline import (
+    PIN_SIGMA,
     ROUNDING_SIGMA,
     NamedStep,
     TestingContext,
@@ -78,17 +97,9 @@ from ._pipeline import (
     sigmas,
     with_factors,
 )
-from ._statistics import (
-    bounded_log_step,
-    critical_value,
-    global_test,
-    group_variance_test,
-    implausible_factor,
-    robust_scale,
-    snooping_critical_value,
-    w_tests,
-)
-from ._tested import GROUPS, VCEResult
+from ._robust import screen_planes
+from ._selection import select_terms
+from ._variance_factors import bounded_log_step, implausible_factor
 
 #: Largest change of a variance factor in one VCE iteration (a factor 100 in sigma).
 VCE_MAX_STEP = np.log(1e4)
@@ -110,8 +121,8 @@ def robust_start(ctx: TestingContext, state: TestingState) -> TestingState:
     out of any systematic misfit), then with the model's APs; the observations beyond the
     family-wise critical value at the last reweighting are removed and reported, and the
     least-squares steps start from their estimates. On with ``screening`` and ``robust_start``."""
-    t = ctx.options
-    if not (t.screening and t.robust_start):
+    t = ctx.options.screening
+    if t is None or not t.robust_start or ctx.plane_igg3:
         return state
     start = state
     labels = tuple(ctx.reweighter.plan.ap_labels)
@@ -129,11 +140,11 @@ def robust_start(ctx: TestingContext, state: TestingState) -> TestingState:
         return dataclasses.replace(start, n_adjustments=state.n_adjustments)
     u, scale = _robust_normalised(ctx, state)
     n = int(np.isfinite(u).sum())
-    k1 = critical_value(t.screening_alpha / max(n, 1))
+    k1 = normal_critical_value(t.family_level / max(n, 1))
     # Baarda's alternatives compared (SPEC section 7): where a missing term explains more of
     # the misfit than removing an observation would, that observation stays (the tails of a
     # systematic misfit are not blunders); the term is named by the score tests at the end.
-    tests = score_tests_at(ctx, state) if t.score_tests else None
+    tests = score_tests_at(ctx, state) if ctx.options.tests.score_tests else None
     best = tests.best() if tests is not None else None
     floor = best.statistic if best is not None and best.significant else 0.0
     state = dataclasses.replace(state, robust_factor=None, fixed_aps=None)
@@ -184,7 +195,7 @@ def _robust_normalised(ctx: TestingContext, state: TestingState):
     u = np.where(state.mask, w_tests(res.residuals, sigmas(ctx, state), r_full), np.nan)
     scale = np.full(3, np.nan)
     for g in range(3):
-        keep = np.isfinite(u[:, g]) & (res.redundancy[:, g] >= ctx.options.min_redundancy)
+        keep = np.isfinite(u[:, g]) & (res.redundancy[:, g] >= ctx.options.tests.min_redundancy)
         scale[g] = robust_scale(u[:, g], keep, MIN_SCREENED)
     # Residuals at rounding level (noise-free data): nothing to judge (rounding is no blunder).
     rounding = scale * np.median(ctx.base_sigma, axis=0) < np.asarray(ROUNDING_SIGMA[:3])
@@ -223,10 +234,9 @@ def _igg3_factor(ctx: TestingContext, z, factor, gross: bool = False):
     determine them."""
     from ._robust import igg3
 
-    t = ctx.options
     n = max(int(np.isfinite(z).sum()), 1)
-    k0 = critical_value(t.alpha)
-    k1 = max(critical_value(t.screening_alpha / n), k0 + 0.5)
+    k0 = normal_critical_value(ctx.options.w_test_level)
+    k1 = max(normal_critical_value(ctx.options.screening.family_level / n), k0 + 0.5)
     if gross:
         k0, k1 = k1, GROSS_BAND * k1
     return np.where(np.isfinite(z), np.maximum(igg3(z, k0, k1), ROBUST_FLOOR), factor)
@@ -248,9 +258,7 @@ def a_priori_tests(ctx: TestingContext, state: TestingState) -> TestingState:
     fails, a warning that names a far-off sigma0 (a unit mix-up of all groups)."""
     state = adjust(ctx, state)
     if state.ok:
-        n = len(state.removals)
-        stage = f"after the robust start ({n} removed)" if n else "all observations"
-        return record_a_priori_tests(ctx, state, stage)
+        return record_a_priori_tests(ctx, state, _first_stage(state))
     dominant = dominant_misfit(ctx, state)
     if dominant:
         return add_warning(state, f"at the failed first adjustment: {dominant}")
@@ -261,9 +269,18 @@ def a_priori_tests(ctx: TestingContext, state: TestingState) -> TestingState:
     return state
 
 
+def _first_stage(state: TestingState) -> str:
+    """The name of the observations of the first least-squares adjustment."""
+    n = len(state.removals)
+    if n:
+        return f"after the robust start ({n} removed)"
+    k = 0 if state.plane_screening is None else len(state.plane_screening.removed)
+    return f"after the plane screening ({k} plane points removed)" if k else "all observations"
+
+
 def record_a_priori_tests(ctx: TestingContext, state: TestingState, stage: str) -> TestingState:
     """Global and group tests at the latest adjustment (a priori weights), as one stage."""
-    alpha = ctx.options.test_alpha
+    alpha = ctx.options.tests.global_test_level
     s2, r_g, n_g = group_statistics(ctx, state)
     groups = {
         g: group_variance_test(float(s2[i] * r_g[i]), float(r_g[i]), alpha)
@@ -284,14 +301,13 @@ def screening(ctx: TestingContext, state: TestingState) -> TestingState:
     group balancing is undone afterwards and the a priori sigmas kept; plane points have no VCE,
     and the robust scale protects the snooping that follows) and a first adjustment that
     succeeded."""
-    t = ctx.options
-    if not (state.ok and t.screening):
+    if not (state.ok and ctx.options.screening is not None) or ctx.plane_igg3:
         return state
     n_before = len(state.removals)
     state = _screen(ctx, state)
     if len(state.removals) > n_before and state.ok:
         state = _a_priori_after_screening(ctx, state)
-    if not t.vce and np.any(state.factor != 1.0):
+    if ctx.options.vce is None and np.any(state.factor != 1.0):
         state = adjust(ctx, with_factors(state, np.ones(len(GROUPS))))
     return state
 
@@ -303,7 +319,7 @@ def _standardised(ctx: TestingContext, state: TestingState):
     u = np.where(state.mask, w_tests(res.residuals, sigmas(ctx, state), res.redundancy), np.nan)
     scale = np.full(3, np.nan)
     for g in range(3):
-        keep = np.isfinite(u[:, g]) & (res.redundancy[:, g] >= ctx.options.min_redundancy)
+        keep = np.isfinite(u[:, g]) & (res.redundancy[:, g] >= ctx.options.tests.min_redundancy)
         scale[g] = robust_scale(u[:, g], keep, MIN_SCREENED)
     return u, scale
 
@@ -374,9 +390,9 @@ def _plane_screening_w(ctx: TestingContext, state: TestingState):
 
 def _screen(ctx: TestingContext, state: TestingState) -> TestingState:
     """Robust group scales, family-wise critical value, largest first, re-adjusting after each
-    removal; stops with a warning when more than ``screening_max_share`` would go."""
-    t = ctx.options
-    limit = max(1, int(t.screening_max_share * (state.mask.sum() + state.plane_mask.sum())))
+    removal; stops with a warning when more than ``max_share`` would go."""
+    t = ctx.options.screening
+    limit = max(1, int(t.max_share * (state.mask.sum() + state.plane_mask.sum())))
     state, balanced = _balance_groups(ctx, state)
     if not balanced:
         return state  # noise-free: nothing to screen; VCE says so
@@ -389,7 +405,7 @@ def _screen(ctx: TestingContext, state: TestingState) -> TestingState:
         n_tested = int(np.isfinite(w).sum()) + (0 if wp is None else int(np.isfinite(wp).sum()))
         if n_tested == 0:
             return state
-        crit = critical_value(t.screening_alpha / n_tested)
+        crit = normal_critical_value(t.family_level / n_tested)
         state = dataclasses.replace(state, screening_critical_value=crit)
         i, g, top = _largest_w(w, wp)
         if top <= crit:
@@ -403,11 +419,11 @@ def _screen(ctx: TestingContext, state: TestingState) -> TestingState:
         term = _systematic(ctx, state, u[i, g]) if target and top <= GROSS_BAND * crit else None
         if term is not None:
             return add_warning(state, term)
-        if removed >= limit or len(state.removals) >= t.max_removals:
+        if removed >= limit or len(state.removals) >= ctx.options.max_removals:
             return add_warning(
                 state,
                 f"screening stopped after {removed} removal(s) with |w| = {top:.1f} still above "
-                f"{crit:.2f}: more than {100 * t.screening_max_share:.0f}% of the observations "
+                f"{crit:.2f}: more than {100 * t.max_share:.0f}% of the observations "
                 "fail; the functional model (APs, architecture) or the sigmas are wrong, not a "
                 "few blunders",
             )
@@ -427,7 +443,7 @@ def _systematic(ctx: TestingContext, state: TestingState, u_top: float) -> str |
     statistic ``T_c`` of a candidate term (:mod:`._score`), both with the weights in use. When a
     significant term explains more, the misfit is systematic: screening stops (a warning
     names the term) instead of removing correct observations."""
-    tests = score_tests_at(ctx, state) if ctx.options.score_tests else None
+    tests = score_tests_at(ctx, state) if ctx.options.tests.score_tests else None
     best = tests.best() if tests is not None else None
     if best is None or not best.significant or not best.statistic > u_top**2:
         return None
@@ -454,24 +470,22 @@ def _a_priori_after_screening(ctx: TestingContext, state: TestingState) -> Testi
 def variance_components(ctx: TestingContext, state: TestingState) -> TestingState:
     """VCE to its fixed point or to a safeguard's stop (module docstring), when ``vce`` is on,
     the latest adjustment succeeded and VCE has not stopped before."""
-    if state.ok and ctx.options.vce and state.vce_result == VCEResult.CONVERGED:
+    if state.ok and ctx.options.vce is not None and state.vce_result == VCEResult.CONVERGED:
         return _vce(ctx, state)
     return state
 
 
 def _vce(ctx: TestingContext, state: TestingState) -> TestingState:
     """Every stop leaves the state at weights whose adjustment succeeded."""
-    t = ctx.options
+    t = ctx.options.vce
     prev_step = np.zeros(len(GROUPS))
     relax = np.ones(len(GROUPS))  # halved at every change of direction of a group's step
     flips = 0
-    for it in range(t.vce_max_iterations):
+    for it in range(t.max_iterations):
         s2, r_g, n_g = group_statistics(ctx, state)
-        est = (r_g >= t.vce_min_redundancy) & (n_g > 0)
+        est = (r_g >= t.min_redundancy) & (n_g > 0)
         notes = tuple(
-            f"redundancy r_g = {r_g[g]:.2f} < {t.vce_min_redundancy:g}"
-            if n_g[g] and not est[g]
-            else ""
+            f"redundancy r_g = {r_g[g]:.2f} < {t.min_redundancy:g}" if n_g[g] and not est[g] else ""
             for g in range(len(GROUPS))
         )
         state = dataclasses.replace(state, estimated=est, notes=notes)
@@ -488,7 +502,7 @@ def _vce(ctx: TestingContext, state: TestingState) -> TestingState:
             return _stop(ctx, state, VCEResult.NOISE_FREE, reset=True)
         if not np.all(np.isfinite(s2[est]) & (s2[est] > 0)):
             return _stop(ctx, state, VCEResult.NONFINITE)
-        if np.all(np.abs(s2[est] - 1.0) < t.vce_tolerance):
+        if np.all(np.abs(s2[est] - 1.0) < t.tolerance):
             return dataclasses.replace(state, vce_result=VCEResult.CONVERGED)
         step = bounded_log_step(s2, est, VCE_MAX_STEP)
         flip = step * prev_step < 0
@@ -556,12 +570,12 @@ def data_snooping(ctx: TestingContext, state: TestingState) -> TestingState:
 
 def _snoop_once(ctx: TestingContext, state: TestingState):
     """One test of every observation; (state, True) when the largest |w| was removed."""
-    t, res = ctx.options, state.result
+    t, res = ctx.options.snooping or SnoopingOptions(), state.result
     w = np.where(state.mask, w_tests(res.residuals, sigmas(ctx, state), res.redundancy), np.nan)
     wp = plane_w(ctx, state) if ctx.network.has_planes else None
     n_tested = int(np.isfinite(w).sum()) + (0 if wp is None else int(np.isfinite(wp).sum()))
     crit = snooping_critical_value(
-        t.alpha, n_tested, bonferroni=t.bonferroni, given=t.critical_value
+        t.w_test_level, n_tested, bonferroni=t.bonferroni, given=t.critical_value
     )
     state = add_history(
         dataclasses.replace(state, critical_value=crit),
@@ -573,7 +587,7 @@ def _snoop_once(ctx: TestingContext, state: TestingState):
             "factors": state.factor.tolist(),
         },
     )
-    if not t.snooping or n_tested == 0:
+    if ctx.options.snooping is None or n_tested == 0:
         return state, False
     i, g, top = _largest_w(w, wp)
     if top <= crit:
@@ -587,33 +601,98 @@ def _snoop_once(ctx: TestingContext, state: TestingState):
     return _remove(ctx, state, i, g, w, wp, "largest |w| above critical value")
 
 
-# --- 6. Selection -----------------------------------------------------------------------------
+# --- Plane screening (IGG-III) ----------------------------------------------------------------
+
+
+def plane_screening(ctx: TestingContext, state: TestingState) -> TestingState:
+    """The IGG-III screening of the plane points (:func:`._robust.screen_planes`) on the
+    analysed adjustment, where :attr:`._pipeline.TestingContext.plane_igg3`: the points beyond
+    k1 leave the plane mask, and the estimates of its last reweighting warm-start the first
+    least-squares adjustment (the a priori tests), whose a priori weights of the points kept
+    give the estimates, sigmas and tests."""
+    if not ctx.plane_igg3:
+        return state
+    found, params = screen_planes(ctx.reweighter.adjustment, ctx.options.plane_screening)
+    mask = state.plane_mask.copy()
+    mask[found.removed] = False
+    return dataclasses.replace(
+        state,
+        plane_mask=mask,
+        plane_screening=found,
+        params=params,
+        n_adjustments=state.n_adjustments + found.iterations,
+    )
+
+
+# --- Selection --------------------------------------------------------------------------------
 
 
 def selection(ctx: TestingContext, state: TestingState) -> TestingState:
-    """Slot for a step that changes the model on the tested network (module docstring);
-    stepwise selection (:func:`tlsjax.select_aps`) runs outside, on the screened observations."""
+    """Stepwise AP selection (:func:`._selection.select_terms`, with ``selection``) from the
+    model's APs, every fit with the a priori weights of the observations the robust start and
+    screening kept and their pinned targets; the chosen model replaces the model for the steps
+    after it (its context is analysed once: :meth:`._pipeline.TestingContext.for_state`), and
+    its a priori tests are recorded on the screened observations."""
+    options = ctx.options.selection
+    if options is None or not state.ok:
+        return state
+    data = {"weights": np.where(state.mask, 1.0 / ctx.base_sigma, 0.0)}
+    if state.pinned:
+        data["control"] = {t: (xyz, PIN_SIGMA) for t, xyz in state.pinned.items()}
+    if ctx.network.has_planes:
+        data["plane_weights"] = np.where(state.plane_mask[:, None], 1.0 / ctx.plane_sigma, 0.0)
+    chosen = select_terms(
+        ctx.network, ctx.model, options, ctx.reweighter.options, data, state.removals
+    )
+    if chosen.aps == tuple(ctx.model.scanner.aps):
+        return dataclasses.replace(state, selection=chosen)
+    scanner = dataclasses.replace(ctx.model.scanner, aps=chosen.aps)
+    model = dataclasses.replace(ctx.model, scanner=scanner)
+    state = dataclasses.replace(
+        state, model=model, selection=chosen, params=None, adjusted=None, last_ok=None
+    )
+    new = ctx.for_state(state)
+    fitted = state.factor.copy()
+    state = adjust(new, with_factors(state, np.ones(len(GROUPS))))
+    if state.ok:
+        state = record_a_priori_tests(new, state, f"after selection ({' '.join(chosen.aps)})")
+    if np.any(fitted != 1.0):
+        state = adjust(new, with_factors(state, fitted))
     return state
 
 
-# --- 7. Score tests of the missing terms ------------------------------------------------------
+# --- Score tests of the missing terms ---------------------------------------------------------
 
 
 def missing_terms(ctx: TestingContext, state: TestingState) -> TestingState:
     """The score test of every candidate term not in the model at the final adjustment
-    (:mod:`._score`), with ``score_tests``."""
-    if not ctx.options.score_tests:
+    (:mod:`._score`), with ``tests.score_tests``; target networks (the plane conditions are not
+    tested for missing terms)."""
+    if not ctx.options.tests.score_tests or ctx.network.has_planes:
         return state
     return dataclasses.replace(state, score_tests=score_tests_at(ctx, state))
 
 
-#: The steps of :func:`tlsjax.calibrate_and_test`, in order: the one place they are listed.
+# --- Cross-validation -------------------------------------------------------------------------
+
+
+def cross_validation(ctx: TestingContext, state: TestingState) -> TestingState:
+    """Slot for cross-validation by scan groups (issue 41): calibrate on the other scans,
+    predict the held-out ones. It returns the state it was given until the module that does it
+    lands; it will read its settings from ``ctx.options`` and put what it finds in the state,
+    like the other steps."""
+    return state
+
+
+#: The steps of :func:`tlsjax.self_calibrate`, in order: the one place they are listed.
 PIPELINE = (
+    NamedStep("plane screening", plane_screening),
     NamedStep("robust start", robust_start),
     NamedStep("a priori tests", a_priori_tests),
     NamedStep("screening", screening),
+    NamedStep("selection", selection),
     NamedStep("variance components", variance_components),
     NamedStep("data snooping", data_snooping),
-    NamedStep("selection", selection),
     NamedStep("missing terms", missing_terms),
+    NamedStep("cross-validation", cross_validation),
 )

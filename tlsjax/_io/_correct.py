@@ -43,7 +43,7 @@ from .._model._geometry import (
 from .._model._plausibility import PlausibilityWarning, ap_findings
 from .._model._scanner import ARCHITECTURES, Scanner
 from .._units import display
-from ._json import read_result_json
+from ._json import json_kind, read_result_json
 from ._point_clouds import MAP_SCALE_RANGE
 
 #: Points per compiled correction step.
@@ -197,6 +197,11 @@ def _calibration_from_json(source, architecture, instrument) -> Calibration:
         except ValueError as err:
             raise ValueError(f"{source}: {err}") from None
     scanner, notes = _scanner_from_doc(doc, source, architecture, names, instrument)
+    if json_kind(doc) == "truth":
+        notes.append(
+            f"{source}: the true APs of a simulation (tlsjax simulate --truth), not a "
+            "calibration: applied as they are, without sigmas"
+        )
     values = []
     for k in keys:
         # A result JSON has {"value": ..., "sigma": ...} per AP; a simulation's truth JSON the

@@ -10,7 +10,7 @@ import numpy as np
 
 from .._adjustment._network import ObservationTable
 from .._model._geometry import cartesian_from_spherical, rotation_matrix
-from .._summary import SummaryText, finite_or_none
+from .._summary import to_json_value
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -57,7 +57,7 @@ class ExtractedPlanes:
         from it and ``max_patch_angle`` [rad], the largest angle between one of its patches and
         the plane."""
         planes = None if self.planes is None or self.poses is None else plane_summary(self)
-        return finite_or_none(
+        return to_json_value(
             {
                 "scans": list(self.scans),
                 "n_patches": int(len(self.patch_scan)),
@@ -68,9 +68,7 @@ class ExtractedPlanes:
 
     def summary(self) -> str:
         """Text: the counts, then one line per global plane once matched: the scans, patches
-        and points that support it, its RMS [mm] and largest patch angle [deg]. (Indexing it
-        like the list of earlier releases still works for one release, with a
-        DeprecationWarning: use :meth:`to_dict`.)"""
+        and points that support it, its RMS [mm] and largest patch angle [deg]."""
         matched = self.planes is not None and self.poses is not None
         head = (
             f"{len(self.scans)} scan(s), {len(self.patch_scan)} patches, "
@@ -78,7 +76,7 @@ class ExtractedPlanes:
             + (f"{len(self.planes)} planes" if matched else "not matched across scans yet")
         )
         if not matched:
-            return SummaryText(head)
+            return head
         rows = plane_summary(self)
         lines = [head, "plane  scans  patches   points  RMS [mm]  max patch angle [deg]"]
         lines += [
@@ -86,7 +84,7 @@ class ExtractedPlanes:
             f"{p['rms'] * 1e3:9.2f} {np.degrees(p['max_patch_angle']):22.2f}"
             for p in rows
         ]
-        return SummaryText("\n".join(lines), rows)
+        return "\n".join(lines)
 
     def to_table(self) -> ObservationTable:
         """Plane observations (SPEC section 11): one row per kept point of a matched plane.

@@ -9,47 +9,15 @@ never sees half a file and a failure leaves the previous file, if any, untouched
 
 from __future__ import annotations
 
-import dataclasses
-import enum
 import json
-import math
 
-import numpy as np
-
+from .._summary import to_json_value  # noqa: F401  (the one conversion; imported from here)
 from ._outputs import (  # noqa: F401  (re-exported: the CLI modules import them from here)
     check_output_dir,
     check_output_file,
     make_parent,
     write_text_atomic,
 )
-
-
-def to_json_value(obj):
-    """``obj`` as plain JSON types: dicts (string keys), lists, str, int, float, bool, None.
-
-    NaN and +-inf become None; numpy scalars and arrays, tuples, enums and dataclasses are
-    converted. Anything else is refused with a TypeError (it has no JSON meaning).
-    """
-    if obj is None or isinstance(obj, (str, bool)):
-        return obj
-    if isinstance(obj, enum.Enum):
-        return to_json_value(obj.value)
-    if isinstance(obj, (int, np.integer)) and not isinstance(obj, np.bool_):
-        return int(obj)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    if isinstance(obj, (float, np.floating)):
-        x = float(obj)
-        return x if math.isfinite(x) else None
-    if isinstance(obj, np.ndarray):
-        return to_json_value(obj.tolist())
-    if isinstance(obj, dict):
-        return {str(k): to_json_value(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [to_json_value(v) for v in obj]
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return to_json_value(dataclasses.asdict(obj))
-    raise TypeError(f"cannot write a {type(obj).__name__} to JSON")
 
 
 def dumps_strict(obj, indent: int = 2) -> str:
@@ -98,7 +66,7 @@ def json_kind(doc) -> str:
     return "unknown"
 
 
-def _check_result_doc(doc, source, accept=()) -> str:
+def check_result_doc(doc, source, accept=()) -> str:
     """The contract fields of a result JSON (SPEC section 11) have their JSON types: each AP an
     object whose value, sigma, t and max_abs_corr are numbers or null (a plain number in a
     simulation's truth); one-line ValueError. ``accept``: other kinds that carry an AP set and
@@ -174,5 +142,13 @@ def read_result_json(source, *, accept=()) -> dict:
         raise ValueError(f"{source}: not a readable result JSON ({err})") from None
     except RecursionError:
         raise ValueError(f"{source}: not a readable result JSON (nested too deeply)") from None
-    _check_result_doc(doc, source, accept)
+    check_result_doc(doc, source, accept)
     return doc
+
+
+def write_json(result, path) -> dict:
+    """Write ``result.to_dict()`` (any tlsjax result: a :class:`tlsjax.SelfCalibration`, a
+    :class:`tlsjax.CalibrationResult`, ...; or a dict as it is) as strict JSON (NaN and
+    infinities are null), atomically: the file is complete or not written. A path that cannot
+    be written is a one-line ValueError naming it. Returns the dict written."""
+    return write_json_file(path, result if isinstance(result, dict) else result.to_dict())

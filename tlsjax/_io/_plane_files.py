@@ -26,7 +26,7 @@ _NPZ_ARRAYS = (
 _NPZ_FORMAT = "tlsjax-planes-1"
 
 
-def save_planes(path, planes: ExtractedPlanes) -> None:
+def write_extracted_planes(path, planes: ExtractedPlanes) -> None:
     """Write extracted (and possibly matched) planes to an ``.npz`` (no pickled objects)."""
     arrays = {k: getattr(planes, k) for k in _NPZ_ARRAYS}
     arrays["format"] = np.array(_NPZ_FORMAT)
@@ -89,8 +89,8 @@ def _check_npz(data: dict, source: str) -> None:
             raise ValueError(f"{source}: array {k} must be finite (n, {width}), got {a.shape}")
 
 
-def load_planes(path) -> ExtractedPlanes:
-    """Read an ``.npz`` written by :func:`save_planes`; a file that is not one, or whose
+def read_extracted_planes(path) -> ExtractedPlanes:
+    """Read an ``.npz`` written by :func:`write_extracted_planes`; a file that is not one, or whose
     arrays disagree, is a one-line ValueError naming it."""
     import zipfile
 

@@ -26,6 +26,7 @@ import re
 
 from .._model._aps import get_ap
 from .._units import UNITS
+from ._json import check_result_doc
 
 #: Units of a prior by the AP's SI unit.
 _PRIOR_UNITS = {
@@ -101,13 +102,14 @@ def read_ap_priors(path) -> dict[str, tuple[float, float]]:
 
 
 def _from_result_json(text: str, source: str) -> dict:
+    """The APs with a value and a sigma of a calibration's result JSON; any other JSON of
+    tlsjax (a simulation's truth, a Monte Carlo summary, ...) is refused naming what it is."""
     try:
         doc = json.loads(text)
     except json.JSONDecodeError as err:
         raise ValueError(f"{source}: not JSON ({err.msg}, line {err.lineno})") from None
-    aps = doc.get("aps") if isinstance(doc, dict) else None
-    if not isinstance(aps, dict):
-        raise ValueError(f"{source}: no 'aps' table (a result JSON of tlsjax calibrate --json)")
+    check_result_doc(doc, source)
+    aps = doc["aps"]
     out = {}
     for name, d in aps.items():
         v, s = (d or {}).get("value"), (d or {}).get("sigma")

@@ -188,6 +188,8 @@ def read_observations(path) -> ObservationTable:
         if "instrument" in cells:
             instruments.append(cells["instrument"][0])
         lines.append(line)
+    if kind == "plane":
+        _refuse_repeated_points(scans, prims, obs, lines, loc)
     hz = np.mod(obs[:, 1], _TWO_PI)
     # np.mod returns 2pi itself for tiny negative inputs; the contract is the half-open interval.
     obs[:, 1] = np.where(hz >= _TWO_PI, 0.0, hz)
@@ -203,6 +205,27 @@ def read_observations(path) -> ObservationTable:
         rows=np.asarray(lines, dtype=np.int64),
         architecture=architecture,
     )
+
+
+def _refuse_repeated_points(scans, planes, obs, lines, loc) -> None:
+    """A plane has many points per scan, but one row repeated would count one observation
+    twice (and thinning would hide it): the first repeated (scan, plane, range, hz, el) row is
+    refused with both lines. Sorted, not hashed row by row: files hold millions of points."""
+    if len(scans) < 2:
+        return
+    codes = [np.unique(np.asarray(a), return_inverse=True)[1] for a in (scans, planes)]
+    keys = np.column_stack([*codes, obs])
+    order = np.lexsort(keys.T[::-1])
+    same = np.all(keys[order[1:]] == keys[order[:-1]], axis=1)
+    if same.any():
+        k = int(np.argmax(same))
+        a, b = sorted((int(order[k]), int(order[k + 1])))
+        raise loc.error(
+            f"duplicate point of plane '{planes[b]}' in scan '{scans[b]}' (lines {lines[a]} and "
+            f"{lines[b]}: the same observation twice)",
+            lines[b],
+            None,
+        )
 
 
 def read_scans(path) -> dict[str, dict[str, float]]:
@@ -432,6 +455,19 @@ def levelling_of_network(net) -> dict:
     return out
 
 
+def write_network(
+    path, network, *, scans_path=None, architecture=None, length_unit="m", angle_unit="deg"
+) -> None:
+    """Write the target observations of ``network`` as the CSV ``tlsjax calibrate`` reads
+    (:func:`write_observations`; sigmas as used, ``architecture`` recorded in the file), and
+    with ``scans_path`` its tilt readings and headings as the scans CSV (:func:`write_scans`):
+    what ``tlsjax simulate`` writes of a simulated network."""
+    table = table_from_network(network, architecture)
+    write_observations(path, table, length_unit=length_unit, angle_unit=angle_unit)
+    if scans_path is not None:
+        write_scans(scans_path, levelling_of_network(network))
+
+
 def _check_path(value, name: str) -> None:
     if not isinstance(value, (str, os.PathLike)):
         raise TypeError(
@@ -448,9 +484,9 @@ def read_planes(path) -> ObservationTable:
     if os.path.isdir(source):
         raise ValueError(f"{source}: is a directory, not a plane file (.csv or .npz)")
     if source.lower().endswith(".npz"):
-        from ._plane_files import load_planes
+        from ._plane_files import read_extracted_planes
 
-        planes = load_planes(source)
+        planes = read_extracted_planes(source)
         if planes.planes is None:
             raise ValueError(
                 f"{source}: the planes are not matched across scans (no scan poses at extraction); "

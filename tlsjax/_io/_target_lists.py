@@ -47,7 +47,7 @@ import numpy as np
 from .._adjustment._network import ObservationTable
 from .._model._plausibility import MAX_RANGE, MIN_MEDIAN_RANGE
 from .._model._scanner import ARCHITECTURES
-from .._stats import confidence_scale
+from .._stats import ELLIPSOID_95
 from ._point_clouds import observations_from_points
 
 #: Length unit names -> factor to metres.
@@ -96,7 +96,6 @@ _ROLE_OF = {alias: role for role, names in _ROLES.items() for alias in names.spl
 #: both ``Z[m]`` and ``Height[m]``).
 #: 1-sigma semi-axes scale to the 95 % confidence ellipsoid of a 3D point by
 #: sqrt(chi2_3(0.95)) = 2.7955 (normal errors, known variance factor), rounded for the headers.
-ELLIPSOID_95 = round(confidence_scale(3), 4)
 
 _SECONDARY = {
     **dict.fromkeys("easting east e".split(), "x"),

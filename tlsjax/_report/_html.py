@@ -22,18 +22,16 @@ import io
 import math
 import os
 import platform
-import shlex
-import sys
 
 import numpy as np
 
+from .._adjustment._config import scanner_settings as scanner_settings
 from .._adjustment._quality import external_reliability_factor, minimal_detectable_bias
+from .._adjustment._text import confoundings
 from .._io._json import read_result_json
 from .._stats import DELTA0
 from .._units import ARCSEC, DISPLAY_UNITS
 from .._version import __version__
-from ._json import scanner_settings as scanner_settings
-from ._text import confoundings
 
 _GROUPS = ("range", "hz", "el")
 _GROUP_UNIT = {
@@ -58,19 +56,17 @@ def sha256_of(path, block: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
-def provenance(files=(), argv=None) -> dict:
-    """tlsjax version, command line, time (UTC), Python and platform, and the SHA-256 and size
-    of each input file."""
-    argv = sys.argv if argv is None else argv
-    inputs = []
-    for f in files:
-        if f and os.path.isfile(f):
-            inputs.append(
-                {"path": os.fspath(f), "bytes": os.path.getsize(f), "sha256": sha256_of(f)}
-            )
+def provenance(files=(), command: str | None = None) -> dict:
+    """tlsjax version, command line (None: not run from one), time (UTC), Python and
+    platform, and the SHA-256 and size of each input file (once each; missing ones left out)."""
+    inputs = [
+        {"path": os.fspath(f), "bytes": os.path.getsize(f), "sha256": sha256_of(f)}
+        for f in dict.fromkeys(f for f in files if f)
+        if os.path.isfile(f)
+    ]
     return {
         "tlsjax_version": __version__,
-        "command": " ".join(shlex.quote(a) for a in argv),
+        "command": command,
         "created_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "python": platform.python_version(),
         "platform": platform.platform(),
@@ -89,7 +85,7 @@ def _stats(a) -> dict:
 def reliability_summary(result, *, mdb=None, mask=None) -> dict:
     """Internal reliability (MDB [m, rad]) and Baarda's external reliability factor
     ``sqrt((1 - r) / r) delta0`` of the target observations, mean and max per group and per
-    scan. ``mdb``: the MDBs of :class:`~tlsjax.TestedCalibration` (default: from the a priori
+    scan. ``mdb``: the MDBs of :class:`~tlsjax.SelfCalibration` (default: from the a priori
     sigmas and the redundancy numbers); ``mask``: the observations used."""
     net = result.network
     r = np.asarray(result.redundancy, dtype=np.float64)
@@ -246,9 +242,9 @@ def _section_global(doc) -> str:
         stage = "final adjustment" + (" (after the removals)" if doc.get("outliers") else "")
         rows.append(_test_row("global (T = s0&sup2; r)", stage, g))
     head = ("test", "stage", "T or factor", "dof / r_g", "two-sided bounds", "p-value", "decision")
-    alpha = g.get("alpha", 0.05)
+    level = g.get("level", 0.05)
     out = (
-        f"<h2>Tests (&chi;&sup2;, two-sided, &alpha; = {alpha})</h2>"
+        f"<h2>Tests (&chi;&sup2;, two-sided, level &alpha; = {level})</h2>"
         "<p>In the order they ran. A group's factor is &Omega;<sub>g</sub> / r<sub>g</sub>, its "
         "statistic &Omega;<sub>g</sub> = v<sub>g</sub><sup>T</sup> P<sub>g</sub> v<sub>g</sub> "
         "against &chi;&sup2;(r<sub>g</sub>).</p>" + _table(head, rows, "tests")
@@ -304,7 +300,7 @@ def _section_aps(doc) -> str:
 
 def _section_variance(doc) -> str:
     vc = doc.get("variance_components") or {}
-    if not vc:
+    if not vc or (doc.get("vce") or {}).get("status") == "off":  # a priori factors only
         return (
             "<h2>Variance components</h2>"
             + _na("variance components", "run calibrate with --vce (target networks)")
@@ -435,7 +431,7 @@ def _section_outliers(doc) -> str:
     scr, sn = doc.get("screening") or {}, doc.get("snooping") or {}
     if scr.get("enabled"):
         parts.append(
-            f"screening before VCE (robust w, family-wise &alpha; = {_fmt(scr.get('family_alpha'), 4)}, "
+            f"screening before VCE (robust w, family-wise &alpha; = {_fmt(scr.get('family_level'), 4)}, "
             f"critical value {_fmt(scr.get('critical_value'), 2)}): {scr.get('n_removed', 0)} removal(s)"
         )
     if sn.get("enabled"):

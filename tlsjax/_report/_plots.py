@@ -58,10 +58,10 @@ def plot_residuals(
     ``-Delta_c`` as a line, so the term's signal and its fit are seen together; other panels
     show plain residuals. ``compare``: another result of the same observations (e.g. without
     APs), drawn in grey behind. ``mask`` (n, 3) bool: observations used in the adjustment
-    (e.g. ``TestedCalibration.mask``; default all); the others (removed by data snooping) are
+    (e.g. ``SelfCalibration.mask``; default all); the others (removed by data snooping) are
     drawn as red crosses. A plane network plots its points, the removed ones (weight 0 in
     ``plane_used``) as red crosses at their residuals at the final unknowns
-    (:func:`tlsjax.calibrate_and_test` fills them in). ``scanner``: the :class:`Scanner` of the calibration (architecture and unit
+    (:func:`tlsjax.self_calibrate` fills them in). ``scanner``: the :class:`Scanner` of the calibration (architecture and unit
     lengths enter some bases, e.g. B6 and A3/A4; default hybrid).
     """
     plt = _pyplot()
@@ -310,7 +310,7 @@ def plot_monte_carlo(result, path=None):
         ax.bar(range(na), [np.nan if p is None else p for p in power], color="0.5")
         ax.set_xticks(range(na))
         ax.set_xticklabels(result.ap_names, rotation=90, fontsize=7)
-        ax.set_ylabel(f"power (|t| > t_crit, alpha {result.alpha:g}) [-]")
+        ax.set_ylabel(f"power (|t| > t_crit, level {result.t_test_level:g}) [-]")
     for k in range(2, cols):
         axes[-1][k].axis("off")
     fig.tight_layout()

@@ -8,7 +8,7 @@ group with its variance factor and redundancy. In the result JSON (SI units) and
 Rows are numbered twice: ``row``, the 1-based position among the observations of the file
 (network order), and ``line``, the 1-based line of the input file that holds the observation
 (header and comment lines counted, as an editor shows it; empty where the rows came from
-arrays). The statistics are those of :func:`tlsjax.calibrate_and_test` when it ran (its
+arrays). The statistics are those of :func:`tlsjax.self_calibrate` when it ran (its
 sigmas, critical value and removals), else of the plain adjustment with its a priori sigmas:
 
 - normalised residual (Baarda's w): ``w_i = v_i / (sigma_i sqrt(r_i))`` (Baarda 1968);
@@ -32,10 +32,15 @@ from .._adjustment._quality import (
     MIN_TESTABLE_REDUNDANCY,
     external_reliability_factor,
     minimal_detectable_bias,
+    w_tests,
 )
-from .._inference._statistics import critical_value, group_variance_test, w_tests
-from .._io._target_lists import ELLIPSOID_95
-from .._stats import DELTA0, confidence_scale, non_centrality
+from .._stats import (
+    DELTA0,
+    ELLIPSOID_95,
+    confidence_scale,
+    group_variance_test,
+    normal_critical_value,
+)
 from .._units import ARCSEC, DISPLAY_UNITS
 
 GROUPS = ("range", "hz", "el")
@@ -93,15 +98,17 @@ def _target_columns(res, tested) -> dict:
     """Per-(n, 3) arrays of the target observations, before flattening."""
     net = res.network
     n = net.observations.shape[0]
+    tests = {}
     if tested is not None:
         used, sig = np.asarray(tested.mask, bool), np.asarray(tested.sigmas)
         crit = float(tested.critical_value)
         delta0 = _delta0(tested)
         ext_ap_sig = np.where(used, tested.external, np.nan)
         ext_ap = np.asarray(tested.external_ap, dtype=object)
+        tests = {"w": tested.w, "mdb": tested.mdb}  # read from the result, not recomputed
     else:
         used = np.ones((n, 3), bool) if res.used is None else np.asarray(res.used, bool)
-        sig, crit, delta0 = np.asarray(net.sigmas), critical_value(PLAIN_ALPHA), DELTA0
+        sig, crit, delta0 = np.asarray(net.sigmas), normal_critical_value(PLAIN_ALPHA), DELTA0
         ext_ap_sig, ext_ap = np.full((n, 3), np.nan), np.full((n, 3), "", dtype=object)
     return _columns(
         res.residuals,
@@ -113,18 +120,22 @@ def _target_columns(res, tested) -> dict:
         extra={"external_ap_sigmas": ext_ap_sig, "external_ap": ext_ap},
         removed=_removal_reasons(tested),
         observed=net.observations,
+        **tests,
     )
 
 
 def _delta0(tested) -> float:
-    o = tested.options
-    return float(non_centrality(o.alpha0, o.power))
+    return float(tested.options.tests.delta0)
 
 
-def _columns(v, r, sig, used, crit, delta0, *, extra, removed, observed) -> dict:
+def _columns(v, r, sig, used, crit, delta0, *, extra, removed, observed, w=None, mdb=None) -> dict:
+    """The columns of the tables; ``w`` and ``mdb``: those of a tested calibration (else the
+    w-tests and MDBs of the a priori sigmas, :mod:`tlsjax._adjustment._quality`)."""
     v, r, sig = (np.asarray(a, dtype=np.float64) for a in (v, r, sig))
-    w = np.where(used, w_tests(v, sig, r), np.nan)
-    mdb = np.where(used, minimal_detectable_bias(sig, r, delta0), np.nan)
+    if w is None:
+        w = np.where(used, w_tests(v, sig, r), np.nan)
+    if mdb is None:
+        mdb = np.where(used, minimal_detectable_bias(sig, r, delta0), np.nan)
     ext = np.where(used, external_reliability_factor(r, delta0), np.nan)
     return {
         "observed": np.asarray(observed, dtype=np.float64),
@@ -150,7 +161,7 @@ def _plane_columns(res) -> dict:
         res.plane_redundancy,
         net.plane_sigmas,
         used,
-        critical_value(PLAIN_ALPHA),
+        normal_critical_value(PLAIN_ALPHA),
         DELTA0,
         extra={
             "external_ap_sigmas": np.full((m, 3), np.nan),
@@ -199,7 +210,7 @@ def _pseudo_arrays(res, tested):
     :func:`_columns` as the target observations; None when there are none. ``primitive`` is
     the angle (omega, phi, kappa) or the AP, ``scan`` the scan (empty for an AP prior), ``line``
     that of the scan's row in the scans CSV. Each kind takes its variance group's VCE factor
-    (:func:`tlsjax.calibrate_and_test`: levelling, heading, AP priors)."""
+    (:func:`tlsjax.self_calibrate`: levelling, heading, AP priors)."""
     cons = res.weighted_constraints()
     if not cons:
         return None
@@ -218,7 +229,7 @@ def _pseudo_arrays(res, tested):
     crit, delta0 = (
         (float(tested.critical_value), _delta0(tested))
         if tested is not None
-        else (critical_value(PLAIN_ALPHA), DELTA0)
+        else (normal_critical_value(PLAIN_ALPHA), DELTA0)
     )
     p = len(cons)
     cols = _columns(
@@ -491,8 +502,8 @@ def group_csv(res, tested=None) -> str:
 def planes_csv(res) -> str:
     """Adjusted planes: normal, d [m] and their sigmas [mm for d, 1 for the normal], the tilt
     sigmas of the normal ["] and the foot point ``d n`` [m] with its 1-sigma ellipsoid
-    semi-axes [mm] (:func:`tlsjax._report._json.plane_ellipsoids`)."""
-    from ._json import plane_ellipsoids
+    semi-axes [mm] (:func:`tlsjax._adjustment._json.plane_ellipsoids`)."""
+    from .._adjustment._json import plane_ellipsoids
 
     lines = [
         "# tlsjax adjusted planes (n . X = d in the datum of the adjustment); sigmas a "
@@ -522,12 +533,13 @@ def planes_csv(res) -> str:
     return "\n".join(lines) + "\n"
 
 
-def targets_csv(res, path) -> None:
-    """The adjusted targets with sigmas and 1-sigma ellipsoid semi-axes as CSV
+def write_adjusted_targets(res, path) -> None:
+    """The adjusted targets of ``res`` (a :class:`tlsjax.CalibrationResult`) with sigmas and
+    1-sigma ellipsoid semi-axes as CSV, in the datum of the adjustment
     (:func:`tlsjax._io._target_lists.write_target_csv`; axes empty where the covariance blocks
     were not computed)."""
+    from .._adjustment._json import datum_text, target_ellipsoids, target_scan_counts
     from .._io._target_lists import write_target_csv
-    from ._json import datum_text, target_ellipsoids, target_scan_counts
 
     cov = res.target_covariance
     axes, _ = target_ellipsoids(np.full((len(res.targets), 3, 3), np.nan) if cov is None else cov)
@@ -565,7 +577,7 @@ def write_tables(res, folder, tested=None) -> list[str]:
         put("observations.csv", observation_csv(res, tested, kind="target"))
     if net.has_targets:
         path = os.path.join(os.fspath(folder), "targets.csv")
-        targets_csv(res, path)
+        write_adjusted_targets(res, path)
         written.append(path)
     if net.has_planes:
         put("plane_points.csv", observation_csv(res, kind="plane"))

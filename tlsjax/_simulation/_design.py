@@ -48,8 +48,9 @@ from ._truth import SimulationTruth
 
 
 @dataclasses.dataclass(frozen=True)
-class DesignPlane:
-    """An infinite plane through ``point`` with normal ``normal`` [m], clipped to the room."""
+class RoomPlane:
+    """A plane of a :class:`NetworkDesign`'s room: the infinite plane through ``point`` with
+    normal ``normal`` [m], clipped to the room."""
 
     normal: tuple
     point: tuple
@@ -59,10 +60,10 @@ class DesignPlane:
         p = np.asarray(self.point, dtype=np.float64)
         if n.shape != (3,) or p.shape != (3,) or not np.all(np.isfinite(np.r_[n, p])):
             raise ValueError(
-                f"DesignPlane needs a finite normal and point (3 coordinates each), got {self.normal!r}, {self.point!r}"
+                f"RoomPlane needs a finite normal and point (3 coordinates each), got {self.normal!r}, {self.point!r}"
             )
         if np.linalg.norm(n) < 1e-9:
-            raise ValueError("DesignPlane normal must not be zero")
+            raise ValueError("RoomPlane normal must not be zero")
         object.__setattr__(self, "normal", tuple(float(c) for c in n / np.linalg.norm(n)))
         object.__setattr__(self, "point", tuple(float(c) for c in p))
 
@@ -77,7 +78,7 @@ class NetworkDesign:
     ``n_free_targets`` free-standing inside the room (seen from every side);
     ``common_targets``: only targets that every scan sees (the papers' design).
     ``faces_as_planes``: the six faces are observed as planes; ``planes``: further planes
-    (:class:`DesignPlane`, clipped to the room, or :class:`~tlsjax.Board`), always observed.
+    (:class:`RoomPlane`, clipped to the room, or :class:`~tlsjax.Board`), always observed.
     ``levelling``: scans with omega = phi = 0 carry compensator observations.
     ``noise_scale`` x the nominal sigmas is the noise drawn (0: noise-free);
     ``sigma_scale`` x the nominal sigmas are the network's a priori sigmas.
@@ -124,8 +125,8 @@ class NetworkDesign:
                 raise ValueError(f"scan {j + 1}: station {tuple(s[:3])} is outside the room {room}")
         object.__setattr__(self, "scans", tuple(tuple(s) for s in scans))
         for p in self.planes:
-            if not isinstance(p, DesignPlane | Board):
-                raise ValueError(f"planes must be DesignPlane or Board, got {type(p).__name__}")
+            if not isinstance(p, RoomPlane | Board):
+                raise ValueError(f"planes must be RoomPlane or Board, got {type(p).__name__}")
         object.__setattr__(self, "planes", tuple(self.planes))
         if self.architecture not in ARCHITECTURES:
             raise ValueError(f"architecture {self.architecture!r} is not one of {ARCHITECTURES}")
@@ -223,7 +224,7 @@ def _parallelogram(o, eu, ev, n):
     return v if np.cross(eu, ev) @ n > 0 else v[::-1]
 
 
-def _clip_to_box(plane: DesignPlane, size):
+def _clip_to_box(plane: RoomPlane, size):
     """The convex polygon where an infinite plane meets the box [0, size]: the plane's
     crossings of the 12 edges, ordered by angle about the normal."""
     n, p = np.asarray(plane.normal), np.asarray(plane.point)

@@ -53,7 +53,7 @@ from .._model._aps import ap_corrections, on_reregistration
 from .._model._levelling import compensator_reading
 from .._model._points import FIXED_POINT_ITERATIONS, distorted_observations
 from .._stats import t_critical_value
-from .._summary import SummaryText, finite_or_none
+from .._summary import Settings, to_json_value
 from .._units import display_unit
 from ._batch import auto_chunk, compile_batched, device_key, round_chunk, run_batched
 from ._design import NetworkDesign, simulate_design
@@ -61,7 +61,7 @@ from ._truth import SimulationTruth
 
 
 @dataclasses.dataclass(frozen=True)
-class MonteCarloOptions:
+class MonteCarloOptions(Settings):
     """Settings of :func:`monte_carlo`.
 
     ``runs``: number of realisations N. ``chunk_size``: realisations per compiled call
@@ -71,8 +71,8 @@ class MonteCarloOptions:
     {AP name: sigma [SI]}; each realisation's true AP is then drawn ``N(true, sigma^2)`` (for
     every instrument that has the term). ``max_iterations``, ``tolerance``: those of
     :class:`tlsjax.SolverOptions` (the same convergence test as :func:`tlsjax.calibrate`: the
-    largest Gauss-Newton update below ``tolerance`` a posteriori sigmas). ``alpha``: two-sided
-    significance level of the AP t test (power). ``progress``: tqdm bar.
+    largest Gauss-Newton update below ``tolerance`` a posteriori sigmas). ``t_test_level``:
+    two-sided level of the AP t-test whose power is reported. ``progress``: tqdm bar.
     """
 
     runs: int = 1000
@@ -81,7 +81,7 @@ class MonteCarloOptions:
     ap_sigma: Mapping[str, float] | None = None
     max_iterations: int = 10
     tolerance: float = 1e-6
-    alpha: float = 0.05
+    t_test_level: float = 0.05
     progress: bool = True
 
     def __post_init__(self):
@@ -95,8 +95,10 @@ class MonteCarloOptions:
             )
         if not (self.tolerance > 0):
             raise ValueError(f"MonteCarloOptions.tolerance must be positive, got {self.tolerance}")
-        if not (0 < self.alpha < 1):
-            raise ValueError(f"MonteCarloOptions.alpha must be in (0, 1), got {self.alpha}")
+        if not (0 < self.t_test_level < 1):
+            raise ValueError(
+                f"MonteCarloOptions.t_test_level must be in (0, 1), got {self.t_test_level}"
+            )
 
     def solver(self) -> SolverOptions:
         return SolverOptions(
@@ -471,7 +473,7 @@ class MonteCarloResult:
     iterations: np.ndarray
     result: np.ndarray
     dof: int
-    alpha: float
+    t_test_level: float
     seed: int
     chunk_size: int
     n_devices: int
@@ -498,7 +500,7 @@ class MonteCarloResult:
         n = int(ok.sum())
         v = self.ap_values[ok]
         s = self.ap_sigmas[ok]
-        t_crit = t_critical_value(self.alpha, self.dof)
+        t_crit = t_critical_value(self.t_test_level, self.dof)
         out = {
             "runs": self.runs,
             "successful": n,
@@ -530,17 +532,16 @@ class MonteCarloResult:
         per AP in ``aps``: ``unit``, ``truth_mean``, ``mean``, ``bias``, ``empirical_sigma``,
         ``formal_sigma`` (SI units), ``ratio`` (empirical / formal; its own sampling sigma is
         about ``1/sqrt(2 (N - 1))``) and ``power`` (share of realisations with
-        ``|t| > t_crit`` at ``alpha``). Lichti (2008)."""
-        return finite_or_none(self._statistics())
+        ``|t| > t_crit`` at ``t_test_level``). Lichti (2008)."""
+        return to_json_value(self._statistics())
 
     def summary(self) -> str:
-        """Text: a header line and :meth:`table`. (Indexing it like the dict of earlier
-        releases still works for one release, with a DeprecationWarning: use :meth:`to_dict`.)"""
+        """Text: a header line and :meth:`table`."""
         head = (
-            f"Monte Carlo of {self.runs} realisations (seed {self.seed}, alpha {self.alpha:g}); "
+            f"Monte Carlo of {self.runs} realisations (seed {self.seed}, t-test level {self.t_test_level:g}); "
             f"compile {self.compile_s:.1f} s, run {self.run_s:.2f} s"
         )
-        return SummaryText(head + "\n" + self.table(), self._statistics())
+        return head + "\n" + self.table()
 
     def table(self) -> str:
         """Text table of the empirical precision per AP in mm, arc seconds and ppm."""
@@ -618,7 +619,7 @@ def monte_carlo(
         iterations=res["iterations"],
         result=res["result"],
         dof=int(round(float(np.median(dof)))),
-        alpha=float(options.alpha),
+        t_test_level=float(options.t_test_level),
         seed=int(options.seed),
         chunk_size=chunk,
         n_devices=jax.device_count(),

@@ -311,13 +311,13 @@ class CloudDesign:
         :class:`Board` s, scanner, APs and true APs, sigmas, levelling, field of view and
         largest incidence; noise on when ``noise_scale`` > 0. ``cloud_settings``: the fields
         of the scanning itself (``angular_step``, targets, intensity, ...). The design's
-        infinite planes (:class:`~tlsjax.DesignPlane`) and its targets have no point-cloud
+        infinite planes (:class:`~tlsjax.RoomPlane`) and its targets have no point-cloud
         counterpart and are refused; a ``noise_scale`` or ``sigma_scale`` other than 1 (or 0)
         too (the clouds draw the nominal noise)."""
         if any(not isinstance(p, Board) for p in design.planes) or design.n_free_targets:
             raise ValueError(
                 "CloudDesign.from_design: only Board planes have a point-cloud counterpart "
-                "(no DesignPlane, no free-standing targets)"
+                "(no RoomPlane, no free-standing targets)"
             )
         settings = dict(
             room=Room.from_design(design, n_targets=max(design.n_targets, 12)),

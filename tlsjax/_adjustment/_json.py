@@ -1,18 +1,18 @@
-"""The result JSON of SPEC section 11: SI units, strict JSON (undefined values are null),
-written atomically (:mod:`tlsjax._io._json`)."""
+"""The JSON of a calibration (:meth:`tlsjax.CalibrationResult.to_dict`, SPEC section 11): SI
+units, strict JSON (undefined values are null)."""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 
 import numpy as np
 
-from .._inference._statistics import ap_notes, global_test
-from .._io._json import to_json_value, write_json_file
-from .._io._target_lists import ELLIPSOID_95
 from .._model._aps import get_ap
-from .._stats import confidence_scale
+from .._stats import ELLIPSOID_95, confidence_scale, global_test
+from .._summary import to_json_value
+from ._ap_tests import ap_notes
+from ._config import scanner_settings
+from ._redundancy import redundancy_summary
 from ._text import EOP_NAMES, confoundings
 
 #: Result codes whose estimates are numbers (converged, possibly with non-estimable APs held).
@@ -25,25 +25,6 @@ def _num(x):
         return None
     x = float(x)
     return x if math.isfinite(x) else None
-
-
-def scanner_settings(scanner) -> dict:
-    """Architecture, unit lengths and AP names of one :class:`~tlsjax.Scanner`, or of each
-    instrument (``{"instruments": {name: settings}}``) for a mapping: what applying the APs
-    needs (``tlsjax correct``, :meth:`tlsjax.Calibration.from_json`)."""
-    if isinstance(scanner, Mapping):
-        per = {str(k): scanner_settings(v) for k, v in scanner.items()}
-        archs = {d["architecture"] for d in per.values()}
-        out = {"instruments": per}
-        if len(archs) == 1:
-            out["architecture"] = archs.pop()
-        return out
-    return {
-        "architecture": scanner.architecture,
-        "unit_length": scanner.unit_length,
-        "unit_length_2": scanner.unit_length_2,
-        "aps": list(scanner.aps),
-    }
 
 
 def principal_axes(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -290,8 +271,8 @@ def _result_dict(res, alpha: float) -> dict:
         "ap_covariance_names": list(res.ap_names),
         "ap_covariance": None if cov is None else [[_num(v) for v in row] for row in cov],
         "eops": eops,
-        "redundancy": res.redundancy_summary(),
-        # Filled by calibrate_and_test (data snooping, VCE); a plain calibration has neither.
+        "redundancy": redundancy_summary(res),
+        # Filled by self_calibrate (data snooping, VCE); a plain calibration has neither.
         "outliers": [],
         "variance_components": {},
         "not_estimable": [
@@ -380,13 +361,3 @@ _PLANE_PRECISION = (
 def _plane_precision(e: dict, k: int) -> dict:
     """The JSON fields of plane ``k`` from :func:`plane_ellipsoids` (null where undefined)."""
     return {key: to_json_value(np.asarray(e[src][k]).tolist()) for key, src in _PLANE_PRECISION}
-
-
-def write_json(res, path, *, extra: dict | None = None, **kw) -> dict:
-    """Write :func:`result_to_dict` (updated with ``extra``, e.g. the ``outliers`` and
-    ``variance_components`` of :func:`tlsjax.calibrate_and_test`) as strict JSON (NaN and
-    infinities are null), atomically: the file is complete or not written. A path that cannot
-    be written is a one-line ValueError naming it."""
-    d = result_to_dict(res, **kw)
-    d.update(extra or {})
-    return write_json_file(path, d)

@@ -1,16 +1,17 @@
-"""Statistical testing of a self-calibration (SPEC sections 5 and 7): the entry point
-:func:`calibrate_and_test` and the result it assembles from the pipeline's final state.
+"""The run of the pipeline of :func:`tlsjax.self_calibrate` (SPEC sections 5 and 7) and the
+outcome it assembles from the pipeline's final state.
 
 The parts live in their own modules:
 
-* :mod:`._tested`: the settings (:class:`TestingOptions`) and the result types
-  (:class:`TestedCalibration`, :class:`VCEResult`, :class:`Removal`, :class:`VarianceComponent`);
-* :mod:`._statistics`: the statistics, pure functions (global and group tests, w-tests and their
-  critical values, robust scales, variance factors, reliability, AP t-tests);
+* :mod:`._options`: the settings, one object per concern (:class:`._options.CalibrationOptions`);
+* :mod:`._outcome`: what the run finds (:class:`._outcome.TestedCalibration`,
+  :class:`._outcome.VCEResult`, :class:`._outcome.Removal`, :class:`._outcome.VarianceComponent`);
+* the statistics, pure functions: :mod:`tlsjax._stats` (distributions, critical values, global
+  and group tests, robust scales), :mod:`tlsjax._adjustment._quality` (w-tests, MDB, external
+  reliability), :mod:`tlsjax._adjustment._ap_tests`, :mod:`._variance_factors`;
 * :mod:`._pipeline`: the explicit state of a run (:class:`._pipeline.TestingState`), what stays
   fixed (:class:`._pipeline.TestingContext`) and the transitions the steps share;
-* :mod:`._steps`: the named steps and their order, :data:`._steps.PIPELINE` (robust start, a
-  priori tests, screening, variance components, data snooping, selection).
+* :mod:`._steps`: the named steps and their order, :data:`._steps.PIPELINE`.
 
 Units: SI inside, millimetres and arc seconds in the reports.
 """
@@ -19,12 +20,18 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax.numpy as jnp
 import numpy as np
 
-from .._adjustment._config import CalibrationModel, SolverOptions
-from .._adjustment._network import Network, check_calibration_arguments
-from .._adjustment._quality import minimal_detectable_bias
-from .._stats import non_centrality
+from .._adjustment._ap_tests import ap_t_tests
+from .._adjustment._config import CalibrationModel
+from .._adjustment._families import Params
+from .._adjustment._network import Network
+from .._adjustment._plan import initial_params
+from .._adjustment._quality import external_reliability, minimal_detectable_bias, w_tests
+from .._stats import snooping_critical_value
+from ._options import CalibrationOptions, SnoopingOptions
+from ._outcome import GROUPS, TestedCalibration, VarianceComponent, VCEResult
 from ._pipeline import (
     TestingContext,
     TestingState,
@@ -35,82 +42,38 @@ from ._pipeline import (
     run_pipeline,
     sigmas,
 )
-from ._statistics import (
-    ap_t_tests,
-    external_reliability,
-    implausible_factor,
-    snooping_critical_value,
-    w_tests,
-)
+from ._score import ScoreTester, ScoreTests
 from ._steps import PIPELINE
-from ._tested import GROUPS, TestedCalibration, TestingOptions, VarianceComponent, VCEResult
-
-__all__ = ["TestedCalibration", "TestingOptions", "VCEResult", "calibrate_and_test"]
+from ._variance_factors import implausible_factor
 
 
-def calibrate_and_test(
-    network: Network,
-    model: CalibrationModel | None = None,
-    options: SolverOptions | None = None,
-    testing: TestingOptions | None = None,
+def run_tests(
+    network: Network, model: CalibrationModel, options: CalibrationOptions, steps=PIPELINE
 ) -> TestedCalibration:
-    """Self-calibration with a priori tests, gross-error screening, variance component
-    estimation, Baarda data snooping, reliability and AP t-tests (SPEC sections 5 and 7).
-
-    Order (:data:`tlsjax._inference._steps.PIPELINE`): with ``testing.screening`` (any
-    weighting) a robust start removes gross errors before the first least-squares adjustment
-    (IGG-III reweighting from the misclosures at the approximate values); adjust with the a
-    priori sigmas and test them (global test and one test per group); screen out gross errors
-    (robust group scales, family-wise level; a removal is weighed against the score tests of the
-    missing terms); with ``testing.vce`` re-estimate the group variance factors
-    ``s_g^2 = v_g^T P_g v_g / r_g`` (Förstner 1979) until all are 1 within ``vce_tolerance``,
-    or until a safeguard stops it with a :class:`VCEResult` and its reason; with
-    ``testing.snooping`` compute ``w_i = v_i / (sigma_i sqrt(r_i))`` (Baarda 1968), give the
-    largest ``|w_i|`` above the critical value weight 0 (or, with ``removal="target"``, the
-    target's three observations in that scan), re-estimate the variance components and
-    repeat. A target left with observations in fewer than two scans (or fewer than four
-    observations) can no longer be checked: its remaining observations are removed too, it is
-    held at its last estimate by a weak pseudo-observation (no rank defect, no effect on the
-    rest), and this is reported. Weights are traced arrays of the compiled adjustment: nothing
-    recompiles.
-
-    Plane points (plane-based and combined networks) are tested by the same rules, one
-    Gauss-Helmert condition per point (:func:`._statistics.condition_w_tests`): screening with
-    the plane group's own robust scale and the same family-wise critical value (over targets'
-    observations and plane points together), snooping against the same critical value, a
-    rejected point removed as a whole (weight 0 for its three observations) and reported with
-    its range residual; a plane keeps at least three points in every scan. Plane weights are
-    held fixed (no variance component, SPEC section 5); a network of planes only has no VCE.
-    Last, with ``testing.score_tests``, the score test of every candidate term not in the
-    model (:func:`tlsjax.score_tests`).
-    """
-    check_calibration_arguments(network, model, options, "calibrate_and_test")
-    if testing is not None and not isinstance(testing, TestingOptions):
-        raise TypeError(
-            f"calibrate_and_test: testing must be a TestingOptions or None, got {type(testing).__name__}"
-        )
-    model = model or CalibrationModel()
-    options = options or SolverOptions(full_covariance=False)
-    testing = testing or TestingOptions()
-    ctx = TestingContext.make(network, model, options, testing)
+    """Run ``steps`` (default the whole :data:`._steps.PIPELINE`) on ``network`` with
+    ``model`` and ``options`` (checked by the caller) and assemble what they found. Every
+    re-adjustment is the one compiled adjustment of the model with other weights: nothing
+    recompiles, except once for a model that selection chose."""
+    ctx = TestingContext.make(network, model, options)
+    snooping = options.snooping or SnoopingOptions()
     crit = snooping_critical_value(
-        testing.alpha,
+        snooping.w_test_level,
         int(network.observations.size) + int(network.plane_observations.shape[0]),
-        bonferroni=testing.bonferroni,
-        given=testing.critical_value,
+        bonferroni=snooping.bonferroni,
+        given=snooping.critical_value,
     )
-    state = run_pipeline(ctx, TestingState.initial(ctx, crit), PIPELINE)
-    return tested_calibration(ctx, state)
+    state = run_pipeline(ctx, TestingState.initial(ctx, crit), steps)
+    return tested_calibration(ctx.for_state(state), state)
 
 
 def tested_calibration(ctx: TestingContext, state: TestingState) -> TestedCalibration:
     """Final quantities at the last adjustment: w-tests, reliability, variance components,
     warnings and the message."""
-    t, res, mask = ctx.options, state.result, state.mask
+    t, res, mask = ctx.options.tests, state.result, state.mask
     vce_result = state.vce_result
     if ctx.vce and not state.ok and vce_result == VCEResult.CONVERGED:
         vce_result = VCEResult.ADJUSTMENT_FAILED
-    delta0 = non_centrality(t.alpha0, t.power)
+    delta0 = t.delta0
     sig = sigmas(ctx, state)
     w = np.where(mask, w_tests(res.residuals, sig, res.redundancy), np.nan)
     mdb = np.where(mask, minimal_detectable_bias(sig, res.redundancy, delta0), np.nan)
@@ -142,7 +105,8 @@ def tested_calibration(ctx: TestingContext, state: TestingState) -> TestedCalibr
         res = dataclasses.replace(res, plane_residuals=planes.pop("residuals"))
     return TestedCalibration(
         calibration=res,
-        options=t,
+        model=ctx.model,
+        options=ctx.options,
         outliers=state.removals,
         variance_components=tuple(vcs),
         mask=mask,
@@ -153,7 +117,7 @@ def tested_calibration(ctx: TestingContext, state: TestingState) -> TestedCalibr
         external=ext,
         external_ap=ext_ap,
         uncontrolled=unc,
-        ap_tests=ap_t_tests(res, t.ap_alpha) if res.ok else (),
+        ap_tests=ap_t_tests(res, t.ap_test_level) if res.ok else (),
         pinned_targets=tuple(ctx.network.targets[i] for i in state.pinned),
         history=state.history,
         n_adjustments=state.n_adjustments,
@@ -164,6 +128,8 @@ def tested_calibration(ctx: TestingContext, state: TestingState) -> TestedCalibr
         screening_critical_value=state.screening_critical_value,
         warnings=warnings,
         score_tests=state.score_tests,
+        selection=state.selection,
+        plane_screening=state.plane_screening,
         **planes,
     )
 
@@ -237,3 +203,27 @@ def _factor_warnings(state: TestingState, vcs, vce_result: VCEResult) -> tuple:
         if text and vce_result != VCEResult.NOISE_FREE:
             out.append(text)
     return tuple(out)
+
+
+def score_tests(
+    network: Network,
+    model: CalibrationModel | None,
+    result,
+    options: CalibrationOptions | None = None,
+) -> ScoreTests:
+    """Score tests of the terms missing from ``model`` at ``result`` (a
+    :class:`tlsjax.CalibrationResult` of ``network`` with the network's weights): the
+    missing-terms step of :func:`tlsjax.self_calibrate` on a result of one's own. From
+    ``options``: the candidates and the family-wise level (``options.tests``: default every
+    registered term of the model's naming at 5 %) and the solver. See :mod:`._score`."""
+    if network.has_planes:
+        raise ValueError(
+            f"{network.source}: score tests of missing terms are for target networks (the plane "
+            "conditions are not tested yet)"
+        )
+    model = model or CalibrationModel()
+    options = options or CalibrationOptions()
+    tester = ScoreTester(network, model, options.tests.candidates, options.solver)
+    p = initial_params(network, tester.adjustment.plan, result.target_xyz, result.eops)
+    narrow = Params(p.prims, p.eops, jnp.asarray(result.ap_values))
+    return tester(narrow, alpha=options.tests.score_test_level)

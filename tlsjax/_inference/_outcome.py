@@ -1,8 +1,11 @@
-"""The settings and the result of :func:`tlsjax.calibrate_and_test` (SPEC sections 5 and 7):
-:class:`TestingOptions`, :class:`VCEResult` (how variance component estimation ended, with its
-message), :class:`Removal`, :class:`VarianceComponent` and :class:`TestedCalibration`.
+"""What the pipeline of :func:`tlsjax.self_calibrate` finds (SPEC sections 5 and 7):
+:class:`VCEResult` (how variance component estimation ended, with its message),
+:class:`Removal`, :class:`VarianceComponent` and :class:`TestedCalibration`, the outcome that
+the public :class:`tlsjax.SelfCalibration` extends with its text and JSON.
 
-The statistics are in :mod:`._statistics`, the steps that produce these in :mod:`._steps`.
+The settings are in :mod:`._options`, the statistics in :mod:`tlsjax._stats` and
+:mod:`tlsjax._adjustment._quality`, the steps that
+produce these in :mod:`._steps`.
 """
 
 from __future__ import annotations
@@ -12,100 +15,16 @@ import enum
 
 import numpy as np
 
+from .._adjustment._config import CalibrationModel
 from .._adjustment._result import CalibrationResult
-from .._stats import ALPHA0, POWER, non_centrality
+from .._summary import to_json_value
 from .._units import ARCSEC
-from ._statistics import critical_value
+from ._options import CalibrationOptions
 
-#: Variance-component groups: the three observation groups and the levelling readings.
 #: Variance groups (VCE, group tests): the three components of the target observations, then
 #: the weighted constraints with observed values (eq. 7 of Chow et al. 2013, SPEC section 6):
 #: tilt readings, observed headings (kappa) and AP priors, each its own group.
 GROUPS = ("range", "hz", "el", "levelling", "heading", "ap_prior")
-#: What one rejection removes: one scalar observation, or the target's three in that scan.
-REMOVAL_UNITS = ("observation", "target")
-
-
-@dataclasses.dataclass(frozen=True)
-class TestingOptions:
-    """Settings of :func:`calibrate_and_test`.
-
-    ``vce``: estimate one variance factor per group (point-based networks). ``vce_tolerance``:
-    stop when every ``|s_g^2 - 1|`` is below it; ``vce_min_redundancy``: a group with a smaller
-    redundancy keeps its a priori sigma (its estimate would be mostly noise).
-    ``robust_start``: before the least-squares steps, iteratively reweighted adjustments with a
-    redescending weight (:func:`tlsjax._inference._steps.robust_start`) find and remove gross
-    errors (metres, swapped names, a target in the wrong scan) that a first least-squares
-    adjustment would spread over correct observations; on whenever ``screening`` is.
-    ``screening``: remove gross errors before VCE and snooping, for any weighting (robust group scales,
-    family-wise level ``screening_alpha``, Bonferroni over the tested observations: a clean
-    network loses an observation with probability ``screening_alpha``); it stops when more than
-    ``screening_max_share`` of the observations would go (then the model, not a few blunders,
-    is wrong, and the run says so).
-    ``snooping``: Baarda data snooping; ``alpha``: per-test significance level (0.001 -> 3.29),
-    or ``critical_value`` directly; ``bonferroni``: divide alpha by the number of tested
-    observations (family-wise level: no clean observation removed with probability 1 - alpha).
-    The per-test default 3.29 (SPEC section 7) rejects about 0.1 % of clean observations, i.e.
-    about two per 2,000-observation network (measured: 63 false removals in 30 networks of 2,160
-    observations, benchmarks/stats_rates.py); ``bonferroni=True, alpha=0.05`` (k = 4.23 there)
-    removed none while finding all 150 injected 20-sigma blunders.
-    ``removal``: "observation" (one scalar observation) or "target" (all three observations of
-    the target in that scan). ``alpha0``, ``power``: reliability (delta0 = 4.13).
-    ``min_redundancy``: observations with a smaller redundancy number are flagged uncontrolled.
-    ``ap_alpha``: significance level of the AP t-tests; ``test_alpha``: level of the global and
-    group tests. ``score_tests``: after the last adjustment, the score test of every candidate
-    term not in the model (``candidates``, default every registered term of the model's naming;
-    :mod:`._score`), family-wise level ``score_alpha``; screening compares them with the
-    largest w-test (SPEC section 7) so that a systematic misfit is named, not removed.
-    """
-
-    vce: bool = True
-    vce_tolerance: float = 1e-3
-    vce_max_iterations: int = 30
-    vce_min_redundancy: float = 3.0
-    screening: bool = True
-    screening_alpha: float = 0.001
-    screening_max_share: float = 0.05
-    snooping: bool = True
-    alpha: float = 0.001
-    critical_value: float | None = None
-    bonferroni: bool = False
-    removal: str = "observation"
-    max_removals: int = 100
-    alpha0: float = ALPHA0
-    power: float = POWER
-    min_redundancy: float = 0.1
-    ap_alpha: float = 0.05
-    test_alpha: float = 0.05
-    robust_start: bool = True
-    score_tests: bool = True
-    score_alpha: float = 0.05
-    candidates: tuple | None = None
-
-    def __post_init__(self):
-        if self.removal not in REMOVAL_UNITS:
-            raise ValueError(f"removal must be one of {REMOVAL_UNITS}, got {self.removal!r}")
-        for name in ("alpha", "screening_alpha", "test_alpha", "score_alpha"):
-            if not 0 < getattr(self, name) < 1:
-                raise ValueError(f"{name} must be in (0, 1), got {getattr(self, name)}")
-        if self.critical_value is not None and not self.critical_value > 0:
-            raise ValueError(f"critical_value must be positive, got {self.critical_value}")
-        if not self.vce_tolerance > 0:
-            raise ValueError(f"vce_tolerance must be positive, got {self.vce_tolerance}")
-        if self.vce_max_iterations < 1:
-            raise ValueError(f"vce_max_iterations must be >= 1, got {self.vce_max_iterations}")
-        if not self.vce_min_redundancy > 0:
-            raise ValueError(f"vce_min_redundancy must be positive, got {self.vce_min_redundancy}")
-        if not 0 < self.screening_max_share <= 1:
-            raise ValueError(
-                f"screening_max_share must be in (0, 1], got {self.screening_max_share}"
-            )
-        if self.max_removals < 0:
-            raise ValueError(f"max_removals must be >= 0, got {self.max_removals}")
-        if not 0 <= self.min_redundancy < 1:
-            raise ValueError(f"min_redundancy must be in [0, 1), got {self.min_redundancy}")
-        non_centrality(self.alpha0, self.power)
-        critical_value(self.ap_alpha)
 
 
 class VCEResult(enum.IntEnum):
@@ -173,9 +92,6 @@ class Removal:
     w: float
     reason: str
 
-    def as_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
 
 @dataclasses.dataclass(frozen=True)
 class VarianceComponent:
@@ -193,38 +109,41 @@ class VarianceComponent:
     sigma: float  # median re-estimated sigma [m or rad]
     note: str = ""
 
-    def as_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class TestedCalibration:
-    """Result of :func:`calibrate_and_test`. Arrays are in network row order, (n, 3).
+    """What the pipeline of :func:`tlsjax.self_calibrate` found (the fields of
+    :class:`tlsjax.SelfCalibration`). Arrays are in network row order, (n, 3).
 
     ``calibration``: the final adjustment (removed observations have weight 0, residual
-    reported, redundancy 0). ``mask``: True where an observation is used. ``sigmas``: the
-    sigmas of the final adjustment (a priori times the VCE factor). ``w``: w-test statistics
-    (NaN where removed or untestable); ``mdb``: minimal detectable bias [m, rad];
-    ``external``: largest AP change caused by an MDB-sized error, in AP sigmas, with
-    ``external_ap`` naming that AP; ``uncontrolled``: (row, group) pairs with redundancy
-    below ``min_redundancy``. ``history``: one line per adjustment (sigma0, factors, removals).
-    ``a_priori_tests``: the global test and the group tests with the a priori sigmas, for all
-    observations and (when screening removed some) after screening: the honest tests of the
-    stochastic model. ``vce_result`` (:class:`VCEResult`) says how VCE ended and
-    ``vce_iterations`` counts its re-weighted adjustments; ``warnings``
-    name implausible variance factors (with a suspected unit mix-up) and other findings.
-    ``ok``: the adjustment succeeded and VCE ended in a usable state.
+    reported, redundancy 0); ``model``: its model (after selection: the chosen APs);
+    ``options``: the settings of the run. ``mask``: True where an observation is used.
+    ``sigmas``: the sigmas of the final adjustment (a priori times the VCE factor). ``w``:
+    w-test statistics (NaN where removed or untestable); ``mdb``: minimal detectable bias [m,
+    rad]; ``external``: largest AP change caused by an MDB-sized error, in AP sigmas, with
+    ``external_ap`` naming that AP; ``uncontrolled``: (row, group) pairs with redundancy below
+    ``tests.min_redundancy``. ``history``: one line per adjustment (sigma0, factors,
+    removals). ``a_priori_tests``: the global test and the group tests with the a priori
+    sigmas, for all observations and after screening and selection where they changed the
+    observations or the model: the honest tests of the stochastic model. ``vce_result``
+    (:class:`VCEResult`) says how VCE ended and ``vce_iterations`` counts its re-weighted
+    adjustments; ``warnings`` name implausible variance factors (with a suspected unit
+    mix-up) and other findings. ``selection`` (:class:`tlsjax.SelectionResult`),
+    ``plane_screening`` (:class:`tlsjax.PlaneScreening`) and ``score_tests``
+    (:class:`tlsjax.ScoreTests`): what those steps found (None where they did not run).
 
     With planes (None without), per plane point in the network's plane row order: ``plane_mask``
     (m,) True where used, ``plane_w`` (m,) the w-test of its condition, ``plane_mdb`` (m, 3) the
     minimal detectable bias of each of its observations [m, rad], ``plane_external`` (m,) and
-    ``plane_external_ap`` as ``external``; removed points are in ``outliers`` with group
-    ``plane`` (``target`` names the plane, ``row`` the plane row) and their residuals in
-    ``calibration.plane_residuals`` are those at the final unknowns (not 0).
+    ``plane_external_ap`` as ``external``; points removed by screening or snooping are in
+    ``outliers`` with group ``plane`` (``target`` names the plane, ``row`` the plane row), and
+    the residuals of every removed point in ``calibration.plane_residuals`` are those at the
+    final unknowns (not 0).
     """
 
     calibration: CalibrationResult
-    options: TestingOptions
+    model: CalibrationModel
+    options: CalibrationOptions
     outliers: tuple
     variance_components: tuple
     mask: np.ndarray
@@ -250,11 +169,9 @@ class TestedCalibration:
     plane_mdb: np.ndarray | None = None
     plane_external: np.ndarray | None = None
     plane_external_ap: np.ndarray | None = None
-    score_tests: object = None  # ._score.ScoreTests, or None (off, failed or several scanners)
-
-    @property
-    def ok(self) -> bool:
-        return bool(self.calibration.ok and self.vce_result.ok)
+    score_tests: object = None  # ._score.ScoreTests, or None (off, failed or planes)
+    selection: object = None  # ._selection.SelectionResult, or None (no selection)
+    plane_screening: object = None  # ._robust.PlaneScreening, or None (no IGG-III)
 
     @property
     def weights_fitted(self) -> bool:
@@ -262,20 +179,19 @@ class TestedCalibration:
         sigma0 of the final adjustment is no test of the a priori sigmas."""
         return any(vc.factor != 1.0 for vc in self.variance_components)
 
-    def outliers_json(self) -> list:
-        return [_finite_or_none(o.as_dict()) for o in self.outliers]
-
-    def variance_components_json(self) -> dict:
-        return {vc.group: _finite_or_none(vc.as_dict()) for vc in self.variance_components}
-
-    def json_fields(self) -> dict:
-        """The result-JSON contract's ``outliers`` and ``variance_components`` (SPEC section 11),
-        plus the testing settings, the a priori tests and how VCE ended; NaN becomes null
+    def testing_fields(self) -> dict:
+        """The result JSON's ``outliers`` and ``variance_components`` (SPEC section 11), how
+        screening, VCE and snooping went, the a priori tests, the AP t-tests, the warnings, and
+        what the selection, the plane screening and the score tests found; NaN becomes null
         (strict JSON). With VCE, ``global_test`` is the a priori test (before VCE, after
         screening): the test after VCE is not a test and is reported as such."""
+        o = self.options
+        screening, snooping = o.screening, o.snooping
         out = {
-            "outliers": self.outliers_json(),
-            "variance_components": self.variance_components_json(),
+            "outliers": [to_json_value(dataclasses.asdict(r)) for r in self.outliers],
+            "variance_components": {
+                vc.group: to_json_value(dataclasses.asdict(vc)) for vc in self.variance_components
+            },
             "vce": {
                 "result": int(self.vce_result),
                 "status": self.vce_result.name.lower(),
@@ -284,47 +200,56 @@ class TestedCalibration:
             },
             "a_priori_tests": list(self.a_priori_tests),
             "screening": {
-                "enabled": bool(self.options.screening),
-                "robust_start": bool(self.options.screening and self.options.robust_start),
+                "enabled": screening is not None,
+                "robust_start": screening is not None and screening.robust_start,
                 "n_removed_robust_start": sum(
-                    o.reason.startswith("robust start") for o in self.outliers
+                    r.reason.startswith("robust start") for r in self.outliers
                 ),
                 "critical_value": self.screening_critical_value,
-                "family_alpha": self.options.screening_alpha,
-                "n_removed": sum(o.reason.startswith("screening") for o in self.outliers),
+                "family_level": None if screening is None else screening.family_level,
+                "n_removed": sum(r.reason.startswith("screening") for r in self.outliers),
             },
             "snooping": {
-                "enabled": self.options.snooping,
+                "enabled": snooping is not None,
                 "critical_value": self.critical_value,
-                "removal": self.options.removal,
-                "alpha": self.options.alpha,
-                "bonferroni": self.options.bonferroni,
+                "removal": o.removal,
+                "w_test_level": o.w_test_level,
+                "bonferroni": snooping is not None and snooping.bonferroni,
                 "n_removed": len(self.outliers),
                 "pinned_targets": list(self.pinned_targets),
                 "n_uncontrolled": len(self.uncontrolled),
                 "n_adjustments": self.n_adjustments,
             },
-            "ap_tests": [_finite_or_none(dataclasses.asdict(t)) for t in self.ap_tests],
+            "ap_tests": [to_json_value(dataclasses.asdict(t)) for t in self.ap_tests],
             "warnings": list(self.warnings),
             "testing_message": self.message,
         }
-        if self.score_tests is not None:
-            out["score_tests"] = self.score_tests.as_json()
+        for name in ("selection", "plane_screening", "score_tests"):
+            if getattr(self, name) is not None:
+                out[name] = getattr(self, name).to_dict()
         if self.a_priori_tests and self.weights_fitted:
             out["global_test"] = {**self.a_priori_tests[-1]["global"], "stage": "a priori"}
             out["global_test_after_vce"] = {
-                "sigma0": _finite(self.calibration.sigma0),
+                "sigma0": to_json_value(float(self.calibration.sigma0)),
                 "note": "the variance factors were fitted to these residuals (sigma0 is 1 by "
                 "construction once VCE converges): not a test",
             }
-        return out
+        return to_json_value(out)
 
-    def summary(self) -> str:
+    def testing_summary(self) -> str:
+        """The text of what the steps found: the selection, the plane screening, the a priori
+        tests, the variance components, the removals, the warnings, the score tests and the AP
+        t-tests."""
         c = self.calibration
-        lines = [f"testing: {self.message}"]
+        lines = []
+        if self.selection is not None:
+            lines += [self.selection.summary(), ""]
+        if self.plane_screening is not None:
+            lines.append(self.plane_screening.summary())
+        lines.append(f"testing: {self.message}")
         for stage in self.a_priori_tests:
             lines += _format_a_priori(stage)
-        if self.options.vce:
+        if self.options.vce is not None:
             lines.append(f"variance components: {self.vce_result.message}")
         for vc in self.variance_components if self.a_priori_tests else ():
             unit, f = {"range": ("mm", 1e3), "ap_prior": ("SI", 1.0)}.get(
@@ -359,9 +284,10 @@ class TestedCalibration:
             lines.append(f"warning: {w}")
         if self.score_tests is not None:
             lines.append(self.score_tests.summary())
-        if not self.ok:  # no t-tests of estimates that are not a calibration
+        usable = self.calibration.ok and self.vce_result.ok
+        if not usable:  # no t-tests of estimates that are not a calibration
             lines.append("  no AP t-tests: the run failed, its estimates are not a calibration")
-        for t in self.ap_tests if self.ok else ():
+        for t in self.ap_tests if usable else ():
             lines.append(f"  {t.describe()}")
         return "\n".join(lines)
 
@@ -387,19 +313,3 @@ def _format_a_priori(stage: dict) -> list:
             continue
         lines.append(f"  {name:9s} factor {t['factor']:10.4g} (r_g = {t['dof']:.1f}): {verdict(t)}")
     return lines
-
-
-def _finite(x):
-    x = float(x)
-    return x if np.isfinite(x) else None
-
-
-def _finite_or_none(d: dict) -> dict:
-    return {
-        k: (
-            None
-            if isinstance(v, float) and not np.isfinite(v)
-            else (bool(v) if isinstance(v, np.bool_) else v)
-        )
-        for k, v in d.items()
-    }

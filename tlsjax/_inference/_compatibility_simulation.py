@@ -195,7 +195,7 @@ class _Fit:
 
 def make_simulation(design):
     """``one(key, a1, a2, Cu, sig1, sig2, room, reference) -> dict`` of check-point sums (module
-    docstring) for a :class:`~tlsjax._inference._compat.Design`; ``Geu`` and ``Kpre`` (at zero
+    docstring) for a :class:`~tlsjax._inference._compatibility.Design`; ``Geu`` and ``Kpre`` (at zero
     noise, on the same targets) are formed only when ``reference`` (an unbatched flag) is
     true, and are zeros otherwise. (One closure over the design, longer than a page: its steps,
     the scans, the noise covariance and the reference sums, share the design's static

@@ -1,4 +1,5 @@
-"""Text reports of a calibration: the paper-style AP table and the summary.
+"""The text of a calibration (:meth:`tlsjax.CalibrationResult.summary`): the summary lines and
+the paper-style AP table.
 
 Host side only. SI inside the result; the table shows millimetres for lengths, arc seconds (")
 for angles and ppm for dimensionless scale terms, with the unit in every label. The JSON keeps
@@ -9,11 +10,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._adjustment._result import not_estimable_sentence
-from .._inference._statistics import global_test
+from .._stats import global_test
 from .._units import display
+from ._redundancy import redundancy_summary
 
 EOP_NAMES = ("Xs", "Ys", "Zs", "omega", "phi", "kappa")
+
+
+def not_estimable_sentence(name: str, reason: str) -> str:
+    """The one sentence that names a non-estimable AP and why: the result's ``message`` and
+    :func:`tlsjax._report._text.confoundings` (the text summary, the JSON's ``confoundings``,
+    the HTML report) all print it."""
+    return f"{name} is not estimable: {reason}"
 
 
 def confoundings(not_estimable, weakly_determined) -> list[dict]:
@@ -108,7 +116,7 @@ def summary(res, alpha: float = 0.05, *, after_vce: bool = False) -> str:
     """A few lines: result, sigma0 with the global test, redundancy, flags. ``after_vce``: the
     weights were fitted to these residuals (VCE), so sigma0 is no test of them."""
     gt = global_test(res.sigma0, res.dof, alpha)
-    red = res.redundancy_summary()
+    red = redundancy_summary(res)
     out = [
         f"result: {res.result} ({res.message}); {res.iterations} iterations; datum: {res.datum}",
         f"observations n = {res.n_observations}, unknowns u = {res.n_unknowns}, "

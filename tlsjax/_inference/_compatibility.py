@@ -82,9 +82,10 @@ from .._model._scanner import Scanner
 from .._simulation._batch import device_key, round_chunk
 from .._simulation._room import Room
 from .._stats import chi2_quantile, chi2_sf, weighted_chi2_sf
+from .._summary import Settings, to_json_value
 from .._units import display_unit
 from ._apset import APSet, basis_text, same_basis
-from ._compat_sim import compiled_chunk, room_vector, run_tests, statistic_function
+from ._compatibility_simulation import compiled_chunk, room_vector, run_tests, statistic_function
 
 #: A difference direction whose post-fit effect keeps less than this share of its pre-fit sum of
 #: squares is one object space cannot see (the rigid fit absorbs it).
@@ -94,9 +95,11 @@ COMMON = 1e-10
 
 
 @dataclasses.dataclass(frozen=True)
-class CompatibilityOptions:
+class CompatibilityOptions(Settings):
     """Settings of :func:`compatibility_test` (defaults: Chow et al. 2013, section 4.3).
 
+    ``runs``: simulations; ``level``: the level of the test (the sets are compatible when
+    p > level); ``n_targets``, ``n_control``: the simulated room's targets and check points;
     ``null_draws``: draws of e for the p-value (the p-value's Monte Carlo error is at most
     ``sqrt(p (1 - p) / draws)``: 0.0007 at p = 0.05 with the default 1e5). ``null_method``:
     "auto" (Imhof's formula at zero noise, the draws otherwise, as SPEC section 9 says),
@@ -105,7 +108,7 @@ class CompatibilityOptions:
     """
 
     runs: int = 1000
-    alpha: float = 0.05
+    level: float = 0.05
     n_targets: int = 100
     n_control: int = 10
     seed: int = 0
@@ -117,8 +120,8 @@ class CompatibilityOptions:
     def __post_init__(self):
         if int(self.runs) < 1:
             raise ValueError(f"CompatibilityOptions.runs must be >= 1, got {self.runs}")
-        if not (0 < self.alpha < 1):
-            raise ValueError(f"CompatibilityOptions.alpha must be in (0, 1), got {self.alpha}")
+        if not (0 < self.level < 1):
+            raise ValueError(f"CompatibilityOptions.level must be in (0, 1), got {self.level}")
         if not (3 <= int(self.n_control) < int(self.n_targets)):
             raise ValueError(
                 "CompatibilityOptions: need 3 <= n_control < n_targets, got "
@@ -221,7 +224,7 @@ class CompatibilityResult:
     naive_meaningful: bool
     naive_note: str
     noise: tuple
-    alpha: float
+    level: float
     runs: int
     null_draws: int
     n_failed: int
@@ -229,11 +232,11 @@ class CompatibilityResult:
     compile_s: float
     run_s: float
 
-    def table(self) -> str:
+    def summary(self) -> str:
         """The report as text: AP differences, the decision, visibility, description, naive."""
         head = (
             f"AP-set compatibility test (SPEC section 9; Lichti 2008; Chow et al. 2013, 4.3): "
-            f"{self.runs} simulations, alpha {self.alpha:g}"
+            f"{self.runs} simulations, alpha {self.level:g}"
         )
         lines = [head, f"{'AP':7s} {'unit':>4s} {'set1 - set2':>12s} {'sigma':>10s}"]
         for k, n in enumerate(self.ap_names):
@@ -246,7 +249,7 @@ class CompatibilityResult:
             f'noise: scan 1 {r1 * 1e3:.3g} mm, {h1 / _ARCSEC:.3g}", {e1 / _ARCSEC:.3g}"; '
             f'scan 2 {r2 * 1e3:.3g} mm, {h2 / _ARCSEC:.3g}", {e2 / _ARCSEC:.3g}"',
             f"T = mean d^T C^-1 d = {self.statistic:.4f}; null: {self.p_method}, "
-            f"{100 * (1 - self.alpha):g} % quantile {self.critical_value:.4f}",
+            f"{100 * (1 - self.level):g} % quantile {self.critical_value:.4f}",
             f"p-value {_fmt_p(self.p_value)}: {'compatible' if self.compatible else 'NOT compatible'}",
             "object-space visibility of the difference directions (1 = fully seen, 0 = not):",
         ]
@@ -274,8 +277,6 @@ class CompatibilityResult:
 
     def to_dict(self) -> dict:
         """The result as plain JSON values (SI units, mm for the RMS; undefined values None)."""
-        from .._io._json import to_json_value
-
         return to_json_value(
             {
                 "test": "AP-set compatibility (SPEC section 9)",
@@ -284,7 +285,7 @@ class CompatibilityResult:
                 "p_method": self.p_method,
                 "statistic": self.statistic,
                 "critical_value": self.critical_value,
-                "alpha": self.alpha,
+                "level": self.level,
                 "runs": self.runs,
                 "null_draws": self.null_draws if self.p_method == "draws" else None,
                 "n_failed": self.n_failed,
@@ -359,7 +360,7 @@ def _prepare(set1, set2, room, scanner, options, sigma_range, sigma_angle):
         own,
         int(options.n_targets),
         int(options.n_control),
-        chi2_quantile(1.0 - options.alpha, 3),
+        chi2_quantile(1.0 - options.level, 3),
     )
     return set1, set2, design, noise, room_vector(room)
 
@@ -637,7 +638,7 @@ def compatibility_test(
         share_quartiles=(q1, q3),
         rms_mm=rms,
         noise=noise,
-        alpha=float(options.alpha),
+        level=float(options.level),
         runs=N,
         null_draws=int(options.null_draws),
         n_failed=int((~good).sum()),
@@ -661,12 +662,12 @@ def _analyse(set1, set2, P, options, sums, ref, n_pts, method):
         method=method,
         draws=int(options.null_draws),
         rng=rng,
-        alpha=options.alpha,
+        alpha=options.level,
     )
     rows = _union(set1, set2)
     diff, sig = _union_vectors(rows, set1, set2, set1.values, set2.values)
     lam, dirs, labels, texts, seen, least, invisible = _visibility(A, L, P, ref, rows, set1, set2)
-    chi2, rank, p_naive, naive_ok, meaningful, note = _naive(set1, set2, options.alpha)
+    chi2, rank, p_naive, naive_ok, meaningful, note = _naive(set1, set2, options.level)
     units = tuple(get_ap(r[0].split("[")[0]).unit for r in rows)
     return {
         "ap_names": labels,
@@ -677,7 +678,7 @@ def _analyse(set1, set2, P, options, sums, ref, n_pts, method):
         "p_value": p,
         "p_method": method,
         "critical_value": crit,
-        "compatible": bool(p > options.alpha),
+        "compatible": bool(p > options.level),
         "eigenvalues": lam,
         "directions": dirs,
         "direction_labels": tuple(f"{k}:{n}" for k, s in ((1, set1), (2, set2)) for n in s.names),
@@ -741,11 +742,11 @@ def compatibility_batch(
     n_check = design.n_targets - design.n_control
     L = _block(_sqrt_psd(set1.covariance), _sqrt_psd(set2.covariance))
     p, T = _batch_p(sums, runs * n_check, L, P, options, _method(options, noise))
-    chi2, _, p_naive, *_ = _naive(set1, set2, options.alpha, V1, V2)
+    chi2, _, p_naive, *_ = _naive(set1, set2, options.level, V1, V2)
     return {
         "p_value": p,
         "statistic": T,
-        "compatible": p > options.alpha,
+        "compatible": p > options.level,
         "median_share": np.median(n_sig / n_check, axis=1),
         "naive_chi2": chi2,
         "naive_p_value": p_naive,
