@@ -56,7 +56,7 @@ from ._families import (
     predicted_state,
     state_from_rows,
 )
-from ._linalg import cholesky_inverse, matvec_t, small_spd_solve
+from ._linalg import cholesky_inverse, small_spd_solve
 from ._normal import (
     ap_jacobians,
     apply_update,
@@ -125,19 +125,13 @@ def design_factorisation(spec: Spec, problem: Problem, params: Params, rank_tole
 
 
 def shared_solve(spec: Spec, fact: DesignFactorisation, bp: tuple, bz):
-    """``N0^- b`` (primitives per family, reduced unknowns) with the shared factorisation.
-
-    Written as products of the right-hand side (a row) with the shared matrices, flattened:
-    under the Monte Carlo's ``vmap`` each is one matrix product of the batch's rows, whose
-    result is already in the batch's layout (as einsums they were products whose result was
-    transposed back, a fifth of a chord iteration)."""
-    flat = lambda Y: Y.reshape(-1, Y.shape[-1])  # (n p, r)
+    """``N0^- b`` (primitives per family, reduced unknowns) with the shared factorisation."""
     c = bz
     for Y, b in zip(fact.Y, bp):
-        c = c - b.reshape(-1) @ flat(Y)
-    dz = fact.scale * ((c * fact.scale) @ fact.Kinv)  # Kinv is symmetric
+        c = c - jnp.einsum("npr,np->r", Y, b)
+    dz = fact.scale * (fact.Kinv @ (c * fact.scale))
     dps = tuple(
-        matvec_t(jnp.swapaxes(Ni, -1, -2), b) - (dz @ flat(Y).T).reshape(b.shape)
+        jnp.einsum("npq,nq->np", Ni, b) - jnp.einsum("npr,r->np", Y, dz)
         for Ni, Y, b in zip(fact.Npp_inv, fact.Y, bp)
     )
     if spec.inner and fact.Hz.shape[1]:

@@ -58,26 +58,6 @@ def spherical_from_cartesian(x, panoramic_face2=None, xp=jnp):
     return l if panoramic_face2 is None else fold_second_face(l, panoramic_face2, xp)
 
 
-def spherical_for_residuals(x, panoramic_face2=None):
-    """:func:`spherical_from_cartesian` up to whole turns of the angles, for a residual that
-    wraps its angles to (-pi, pi] afterwards: ``theta`` as ``atan2`` gives it (no reduction to
-    [0, 2 pi)), the horizontal distance as a plain square root (no ``hypot``). The same
-    residuals to rounding at two fewer of the most costly operations per observation (a
-    floating-point remainder and ``hypot``, with their derivatives): the Monte Carlo's and the
-    adjustment's residual rows evaluate this for every observation at every pass.
-
-    ``x``: (..., 3), or its three components as a sequence; returns (rho, theta, alpha) as
-    three arrays (stack them for (..., 3))."""
-    xx, yy, zz = (x[..., 0], x[..., 1], x[..., 2]) if hasattr(x, "shape") else x
-    h2 = xx * xx + yy * yy
-    rho = jnp.sqrt(h2 + zz * zz)
-    theta, alpha = jnp.arctan2(yy, xx), jnp.arctan2(zz, jnp.sqrt(h2))
-    if panoramic_face2 is not None:  # fold_second_face, component by component
-        theta = jnp.where(panoramic_face2, theta - np.pi, theta)
-        alpha = jnp.where(panoramic_face2, np.pi - alpha, alpha)
-    return rho, theta, alpha
-
-
 def second_face(theta_hybrid, architecture: str = "panoramic"):
     """The panoramic face rule (SPEC section 1): True where a direction whose hybrid horizontal
     direction ``theta'`` (in [0, 2 pi)) is at least pi, which a panoramic scanner observes in
