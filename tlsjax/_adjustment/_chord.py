@@ -45,6 +45,7 @@ import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
+from .._linalg import cholesky_inverse, small_spd_solve
 from .._model._datum import inner_gram, s_transform_vector
 from ._families import (
     Params,
@@ -56,7 +57,6 @@ from ._families import (
     predicted_state,
     state_from_rows,
 )
-from ._linalg import cholesky_inverse, small_spd_solve
 from ._normal import (
     ap_jacobians,
     apply_update,

@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from .._linalg import bmm, matvec_t, mm, small_sum
 from .._model._aps import corrected_observations
 from .._model._datum import move_plane, move_points
 from .._model._geometry import (
@@ -43,7 +44,6 @@ from .._model._geometry import (
 from .._model._levelling import orientation_reading
 from .._model._planes import PROJECTION_STEPS, plane_step_basis, whitened_condition
 from .._model._points import point_misclosure
-from ._linalg import bmm, matvec_t, mm, small_sum
 
 #: vmap axes of :meth:`Family.residual` over the observations of a family.
 OBS_AXES = (0, 0, None, 0, 0, 0, 0)

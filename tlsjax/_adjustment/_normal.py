@@ -23,6 +23,14 @@ import numpy as np
 from jax import lax
 from jaxtyping import Array, Bool, Float
 
+from .._linalg import (
+    bmm,
+    cholesky_solve,
+    constrained_spd_inverse,
+    estimable_cholesky_damped,
+    matvec_t,
+    outer,
+)
 from .._model._datum import move_eop, null_space_columns, s_transform_vector
 from ._families import (
     Params,
@@ -33,14 +41,6 @@ from ._families import (
     levelling_jacobian,
     levelling_residual,
     pseudo_cost,
-)
-from ._linalg import (
-    bmm,
-    cholesky_solve,
-    constrained_spd_inverse,
-    estimable_cholesky_damped,
-    matvec_t,
-    outer,
 )
 
 

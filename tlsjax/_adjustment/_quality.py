@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._linalg import bmm, cholesky_inverse, mm, triangular_inverse
 from .._model._datum import inner_constraint_cofactor
 from .._stats import DELTA0
 from ._families import (
@@ -52,7 +53,6 @@ from ._families import (
     pseudo_cost,
     settled_state,
 )
-from ._linalg import bmm, cholesky_inverse, mm, triangular_inverse
 from ._normal import (
     datum_projector,
     linearise,

@@ -14,7 +14,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from .._adjustment._linalg import bmm, mm, small_spd_solve
+from .._linalg import bmm, mm, small_spd_solve
 from ._geometry import rotation_matrix
 
 
@@ -105,7 +105,7 @@ def inner_constraint_cofactor(Hp, Hz, Ninv, Y, Qzz):
     reduced unknowns, the (r, r) block). Linear in the number of primitives.
     """
     # The products over all primitives as matrix products (``mm``), those per primitive over
-    # its few components written out (``bmm``): no batched dots (:mod:`tlsjax._adjustment._linalg`).
+    # its few components written out (``bmm``): no batched dots (:mod:`tlsjax._linalg`).
     T = lambda a: jnp.swapaxes(a, -1, -2)
     flat = lambda a: a.reshape(-1, a.shape[-1])
     C = sum(flat(H).T @ flat(y) for H, y in zip(Hp, Y))  # Hp^T Y (d, r)
