@@ -38,9 +38,7 @@ def test_structured_point_jacobian_equals_autodiff_of_the_model(architecture):
             e, Jp, Js, Ja, raw = fam.linear_rows(spec, problem, params, fi)
             # The generic family method: vmap(jacfwd) of the whole residual.
             e2, Jp2, Js2, Ja2, _ = F.Family.linear_rows(fam, spec, problem, params, fi)
-            # F - l cancels to 1e-5 of F (3 rad): the whitened residual carries rounding of
-            # eps |F| / sigma, about 1e-11, whatever order the rotation's sums are taken in.
-            np.testing.assert_allclose(e, e2, rtol=0, atol=1e-10)
+            np.testing.assert_allclose(e, e2, rtol=0, atol=1e-12)
             for a, b in ((Jp, Jp2), (Js, Js2), (Ja, Ja2)):
                 np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * float(jnp.abs(b).max()))
 
