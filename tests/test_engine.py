@@ -13,6 +13,7 @@ the grid layout, the cofactor function), compared with their general paths.
 
 import dataclasses
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -28,6 +29,15 @@ from tlsjax._model._planes import condition_variance, projection_step
 pytestmark = pytest.mark.internal
 
 
+def _compiled(method, spec, fi, **kwargs):
+    """``method(fam, spec, problem, params, fi, **kwargs)`` as one compiled program of (fam,
+    problem, params): run eagerly, the family code dispatches and compiles hundreds of small
+    operations one by one (minutes of the suite), with the same arithmetic."""
+    return eqx.filter_jit(
+        lambda fam, problem, params, kw: method(fam, spec, problem, params, fi, **kw)
+    )
+
+
 @pytest.mark.parametrize("architecture", ["hybrid", "panoramic"])
 def test_structured_point_jacobian_equals_autodiff_of_the_model(architecture):
     sim = tj.simulate(tj.Room(n_targets=24), seed=0, architecture=architecture, scale_bars=2)
@@ -35,9 +45,11 @@ def test_structured_point_jacobian_equals_autodiff_of_the_model(architecture):
     spec, params = adj.plan.spec, adj.initial
     for problem in (adj.plan.problem, F.on_grid(adj.plan.problem)):
         for fi, fam in enumerate(problem.families):
-            e, Jp, Js, Ja, raw = fam.linear_rows(spec, problem, params, fi)
+            structured = _compiled(type(fam).linear_rows, spec, fi)
+            e, Jp, Js, Ja, raw = structured(fam, problem, params, {})
             # The generic family method: vmap(jacfwd) of the whole residual.
-            e2, Jp2, Js2, Ja2, _ = F.Family.linear_rows(fam, spec, problem, params, fi)
+            generic = _compiled(F.Family.linear_rows, spec, fi)
+            e2, Jp2, Js2, Ja2, _ = generic(fam, problem, params, {})
             np.testing.assert_allclose(e, e2, rtol=0, atol=1e-12)
             for a, b in ((Jp, Jp2), (Js, Js2), (Ja, Ja2)):
                 np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * float(jnp.abs(b).max()))
@@ -71,28 +83,38 @@ def test_structured_plane_jacobian_equals_autodiff_of_the_model(two_instruments)
             # Linearised at l + v (the Gauss-Helmert residuals of a previous step).
             sig = jnp.where(fam.weight > 0, 1 / jnp.where(fam.weight > 0, fam.weight, 1.0), 0.0)
             v = jnp.asarray(rng.normal(size=fam.obs.shape)) * sig
-            got = fam.linear_rows(spec, problem, params, fi, state=v)
-            want = F.Family.linear_rows(fam, spec, problem, params, fi, state=v)
+            got = _compiled(type(fam).linear_rows, spec, fi)(fam, problem, params, {"state": v})
+            want = _compiled(F.Family.linear_rows, spec, fi)(fam, problem, params, {"state": v})
             for a, b in zip(got[:4], want[:4]):
                 assert a.shape == b.shape
                 np.testing.assert_allclose(a, b, rtol=0, atol=1e-11 * float(jnp.abs(b).max()))
             # B = dg/dl at l + v against the model's condition_variance (jax.grad per point),
             # and the step's cost against the model's whitened condition.
-            args = fam.observation_args(problem, params, fi, v)
+            args = eqx.filter_jit(lambda f, pr, pa, v: f.observation_args(pr, pa, fi, v))(
+                fam, problem, params, v
+            )
             sl = (spec.scanners, spec.ap_names, spec.ap_slices)
-            _, B = jax.vmap(
-                lambda P, E, lv, s, i: condition_variance(
-                    P, E, params.aps, lv[0] + lv[1], s, *sl, i
+            _, B = jax.jit(
+                jax.vmap(
+                    lambda P, E, lv, s, i: condition_variance(
+                        P, E, params.aps, lv[0] + lv[1], s, *sl, i
+                    )
                 )
             )(args[0], args[1], args[3], sig, args[6])
             np.testing.assert_allclose(got[5], B, rtol=0, atol=1e-11 * float(jnp.abs(B).max()))
-            cost, v1, _ = fam.cost_state(spec, problem, params, fi, v)
+            cost, v1, _ = _compiled(type(fam).cost_state, spec, fi)(
+                fam, problem, params, {"state": v}
+            )
             np.testing.assert_allclose(
                 cost, want[0], rtol=0, atol=1e-11 * float(jnp.abs(cost).max())
             )
             # The next residuals: one Gauss-Helmert update at fixed unknowns.
-            v_model = jax.vmap(
-                lambda P, E, lv, w, i: projection_step(P, E, params.aps, lv[0], lv[1], w, *sl, i)
+            v_model = jax.jit(
+                jax.vmap(
+                    lambda P, E, lv, w, i: projection_step(
+                        P, E, params.aps, lv[0], lv[1], w, *sl, i
+                    )
+                )
             )(args[0], args[1], args[3], fam.weight, args[6])
             np.testing.assert_allclose(v1, v_model, rtol=0, atol=1e-11 * float(jnp.abs(v1).max()))
 
@@ -164,7 +186,9 @@ def test_one_engine_behind_every_entry_point():
         assert other.dof == res.dof
     adj = Adjustment(net, model)
     state, _ = adj.run()
-    Q = pose_ap_cofactor(adj.plan.spec, adj.plan.problem, state.params, -1.0)
+    spec = adj.plan.spec
+    cofactor = eqx.filter_jit(lambda problem, params: pose_ap_cofactor(spec, problem, params, -1.0))
+    Q = cofactor(adj.plan.problem, state.params)
     r = 6 * len(res.scans) + len(res.ap_names)
     want = np.asarray(res.covariance)[-r:, -r:] / res.sigma0**2
     np.testing.assert_allclose(np.asarray(Q), want, rtol=1e-6, atol=1e-12 * np.abs(want).max())

@@ -8,6 +8,7 @@ Private imports: the datum's null space and S-transformation, to compare tangent
 
 import dataclasses
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -60,9 +61,14 @@ def _datum_free(adj, x, dx_prims, dx_eops):
     from tlsjax._model._datum import s_transform_vector
 
     spec = adj.plan.spec
-    Hp, Hz = null_space(spec, adj.plan.problem.families, x)
-    dz = jnp.concatenate([jnp.asarray(dx_eops).reshape(-1), jnp.zeros(spec.n_aps)])
-    dps, dz = s_transform_vector(Hp, Hz, (jnp.asarray(dx_prims),), dz)
+
+    @eqx.filter_jit  # one program (eagerly, each operation compiles on its own: a minute)
+    def transform(families, x, dx_prims, dx_eops):
+        Hp, Hz = null_space(spec, families, x)
+        dz = jnp.concatenate([dx_eops.reshape(-1), jnp.zeros(spec.n_aps)])
+        return s_transform_vector(Hp, Hz, (dx_prims,), dz)
+
+    dps, dz = transform(adj.plan.problem.families, x, jnp.asarray(dx_prims), jnp.asarray(dx_eops))
     return np.asarray(dps[0]), np.asarray(dz[: 6 * spec.n_scans]).reshape(-1, 6)
 
 

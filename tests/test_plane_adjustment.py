@@ -12,6 +12,7 @@ oracle directly.
 
 import types
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -85,8 +86,12 @@ def _structured(pc, obs, sig, plane, scan, x0_planes, x0_eops):
     )
     spec = Spec((pc.scanner,), (APS,), ((0, 4),), n_s, tuple(range(6)), True)
     p0 = Params((jnp.asarray(x0_planes),), jnp.asarray(x0_eops), jnp.zeros(4))
-    state = adjust(spec, problem, p0, tj.SolverOptions(tolerance=1e-8).arrays())
-    q = quality(spec, problem, state.params, jnp.asarray(1e-6), full_covariance=False)
+    # One compiled program each (run eagerly, the engine's code compiles op by op: minutes).
+    opts = tj.SolverOptions(tolerance=1e-8).arrays()
+    state = eqx.filter_jit(lambda pr, p, o: adjust(spec, pr, p, o))(problem, p0, opts)
+    q = eqx.filter_jit(lambda pr, p, tol: quality(spec, pr, p, tol, full_covariance=False))(
+        problem, state.params, jnp.asarray(1e-6)
+    )
     return state, q
 
 
