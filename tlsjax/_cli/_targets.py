@@ -10,6 +10,8 @@ and every later run read without vendor options of their own.
 
 from __future__ import annotations
 
+import tlsjax as tj
+
 from ._checks import positive_int, warn
 from ._common import EXIT_FAILED, EXIT_OK
 
@@ -55,12 +57,8 @@ def add_import_targets_parser(sub):
 
 
 def _import_targets(args) -> int:
-    from .._io._outputs import check_outputs
-    from .._io._tables import write_observations
-    from .._io._target_lists import read_target_list
-
-    check_outputs([("--out", args.out)], [("list", p) for p in args.lists])
-    table = read_target_list(
+    tj.check_outputs([("--out", args.out)], [("list", p) for p in args.lists])
+    table = tj.read_target_list(
         args.lists,
         args.architecture,
         length_unit=args.length_unit,
@@ -69,7 +67,7 @@ def _import_targets(args) -> int:
     )
     for note in table.notes:
         print(note)
-    write_observations(args.out, table, length_unit="m", angle_unit=args.angle_unit)
+    tj.write_observations(args.out, table, length_unit="m", angle_unit=args.angle_unit)
     n_scans = len(set(table.scans))
     face2 = int((table.observations[:, 2] > 1.5707963267948966).sum())
     fold = (
@@ -136,15 +134,7 @@ def add_check_targets_parser(sub):
 
 
 def _check_targets(args) -> int:
-    from .._adjustment._config import scanner_settings
-    from .._inference._checkpoints import check_targets
-    from .._io._correct import Calibration
-    from .._io._json import write_json_file
-    from .._io._outputs import check_outputs
-    from .._io._tables import read_observations, read_scans
-    from .._io._target_lists import read_reference
-
-    check_outputs(
+    tj.check_outputs(
         [("--json", args.json)],
         [
             ("calibration", args.calibration),
@@ -153,10 +143,10 @@ def _check_targets(args) -> int:
             ("--scans", args.scans),
         ],
     )
-    cal = Calibration.from_json(args.calibration, instrument=args.instrument)
+    cal = tj.Calibration.from_json(args.calibration, instrument=args.instrument)
     for note in cal.notes:
         warn(note)
-    table = read_observations(args.observations)
+    table = tj.read_observations(args.observations)
     if table.kind != "target":
         raise ValueError(f"{args.observations}: a {table.kind} file; check-targets needs targets")
     arch = cal.scanner.architecture
@@ -165,9 +155,11 @@ def _check_targets(args) -> int:
             f"{args.observations}: recorded for a {table.architecture} scanner, but "
             f"{args.calibration} calibrates a {arch} scanner"
         )
-    reference = read_reference(args.reference, length_unit=args.length_unit, columns=args.columns)
-    levelling = read_scans(args.scans) if args.scans else None
-    chk = check_targets(
+    reference = tj.read_reference(
+        args.reference, length_unit=args.length_unit, columns=args.columns
+    )
+    levelling = tj.read_scans(args.scans) if args.scans else None
+    chk = tj.check_targets(
         table,
         cal,
         reference,
@@ -186,8 +178,7 @@ def _check_targets(args) -> int:
             + ", ".join(f"{n} {d * 1e3:.2f} mm" for n, d in worst)
         )
     if args.json:
-        write_json_file(
-            args.json,
+        tj.write_json(
             {
                 "tool": "tlsjax",
                 "kind": "target check",
@@ -195,11 +186,11 @@ def _check_targets(args) -> int:
                 "calibration": args.calibration,
                 "observations": args.observations,
                 "reference": args.reference,
-                "scanner": scanner_settings(cal.scanner),
+                "scanner": tj.scanner_settings(cal.scanner),
                 "aps": {n: {"value": float(v)} for n, v in zip(cal.scanner.aps, cal.values)},
                 **chk.to_dict(),
             },
-            "--json ",
+            args.json,
         )
         print(f"wrote {args.json}")
     # A placement that was tried and failed, or nothing compared at all, is not a result.
