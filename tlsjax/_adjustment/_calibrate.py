@@ -290,10 +290,12 @@ class Adjustment:
         problem = self.plan.problem if problem is None else problem
         params0 = self.initial if params0 is None else params0
         n6 = 6 * self.plan.spec.n_scans
-        key = _support(problem)
+        # The support is read from the device only where it is needed: a run that did not
+        # converge with APs held before, or one that found APs not estimable.
+        key = functools.partial(_support, problem)
         out = self._estimable_passes(problem, params0, options, (), n6)
-        held = self._absent.get(key)
-        if not bool(out[1].converged) and held is not None:
+        held = self._absent.get(key()) if self._absent and not bool(out[1].converged) else None
+        if held is not None:
             # Whether an AP is nearly dependent is judged numerically, so with other weights
             # (VCE's passes) an AP held before may pass the test and then drift along its
             # near-dependence: from the APs held in a converged run on the same observations
@@ -304,7 +306,7 @@ class Adjustment:
             out = retry if bool(retry[1].converged) else out
         plan, state, q, absent = out
         if absent and bool(state.converged):
-            self._absent[key] = (np.asarray(plan.problem.fixed)[n6:].copy(), absent)
+            self._absent[key()] = (np.asarray(plan.problem.fixed)[n6:].copy(), absent)
         return out
 
     def _estimable_passes(self, problem, params0, options, absent, n6):
