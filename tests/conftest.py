@@ -19,6 +19,16 @@ if "TLSJAX_CACHE_DIR" not in os.environ:
     _SUITE_CACHE = tempfile.mkdtemp(prefix="tlsjax-test-cache-")
     os.environ["TLSJAX_CACHE_DIR"] = _SUITE_CACHE
 
+# XLA's backend optimisations (LLVM) take about 40 % of the suite's CPU time and change no
+# result beyond rounding: the suite compiles without them, as the notebooks' kernels and the
+# documentation build do. Set before JAX starts its backend (the workers import this first);
+# a level already named in XLA_FLAGS is kept. tests/test_engine.py checks that a calibration at
+# XLA's default level, what a user runs, agrees with the suite's to rounding.
+if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (
+        os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0"
+    ).strip()
+
 
 # The edit-test loop: ``./scripts/test -m fast`` runs the tests listed in tests/fast.txt (node
 # ids, one a line: every test file's cheapest tests, chosen from a profile of the whole suite

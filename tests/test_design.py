@@ -3,8 +3,7 @@ against finite differences, plane designs, the optimiser beats its start (checke
 independent calibrate), the CLI.
 
 Private imports: ``tlsjax._cli.main`` is the ``tlsjax`` console script's entry point
-(pyproject), called in process; ``criterion_of_result``, the criterion of an independent
-calibration.
+(pyproject), called in process.
 """
 
 import dataclasses
@@ -14,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from dispatch import executed_programs
 
 import tlsjax as tj
 from tlsjax._cli import main
@@ -28,10 +28,7 @@ def room():
     return sim, design, tj.DesignProblem.targets(design, sim.scanner)
 
 
-@pytest.mark.internal
 def test_predicted_covariance_equals_calibrate(room):
-    from tlsjax._design._criteria import criterion_of_result
-
     sim, design, dn = room
     Q = np.asarray(jax.jit(lambda d: tj.predicted_cofactor(dn, d))(design))
     res = tj.calibrate(dn.network(design, seed=2), dn.model, tj.SolverOptions(full_covariance=True))
@@ -43,7 +40,13 @@ def test_predicted_covariance_equals_calibrate(room):
     for kind in ("max_sigma", "trace", "max_correlation"):
         c = tj.DesignCriterion(kind, with_poses=kind == "max_correlation")
         pred = tj.design_criterion(dn, design, c, smooth=False)
-        assert pred == pytest.approx(criterion_of_result(c, res), rel=2e-3)
+        assert pred == pytest.approx(tj.criterion_of_result(c, res), rel=2e-3)
+    # A report's criterion is one compiled program, not hundreds of operations dispatched one
+    # by one (each compiled on its first call).
+    with executed_programs() as counts:
+        again = tj.design_criterion(dn, design, c, smooth=False)
+    assert counts == {"jit(value)": 1}, dict(counts)
+    assert again == pred
 
 
 def test_criterion_gradient_matches_finite_differences(room):

@@ -6,12 +6,18 @@
 * The grid layout of a family's sums (reshapes) gives the same adjustment as segment sums.
 * One engine behind calibrate, the analysed adjustment and self_calibrate, and one
   cofactor function behind the quality of an adjustment and the design's prediction.
+* The suite compiles without XLA's backend optimisations (tests/conftest.py); a calibration
+  compiled at XLA's default level, what a user runs, agrees with it to rounding.
 
 Private modules are imported for properties of private algorithms (the structured Jacobians,
 the grid layout, the cofactor function), compared with their general paths.
 """
 
 import dataclasses
+import json
+import os
+import subprocess
+import sys
 
 import equinox as eqx
 import jax
@@ -192,3 +198,35 @@ def test_one_engine_behind_every_entry_point():
     r = 6 * len(res.scans) + len(res.ap_names)
     want = np.asarray(res.covariance)[-r:, -r:] / res.sigma0**2
     np.testing.assert_allclose(np.asarray(Q), want, rtol=1e-6, atol=1e-12 * np.abs(want).max())
+
+
+_AT_DEFAULT_LEVEL = """
+import json, sys
+import tlsjax as tj
+sim = tj.simulate(tj.Room(n_targets=20), seed=11, aps="A0 B6 B7 C0 C3", tilted=True)
+res = tj.calibrate(sim.network, tj.CalibrationModel(tj.Scanner(aps="A0 B6 B7 C0 C3")))
+json.dump({"ok": bool(res.ok), "iterations": int(res.iterations),
+           "aps": res.ap_values.tolist(), "sigmas": res.ap_sigmas.tolist()}, sys.stdout)
+"""
+
+
+def test_calibration_at_xla_default_level_agrees_with_the_suite():
+    """The suite's programs are compiled at XLA backend optimisation level 0; a user's at the
+    default level. Both must converge to the same estimates and sigmas (to rounding): a
+    solver whose result depends on the compiler's summation order or contractions is fragile
+    on ill-conditioned normal equations."""
+    assert "--xla_backend_optimization_level=0" in os.environ.get("XLA_FLAGS", "")
+    flags = " ".join(
+        f for f in os.environ["XLA_FLAGS"].split() if "xla_backend_optimization_level" not in f
+    )
+    env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
+    proc = subprocess.run(
+        [sys.executable, "-c", _AT_DEFAULT_LEVEL], env=env, capture_output=True, text=True
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    user = json.loads(proc.stdout)
+    sim = tj.simulate(tj.Room(n_targets=20), seed=11, aps="A0 B6 B7 C0 C3", tilted=True)
+    res = tj.calibrate(sim.network, tj.CalibrationModel(tj.Scanner(aps="A0 B6 B7 C0 C3")))
+    assert user["ok"] and res.ok
+    np.testing.assert_allclose(user["aps"], res.ap_values, rtol=1e-8, atol=1e-14)
+    np.testing.assert_allclose(user["sigmas"], res.ap_sigmas, rtol=1e-8)

@@ -25,11 +25,13 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Mapping
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .._adjustment._implicit import frozen_problem, problem_from_inputs
 from .._adjustment._quality import pose_ap_cofactor
+from .._jit import jit
 from .._model._aps import get_ap
 from .._units import ARCSEC
 
@@ -107,20 +109,22 @@ class DesignCriterion:
         return idx, tol
 
     def terms(self, Q, n_scans: int, ap_names):
-        """The quantities whose max (or sum) is the criterion: sigma/tol, or |correlations|."""
+        """The quantities whose max (or sum) is the criterion: sigma/tol, or |correlations|;
+        in numpy for a numpy ``Q`` (a report), in JAX otherwise (a traced criterion)."""
+        xp = np if isinstance(Q, np.ndarray) else jnp
         na = len(ap_names)
         idx, tol = self._select(ap_names)
-        d = jnp.diagonal(Q)
+        d = xp.diagonal(Q)
         ok = d > 0
-        sig = jnp.where(ok, jnp.sqrt(jnp.where(ok, d, 1.0)), 0.0)
+        sig = xp.where(ok, xp.sqrt(xp.where(ok, d, 1.0)), 0.0)
         ap = 6 * n_scans + idx
         if self.kind != "max_correlation":
             return sig[ap] / tol
         cols = np.arange(6 * n_scans + na) if self.with_poses else 6 * n_scans + np.arange(na)
-        C = Q[ap][:, cols] / jnp.maximum(sig[ap][:, None] * sig[cols][None, :], 1e-300)
+        C = Q[ap][:, cols] / xp.maximum(sig[ap][:, None] * sig[cols][None, :], 1e-300)
         mask = np.asarray(cols)[None, :] != ap[:, None]
         # A pose parameter held by the datum (zero variance) has no correlation.
-        return jnp.where(mask & (sig[cols] > 0)[None, :], jnp.abs(C), 0.0).reshape(-1)
+        return xp.where(mask & (sig[cols] > 0)[None, :], xp.abs(C), 0.0).reshape(-1)
 
     def smooth(self, Q, n_scans: int, ap_names):
         """The differentiable criterion the optimiser descends."""
@@ -131,8 +135,8 @@ class DesignCriterion:
         return top * jnp.sum((t / top) ** self.sharpness) ** (1.0 / self.sharpness)
 
     def exact(self, Q, n_scans: int, ap_names) -> float:
-        t = self.terms(Q, n_scans, ap_names)
-        return float(jnp.sum(t**2) if self.kind == "trace" else jnp.max(t))
+        t = self.terms(np.asarray(Q), n_scans, ap_names)
+        return float(np.sum(t**2) if self.kind == "trace" else np.max(t))
 
     def describe(self, ap_names) -> str:
         idx, tol = self._select(ap_names)
@@ -150,13 +154,34 @@ def design_criterion(
     dn, design, criterion: DesignCriterion, *, smooth: bool = True, information=None
 ):
     """``criterion`` of ``design`` (a pure function of the design arrays when ``smooth``);
-    ``information`` as in :func:`predicted_cofactor`."""
-    Q = predicted_cofactor(dn, design, information)
+    ``information`` as in :func:`predicted_cofactor`.
+
+    Called with concrete arrays (not inside the caller's ``jit``, ``grad`` or ``vmap``), it runs
+    one compiled program per problem and criterion, kept on ``dn``: the cofactor is hundreds of
+    array operations, which dispatched one by one cost seconds of compiling per call."""
     spec = dn.template.plan.spec
     names = dn.template.plan.ap_labels
+
+    def value(d, info):
+        Q = predicted_cofactor(dn, d, info)
+        if smooth:
+            return criterion.smooth(Q, spec.n_scans, names)
+        return criterion.terms(Q, spec.n_scans, names)
+
+    if any(isinstance(x, jax.core.Tracer) for x in jax.tree.leaves((design, information))):
+        out = value(design, information)
+    else:
+        # Keyed on all the program closes over besides dn: the criterion's fields (its repr,
+        # tolerances included), the mode and whether a weighting is given.
+        key = ("design_criterion", repr(criterion), smooth, information is None)
+        programs = dn.__dict__.setdefault("_programs", {})
+        if key not in programs:
+            programs[key] = jit(value)
+        out = programs[key](design, information)
     if smooth:
-        return criterion.smooth(Q, spec.n_scans, names)
-    return criterion.exact(Q, spec.n_scans, names)
+        return out
+    t = np.asarray(out)
+    return float(np.sum(t**2) if criterion.kind == "trace" else np.max(t))
 
 
 def criterion_of_result(criterion: DesignCriterion, result) -> float:
@@ -169,4 +194,4 @@ def criterion_of_result(criterion: DesignCriterion, result) -> float:
         )
     r = 6 * len(result.scans) + len(result.ap_names)
     Q = np.asarray(result.covariance)[-r:, -r:] / result.sigma0**2
-    return criterion.exact(jnp.asarray(Q), len(result.scans), result.ap_names)
+    return criterion.exact(Q, len(result.scans), result.ap_names)
