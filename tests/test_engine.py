@@ -44,6 +44,14 @@ def _compiled(method, spec, fi, **kwargs):
     )
 
 
+EPS = np.finfo(np.float64).eps
+
+
+def _whitened_scale(net):
+    """The largest |observation| / sigma of a network's target rows."""
+    return float(np.abs(np.asarray(net.observations) / np.asarray(net.sigmas)).max())
+
+
 @pytest.mark.parametrize("architecture", ["hybrid", "panoramic"])
 def test_structured_point_jacobian_equals_autodiff_of_the_model(architecture):
     sim = tj.simulate(tj.Room(n_targets=24), seed=0, architecture=architecture, scale_bars=2)
@@ -56,7 +64,9 @@ def test_structured_point_jacobian_equals_autodiff_of_the_model(architecture):
             # The generic family method: vmap(jacfwd) of the whole residual.
             generic = _compiled(F.Family.linear_rows, spec, fi)
             e2, Jp2, Js2, Ja2, _ = generic(fam, problem, params, {})
-            np.testing.assert_allclose(e, e2, rtol=0, atol=1e-12)
+            # Whitened misclosures are differences of terms of size |l| / sigma (up to 1e5):
+            # two evaluation orders differ by ulps of that, not of the misclosure.
+            np.testing.assert_allclose(e, e2, rtol=0, atol=64 * EPS * _whitened_scale(sim.network))
             for a, b in ((Jp, Jp2), (Js, Js2), (Ja, Ja2)):
                 np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * float(jnp.abs(b).max()))
 

@@ -38,6 +38,17 @@ def test_constants():
     for dim in (1, 2, 3):
         assert confidence_scale(dim) == np.sqrt(stats.chi2.ppf(0.95, dim))
     assert confidence_scale(3, 0.99) == pytest.approx(np.sqrt(stats.chi2.ppf(0.99, 3)), rel=1e-15)
+    # The distribution functions (scipy.special, imported faster than scipy.stats) are
+    # scipy.stats' own, to the last bit, over random degrees of freedom and arguments.
+    from tlsjax._stats import chi2_cdf, chi2_quantile, chi2_sf, t_critical_value
+
+    rng = np.random.default_rng(7)
+    for dof, x, p in zip(rng.uniform(1, 5000, 50), rng.uniform(0, 3, 50), rng.uniform(0, 1, 50)):
+        x *= dof
+        assert chi2_cdf(x, dof) == stats.chi2.cdf(x, dof)
+        assert chi2_sf(x, dof) == stats.chi2.sf(x, dof)
+        assert chi2_quantile(p, dof) == stats.chi2.ppf(p, dof)
+        assert t_critical_value(1 - p, dof) == stats.t.ppf(1 - (1 - p) / 2, dof)
     assert np.isclose(normal_critical_value(0.001), 3.2905, atol=1e-4)
     assert np.isclose(non_centrality(0.001, 0.8), 4.1321, atol=1e-3)
     with pytest.raises(ValueError, match="w_test_level"):

@@ -7,7 +7,7 @@ module except the command line.
 
 1. ``_version`` (the version, which imports nothing), then ``_units``, ``_stats``, ``_jit``,
    ``_optional``, ``_summary``: units and display factors, quantiles and the constants derived
-   from them (scipy.stats), the compiler settings and the persistent compilation cache (keyed on
+   from them (scipy), the compiler settings and the persistent compilation cache (keyed on
    the version), the optional libraries, the ``summary()``/``to_dict()`` convention of the
    result types and the ``to_dict()``/``from_dict()`` one of the settings. They import nothing
    of tlsjax but the version.

@@ -1,4 +1,4 @@
-"""Quantiles, distribution functions and the constants derived from them (scipy.stats), in one
+"""Quantiles, distribution functions and the constants derived from them (scipy), in one
 place: every critical value, non-centrality and consistency constant of tlsjax comes from here.
 
 Baarda's critical value and non-centrality (data snooping, reliability), Student's t for the AP
@@ -6,8 +6,11 @@ tests, chi-square for the global test and the variance factors (:func:`global_te
 :func:`group_variance_test`), and the normal consistency constant of the median absolute value
 (robust scales).
 
-scipy.stats is imported at the first call that needs it (it takes longer to import than the
-rest of tlsjax); the normal quantiles of the constants come from the standard library
+The distribution functions are scipy.special's, the very functions that scipy.stats' ``chi2``
+and ``t`` call (``chdtr``, ``chdtrc``, ``gammaincinv``, ``stdtrit``: equal to the last bit,
+tests/test_statistics.py), imported at the first call that needs them: scipy.stats takes a
+second or more to import, longer than the rest of tlsjax and a re-run's whole calibration
+(issue 37). The normal quantiles of the constants come from the standard library
 (``statistics.NormalDist``, Wichura's AS 241: within 1e-15 of scipy's ``ndtri``).
 """
 
@@ -20,10 +23,10 @@ import numpy as np
 _NORMAL = statistics.NormalDist()
 
 
-def _sps():
-    from scipy import stats
+def _special():
+    from scipy import special
 
-    return stats
+    return special
 
 
 #: Reliability defaults of SPEC section 7: significance level alpha0 of the w-test and power.
@@ -57,26 +60,26 @@ def t_critical_value(alpha: float, dof: float) -> float:
     """Two-sided Student-t critical value ``t^-1(1 - alpha/2; dof)``."""
     if not 0 < alpha < 1:
         raise ValueError(f"alpha must be in (0, 1), got {alpha}")
-    return float(_sps().t.ppf(1.0 - alpha / 2.0, max(float(dof), 1.0)))
+    return float(_special().stdtrit(max(float(dof), 1.0), 1.0 - alpha / 2.0))
 
 
 def chi2_cdf(x: float, dof: float) -> float:
     """``P(chi^2(dof) <= x)``."""
-    return float(_sps().chi2.cdf(x, dof))
+    return float(_special().chdtr(dof, x))
 
 
 def chi2_sf(x: float, dof: float) -> float:
     """``P(chi^2(dof) > x)``."""
-    return float(_sps().chi2.sf(x, dof))
+    return float(_special().chdtrc(dof, x))
 
 
 def chi2_quantile(p: float, dof: float) -> float:
     """Quantile ``p`` of chi^2(dof)."""
-    return float(_sps().chi2.ppf(p, dof))
+    return float(2.0 * _special().gammaincinv(dof / 2.0, p))
 
 
 #: ``sqrt(chi2_dim^-1(0.95))`` for dim 1, 2, 3 as scipy.stats gives them (tests/test_statistics.py
-#: checks they are equal): the report's labels need them at import, before scipy.stats is.
+#: checks they are equal): the report's labels need them at import, before scipy is.
 _CONFIDENCE_95 = {1: 1.9599639845400538, 2: 2.447746830680816, 3: 2.7954834829151074}
 
 

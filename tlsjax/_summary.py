@@ -36,6 +36,12 @@ def to_json_value(obj):
         x = float(obj)
         return x if math.isfinite(x) else None
     if isinstance(obj, np.ndarray):
+        # Whole arrays at once: a result's JSON holds arrays of every observation, and the
+        # element-wise walk of their lists took most of a re-run's writing time.
+        if obj.dtype.kind in "biu" or (obj.dtype.kind == "f" and np.isfinite(obj).all()):
+            return obj.tolist()
+        if obj.dtype.kind == "f":
+            return np.where(np.isfinite(obj), obj, None).tolist()
         return to_json_value(obj.tolist())
     if isinstance(obj, dict):
         return {str(k): to_json_value(v) for k, v in obj.items()}

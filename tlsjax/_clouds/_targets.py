@@ -26,7 +26,6 @@ from collections.abc import Sequence
 
 import jax
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .._adjustment._network import DEFAULT_SIGMA_ANGLE, DEFAULT_SIGMA_RANGE, ObservationTable
 from .._io._point_clouds import observations_from_points
@@ -443,6 +442,10 @@ def _scan_spheres(scan, vox, options, rng, bar):
         return []
     crops = crop(scan, starts, 1.5 * radii[which] + 0.02, chunk=options.chunk_points, bar=bar)
     recs = _spheres.fit_spheres([p for p, _ in crops], starts, radii[which], options, rng)
+    # Imported here: scipy.spatial takes a third of a second, and most runs never find targets
+    # in clouds (issue 37: import tlsjax in under 0.8 s).
+    from scipy.spatial import cKDTree
+
     tree = cKDTree(vox.centroid)
     for rec, R in zip(recs, radii[which]):
         # The points' noise there: the within-voxel spread along the radius, pooled over the
