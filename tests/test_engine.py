@@ -50,7 +50,9 @@ def test_structured_point_jacobian_equals_autodiff_of_the_model(architecture):
             # The generic family method: vmap(jacfwd) of the whole residual.
             generic = _compiled(F.Family.linear_rows, spec, fi)
             e2, Jp2, Js2, Ja2, _ = generic(fam, problem, params, {})
-            np.testing.assert_allclose(e, e2, rtol=0, atol=1e-12)
+            # F - l cancels to 1e-5 of F (3 rad): the whitened residual carries rounding of
+            # eps |F| / sigma, about 1e-11, whatever order the rotation's sums are taken in.
+            np.testing.assert_allclose(e, e2, rtol=0, atol=1e-10)
             for a, b in ((Jp, Jp2), (Js, Js2), (Ja, Ja2)):
                 np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * float(jnp.abs(b).max()))
 

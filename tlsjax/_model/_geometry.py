@@ -49,7 +49,9 @@ def spherical_from_cartesian(x, panoramic_face2=None, xp=jnp):
     ``panoramic_face2`` true, the direction is expressed in the second face of a panoramic
     scanner: ``theta - pi``, ``pi - alpha`` (SPEC section 1).
     """
-    rho = xp.sqrt(xp.sum(x * x, axis=-1))
+    # The sum of three squares written out: a reduction over the last axis is a kernel of its
+    # own in XLA (and under jacfwd a second one), the written-out sum fuses with the rest.
+    rho = xp.sqrt(x[..., 0] * x[..., 0] + x[..., 1] * x[..., 1] + x[..., 2] * x[..., 2])
     theta = xp.mod(xp.arctan2(x[..., 1], x[..., 0]), TWO_PI)
     alpha = xp.arctan2(x[..., 2], xp.hypot(x[..., 0], x[..., 1]))
     l = xp.stack([rho, theta, alpha], axis=-1)
