@@ -63,7 +63,7 @@ def phase_times(spec, problem, params, options, repeats: int = 20, costs: dict |
     from tlsjax._adjustment import _families as F
     from tlsjax._adjustment import _normal as N
     from tlsjax._adjustment import _quality as Q
-    from tlsjax._adjustment._linalg import rank_revealing_cholesky
+    from tlsjax._linalg import rank_revealing_cholesky
 
     grid = F.on_grid(problem)
     out, raw = {}, {}

@@ -51,3 +51,52 @@ def test_wrapper_keeps_the_function_and_the_cache():
     n = _f._cache_size()
     _f(x + 1.0, 2)
     assert _f._cache_size() == n
+
+
+# The same numbers at XLA's backend optimisation level 0 (the docs build's, the notebooks'
+# test's): the engine's point Jacobian as the adjustment computes it, ``x = R (X - S)`` written
+# out as products of slices (``matvec_t``), then ``d sph / d x`` by jacfwd, compiled with
+# tlsjax's options, against the closed form. With ``hypot`` in ``spherical_from_cartesian``
+# the older emitters generated wrong code there: 33 of 1296 entries (elevation rows) off by up
+# to 100 %, and an adjustment of the docs did not converge (jaxlib 0.10.2).
+_LEVEL0_SCRIPT = """
+import json, numpy as np, jax, jax.numpy as jnp
+jax.config.update("jax_enable_x64", True)
+from tlsjax._jit import compiler_options
+from tlsjax._linalg import matvec_t
+from tlsjax._model._geometry import spherical_from_cartesian
+rng = np.random.default_rng(0)
+R = rng.normal(size=(144, 3, 3))
+d = rng.normal(size=(144, 3)) * 5
+f = lambda R, d: jax.vmap(jax.jacfwd(spherical_from_cartesian))(matvec_t(R, d))
+J = jax.jit(f, compiler_options=compiler_options())(R, d)
+print(json.dumps(np.asarray(J).tolist()))
+"""
+
+
+def test_point_jacobian_right_at_backend_optimisation_level_0():
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, XLA_FLAGS="--xla_backend_optimization_level=0", JAX_PLATFORMS="cpu")
+    proc = subprocess.run(
+        [sys.executable, "-c", _LEVEL0_SCRIPT], capture_output=True, text=True, env=env, timeout=300
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    J = np.array(json.loads(proc.stdout))
+    rng = np.random.default_rng(0)
+    R, d = rng.normal(size=(144, 3, 3)), rng.normal(size=(144, 3)) * 5
+    x, y, z = np.einsum("mki,mk->mi", R, d).T
+    h2, r2 = x**2 + y**2, x**2 + y**2 + z**2
+    h, r = np.sqrt(h2), np.sqrt(r2)
+    want = np.stack(
+        [
+            np.stack([x / r, y / r, z / r], -1),  # range
+            np.stack([-y / h2, x / h2, 0 * x], -1),  # horizontal direction
+            np.stack([-x * z / (r2 * h), -y * z / (r2 * h), h / r2], -1),  # elevation
+        ],
+        axis=1,
+    )
+    np.testing.assert_allclose(J, want, rtol=1e-10, atol=1e-12 * np.abs(want).max())

@@ -19,7 +19,7 @@ ROOT = pathlib.Path(tlsjax.__file__).parent
 #: The layers of the package docstring, lowest first.
 LAYERS = (
     ("_version",),
-    ("_units", "_stats", "_jit", "_optional", "_summary"),
+    ("_units", "_stats", "_jit", "_optional", "_summary", "_linalg"),
     ("_model",),
     ("_adjustment",),
     ("_simulation", "_io"),

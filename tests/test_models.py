@@ -14,7 +14,7 @@ import pytest
 
 import tlsjax as tj
 from tlsjax import PRESETS, Scanner, register_ap, registered_aps, resolve_aps
-from tlsjax._adjustment._linalg import rank_revealing_cholesky, spd_inverse
+from tlsjax._linalg import rank_revealing_cholesky, spd_inverse
 from tlsjax._model._aps import GROUPS, ap_corrections, get_ap
 from tlsjax._model._datum import move_eop, move_points, null_space_columns
 from tlsjax._model._geometry import (
@@ -621,7 +621,7 @@ def test_user_term_equals_builtin_in_calibration():
 
 @pytest.mark.parametrize("r", [5, 40, 59])
 def test_forward_substitution_and_cholesky_inverse_match_numpy(r):
-    from tlsjax._adjustment._linalg import cholesky_inverse, forward_substitution
+    from tlsjax._linalg import cholesky_inverse, forward_substitution
 
     A = np.random.default_rng(r).normal(size=(r, r))
     A = A @ A.T + r * np.eye(r)

@@ -38,18 +38,28 @@ import numpy as np
 
 from ._version import __version__
 
-#: XLA options of every compiled tlsjax function (where this jaxlib knows them).
-PREFERRED_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+#: XLA options of every compiled tlsjax function (where this jaxlib knows them). The second
+#: keeps YNNPACK (XLA's CPU library kernels) to single matrix products: its fused reductions
+#: and elementwise subgraphs ran 2-5x slower than XLA's own loops at tlsjax's shapes (a sum
+#: over 120 targets of per-cell products: 13-22 against 3-5 us; the Chow room's assembly 385
+#: against 185 us, measured 2026-11-27 on one core, alternately).
+PREFERRED_OPTIONS = {
+    "xla_cpu_use_fusion_emitters": False,
+    "xla_cpu_experimental_ynn_fusion_type": "LIBRARY_FUSION_TYPE_INDIVIDUAL_DOT",
+}
 
 
 @functools.cache
 def compiler_options() -> dict:
-    """The subset of :data:`PREFERRED_OPTIONS` this jaxlib accepts (checked once)."""
-    try:
-        jax.jit(lambda x: x + 1.0).lower(jnp.zeros(())).compile(compiler_options=PREFERRED_OPTIONS)
-    except Exception:  # an older or newer jaxlib without the option: its defaults
-        return {}
-    return dict(PREFERRED_OPTIONS)
+    """The options of :data:`PREFERRED_OPTIONS` this jaxlib accepts (each checked once)."""
+    out = {}
+    for key, value in PREFERRED_OPTIONS.items():
+        try:
+            jax.jit(lambda x: x + 1.0).lower(jnp.zeros(())).compile(compiler_options={key: value})
+        except Exception:  # an older or newer jaxlib without the option: its default
+            continue
+        out[key] = value
+    return out
 
 
 class _Jit:
@@ -232,11 +242,16 @@ class StoredProgram:
     """``jax.jit(fun)`` of flat array arguments, stored traced in the cache folder (above) under
     ``key``, a description of everything ``fun`` closes over; without a cache folder, or for a
     key without a stable description (e.g. a user's own AP term, a function), a plain
-    ``jit``."""
+    ``jit``.
 
-    def __init__(self, fun, key):
-        self._fun, self._key = fun, key
-        self._calls = {}  # avals -> (compiled callable of flat leaves, output treedef)
+    ``host=True``: a call returns its outputs on the host, as numpy arrays in the output's
+    pytree, fetched in one transfer per dtype: the program concatenates its outputs into one
+    buffer per dtype and the host splits them into views (one transfer costs 7-10 us per array
+    of a few dozen; the adjustment's result has about forty)."""
+
+    def __init__(self, fun, key, host: bool = False):
+        self._fun, self._key, self._host = fun, key, host
+        self._calls = {}  # avals -> (compiled callable of flat leaves, output treedef, layout)
 
     def __call__(self, *leaves):
         # Per call only the arguments' abstract values (cheap: jax arrays carry theirs); the
@@ -249,17 +264,18 @@ class StoredProgram:
             if call is None:
                 call = self._calls[avals] = self._load_or_trace(leaves, avals)
             self._calls[seen] = call
-        fn, treedef = call
-        if treedef is None:
-            return fn(*leaves)
-        return jax.tree.unflatten(treedef, fn(*leaves))
+        fn, treedef, layout = call
+        out = fn(*leaves)
+        if layout is not None:
+            out = _unpack(jax.device_get(out), layout)
+        return out if treedef is None else jax.tree.unflatten(treedef, out)
 
     def _file(self, avals):
         folder = traced_folder()
         if folder is None:
             return None
         try:
-            desc = _stable((self._key, avals, sorted(compiler_options().items())))
+            desc = _stable((self._key, self._host, avals, sorted(compiler_options().items())))
         except TypeError:
             return None
         import hashlib
@@ -267,38 +283,84 @@ class StoredProgram:
         digest = hashlib.sha256((_code_digest() + desc).encode()).hexdigest()
         return os.path.join(folder, f"{digest}.bin")
 
+    def _flat(self, record: dict):
+        """``fun`` with flat outputs (packed when ``host``); ``record`` gets the output's
+        treedef and the packing layout at the trace."""
+
+        def flat(*args):
+            leaves_out, record["tree"] = jax.tree.flatten(self._fun(*args))
+            if not self._host:
+                return leaves_out
+            packed, record["layout"] = _pack(leaves_out)
+            return packed
+
+        return flat
+
     def _load_or_trace(self, leaves, avals):
         path = self._file(avals)
-        plain = (jax.jit(self._fun, compiler_options=compiler_options()), None)
         if path is None:
-            return plain
+            return self._plain(leaves)
         import pickle
 
         from jax import export
 
         try:
             with open(path, "rb") as f:
-                blob, skeleton = pickle.load(f)
+                blob, skeleton, layout = pickle.load(f)
             exported = export.deserialize(blob)
             treedef = jax.tree.structure(pickle.loads(skeleton))
             os.utime(path)  # recently used: the folder is pruned by modification time
         except Exception:  # none yet (or unreadable): trace, export and store
-            out = {}
-
-            def flat(*args):
-                leaves_out, out["tree"] = jax.tree.flatten(self._fun(*args))
-                return leaves_out
-
+            record = {}
             try:
-                exported = export.export(jax.jit(flat))(*leaves)
-                treedef = out["tree"]
+                exported = export.export(jax.jit(self._flat(record)))(*leaves)
+                treedef, layout = record["tree"], record.get("layout")
                 skeleton = jax.tree.unflatten(treedef, list(range(treedef.num_leaves)))
-                data = pickle.dumps((exported.serialize(), pickle.dumps(skeleton)))
+                data = pickle.dumps((exported.serialize(), pickle.dumps(skeleton), layout))
             except Exception:  # not exportable here (e.g. no flatbuffers): as before
-                return plain
+                return self._plain(leaves)
             _write_atomically(path, data)
         call = functools.wraps(self._fun)(lambda *args: exported.call(*args))
-        return jax.jit(call, compiler_options=compiler_options()), treedef
+        return jax.jit(call, compiler_options=compiler_options()), treedef, layout
+
+    def _plain(self, leaves):
+        """A plain ``jit`` (not stored); traced here once for its output's structure."""
+        if not self._host:
+            return jax.jit(self._fun, compiler_options=compiler_options()), None, None
+        record = {}
+        fn = jax.jit(
+            functools.wraps(self._fun)(self._flat(record)), compiler_options=compiler_options()
+        )
+        fn.lower(*leaves)  # the trace fills ``record`` (reused by the first call)
+        return fn, record["tree"], record["layout"]
+
+
+def _pack(leaves):
+    """Outputs concatenated into one flat buffer per dtype; returns (buffers, layout) with
+    layout = per leaf (buffer index, offset, shape) and the buffers' dtypes."""
+    import jax.numpy as jnp
+
+    groups: dict = {}
+    layout = []
+    for x in leaves:
+        dt = str(x.dtype)
+        parts = groups.setdefault(dt, [])
+        offset = sum(int(np.prod(p.shape)) for p in parts)
+        layout.append((dt, offset, tuple(x.shape)))
+        parts.append(x)
+    names = sorted(groups)
+    buffers = tuple(jnp.concatenate([p.reshape(-1) for p in groups[n]]) for n in names)
+    index = {n: i for i, n in enumerate(names)}
+    return buffers, tuple((index[dt], off, shape) for dt, off, shape in layout)
+
+
+def _unpack(buffers, layout) -> list:
+    """Numpy views of the packed outputs (:func:`_pack`) on the host."""
+    out = []
+    for b, off, shape in layout:
+        size = int(np.prod(shape, dtype=np.int64))
+        out.append(buffers[b][off : off + size].reshape(shape))
+    return out
 
 
 def _aval(x) -> tuple:

@@ -51,8 +51,10 @@ def _flat_run(spec, treedef, full_covariance: bool):
         return _run(spec, problem, params0, options, full_covariance)
 
     # Stored traced (a re-run in a new process neither traces nor compiles it), keyed on what
-    # it closes over: the spec with its AP terms, the arguments' structure, full_covariance.
-    return StoredProgram(run, ("adjustment", spec_key(spec), treedef, full_covariance))
+    # it closes over: the spec with its AP terms, the arguments' structure, full_covariance;
+    # its outputs come to the host in one transfer per dtype (``host``).
+    key = ("adjustment", spec_key(spec), treedef, full_covariance)
+    return StoredProgram(run, key, host=True)
 
 
 def spec_key(spec) -> tuple:
@@ -255,9 +257,10 @@ class Adjustment:
         return _replace(problem, **changes)
 
     def run(self, problem=None, params0=None, options=None):
-        """The compiled call: (solver state, quality) as arrays. ``options``: other numerical
-        settings (:meth:`SolverOptions.arrays`, e.g. another ``max_iterations``): the same
-        compiled program, they are data."""
+        """The compiled call: (solver state, quality) as numpy arrays on the host (fetched in
+        one transfer per dtype). ``options``: other numerical settings
+        (:meth:`SolverOptions.arrays`, e.g. another ``max_iterations``): the same compiled
+        program, they are data."""
         args = (
             self.plan.problem if problem is None else problem,
             self.initial if params0 is None else params0,

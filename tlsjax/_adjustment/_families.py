@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from .._linalg import bmm, matvec_t, mm, small_sum
 from .._model._aps import corrected_observations
 from .._model._datum import move_plane, move_points
 from .._model._geometry import (
@@ -278,29 +279,30 @@ class PointFamily(Family):
             n, ns, c = grid
             Xg = X[:, None, None, :] if self.k == 1 else X.reshape(n, ns, c, 3)
             d = Xg - E[None, :, None, :3]  # (n, s, c, 3)
-            x = jnp.einsum("sij,nscj->nsci", R, d).reshape(-1, 3)
+            x = matvec_t(jnp.swapaxes(R, -1, -2)[None, :, None], d).reshape(-1, 3)
         else:
             X = X[self.prim] if self.k == 1 else X
             d = X - E[self.scan, :3]
-            x = jnp.einsum("mij,mj->mi", R[self.scan], d)
+            x = matvec_t(jnp.swapaxes(R, -1, -2)[self.scan], d)
         sph = lambda x_, f2: (lambda F: (F, F))(spherical_from_cartesian(x_, f2))
         if jacobian:
             Jx, F = jax.vmap(jax.jacfwd(sph, has_aux=True))(x, face2)  # (m, 3, 3)
         else:
             F = spherical_from_cartesian(x, face2)
-        f = F + jnp.einsum("mka,a->mk", ap_basis, params.aps) - self.obs
+        f = F + mm(ap_basis, params.aps) - self.obs
         f = f.at[:, 1:].set(wrap_angle(f[:, 1:]))
         if not jacobian:
             return (f,)
         dR = jax.vmap(jax.jacfwd(rot))(E[:, 3:])  # (s, 3, 3, 3): d R_ij / d angle_k
         if grid:
+            # The small products written out (:func:`._linalg.bmm`): no batched dots.
             Jx5 = Jx.reshape(n, ns, c, 3, 3)
-            JX = jnp.einsum("nscij,sjk->nscik", Jx5, R).reshape(-1, 3, 3)
-            dRd = jnp.einsum("sjlk,nscl->nscjk", dR, d)
-            Jang = jnp.einsum("nscij,nscjk->nscik", Jx5, dRd).reshape(-1, 3, 3)
+            JX = bmm(Jx5, R[None, :, None]).reshape(-1, 3, 3)
+            dRd = small_sum(dR[None, :, None] * d[:, :, :, None, :, None], -2)  # (n,s,c,3,3)
+            Jang = bmm(Jx5, dRd).reshape(-1, 3, 3)
         else:
-            JX = jnp.einsum("mij,mjk->mik", Jx, R[self.scan])
-            Jang = jnp.einsum("mij,mjk->mik", Jx, jnp.einsum("mjlk,ml->mjk", dR[self.scan], d))
+            JX = bmm(Jx, R[self.scan])
+            Jang = bmm(Jx, small_sum(dR[self.scan] * d[:, None, :, None], -2))
         Js = jnp.concatenate([-JX, Jang], axis=-1)
         if self.k == 1:
             Jp = JX

@@ -54,10 +54,10 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .._jit import jit
+from .._linalg import cholesky_solve
 from .._model._datum import s_transform_vector
 from .._model._planes import plane_condition
 from ._families import Family, Params, PlaneFamily, Problem, Spec, cost, settled_state
-from ._linalg import cholesky_solve
 from ._normal import linearise, null_space, reduce
 from ._quality import minimal_detectable_bias, quality
 from ._solver import adjust

@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._linalg import bmm, cholesky_inverse, mm, triangular_inverse
 from .._model._datum import inner_constraint_cofactor
 from .._stats import DELTA0
 from ._families import (
@@ -52,8 +53,14 @@ from ._families import (
     pseudo_cost,
     settled_state,
 )
-from ._linalg import cholesky_inverse, forward_substitution
-from ._normal import linearise, linearise_rows, linearised_cost, null_space, reduce
+from ._normal import (
+    datum_projector,
+    linearise,
+    linearise_rows,
+    linearised_cost,
+    null_space,
+    reduce,
+)
 from ._solver import Linearisation
 
 #: Redundancy number at or below which an observation is not controlled by the tests: its
@@ -199,8 +206,8 @@ def _family_quality(spec, problem, params, fi, red, Qzz, r):
     ns = spec.n_scans
     Jp, Js, Ja = r.Jp, r.Js, r.Ja
     Y = red.Y[fi]
-    Qpz = -jnp.einsum("npr,rq->npq", Y, Qzz)  # (n, p, r)
-    Qpp = red.Npp_inv[fi] - jnp.einsum("npr,nqr->npq", Qpz, Y)  # Ninv + Y Qzz Y^T
+    Qpz = -mm(Y, Qzz)  # (n, p, r)
+    Qpp = red.Npp_inv[fi] - bmm(Qpz, jnp.swapaxes(Y, -1, -2))  # Ninv + Y Qzz Y^T
     Tss, Tsa, Taa = _scan_blocks(Qzz, ns)
     at = lambda v, by: fam.at_rows(problem, fi, v, by)
     Qps = jnp.swapaxes(Qpz[:, :, : 6 * ns].reshape(fam.n, fam.p, ns, 6), 1, 2)  # (n, s, p, 6)
@@ -216,13 +223,10 @@ def _family_quality(spec, problem, params, fi, red, Qzz, r):
         + _quad(Ja, jnp.broadcast_to(Taa, (Ja.shape[0],) + Taa.shape), Ja)
     )
     v, redundancy, n_active, vtpv = fam.observation_quality(spec, problem, params, fi, JQJ, r)
-    # External reliability: Q_(a, touched) J^T for every observation row, in AP sigmas.
-    # Written as small matmuls: broadcast-multiply-sum over (m, 3, a, a) was 10x slower.
-    infl = (
-        jnp.einsum("mkp,mpa->mka", Jp, Qpa_obs)
-        + jnp.einsum("mks,msa->mka", Js, Tsa_obs)
-        + jnp.einsum("mkb,ab->mka", Ja, Taa)
-    )
+    # External reliability: Q_(a, touched) J^T for every observation row, in AP sigmas; the
+    # per-observation products written out (:func:`._linalg.bmm`), the one with the shared
+    # AP block as a matrix product.
+    infl = bmm(Jp, Qpa_obs) + bmm(Js, Tsa_obs) + mm(Ja, Taa)
     sa = jnp.sqrt(jnp.clip(jnp.diagonal(Taa), 0.0, None))
     influence = jnp.where(sa > 0, infl / jnp.where(sa > 0, sa, 1.0), 0.0)
     P = params.prims[fi]
@@ -290,8 +294,8 @@ def quality_from(spec, problem, grid, params, lin, full_covariance: bool = False
     if spec.inner and Hz.shape[1]:
         diag, cross, Qzz_d = inner_constraint_cofactor(Hp, Hz, Ninv, red.Y, Qzz)
     else:
-        cross = tuple(-jnp.einsum("npr,rq->npq", Y, Qzz) for Y in red.Y)
-        diag = tuple(Ni - jnp.einsum("npr,nqr->npq", c, Y) for Ni, c, Y in zip(Ninv, cross, red.Y))
+        cross = tuple(-mm(Y, Qzz) for Y in red.Y)
+        diag = tuple(Ni - bmm(c, jnp.swapaxes(Y, -1, -2)) for Ni, c, Y in zip(Ninv, cross, red.Y))
         Qzz_d = Qzz
     zero = dep[:, None] | dep[None, :]
     Qfull = _full_cofactor(spec, red, Qzz, Hp, Hz) if full_covariance else None
@@ -350,8 +354,7 @@ def pose_ap_cofactor(spec: Spec, problem: Problem, params: Params, rank_toleranc
 def _closure(red, Hz):
     """The datum closure ``Q Q^T`` that :func:`reduce` added to the scaled reduced matrix."""
     ok = red.scale > 0
-    Q, _ = jnp.linalg.qr(Hz / jnp.where(ok, red.scale, 1.0)[:, None])
-    return Q @ Q.T
+    return datum_projector(Hz / jnp.where(ok, red.scale, 1.0)[:, None])
 
 
 def _full_cofactor(spec, red, Qzz, Hp, Hz):
@@ -398,13 +401,15 @@ def summary(spec: Spec, problem: Problem, params: Params, rank_tolerance) -> Sum
 
 
 def summary_from(spec: Spec, grid: Problem, params: Params, lin, vtpv=None) -> Summary:
-    """No observation-space or primitive blocks: ``Q_aa`` comes from one triangular solve with
-    the AP unit columns, ``W = L^-1 E_a``, ``Q_aa = W^T W`` (scaled back), instead of the whole
-    ``L^-T L^-1``; ``v^T P v`` from the linearisation's rows."""
+    """No observation-space or primitive blocks: ``Q_aa`` comes from the AP columns of the
+    triangular inverse, ``W = L^-1 E_a`` (the inverse of L's trailing AP block), ``Q_aa = W^T
+    W`` (scaled back), instead of the whole ``L^-T L^-1``; ``v^T P v`` from the
+    linearisation's rows."""
     red = lin.reduced
     dep = red.dependent
     a0 = 6 * spec.n_scans
-    W = forward_substitution(red.L, jnp.eye(spec.r, dtype=red.L.dtype)[:, a0:])
+    # L^-1 is lower triangular: its AP columns are the inverse of L's trailing block.
+    W = triangular_inverse(red.L[a0:, a0:])
     s = red.scale[a0:]
     Qaa = (W.T @ W) * s[:, None] * s[None, :]
     Qaa = jnp.where(dep[a0:, None] | dep[None, a0:], 0.0, Qaa)

@@ -48,7 +48,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._adjustment._linalg import spd_inverse
+from .._linalg import spd_inverse
 from .._model._aps import ap_basis_matrix, ap_corrections, on_reregistration
 from .._model._geometry import cartesian_from_spherical, rigid_fit, spherical_from_cartesian
 from .._simulation._batch import compile_batched

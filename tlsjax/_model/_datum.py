@@ -14,6 +14,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from .._linalg import bmm, mm, small_spd_solve
 from ._geometry import rotation_matrix
 
 
@@ -73,11 +74,19 @@ def null_space_columns(action, params, columns):
     return J[..., jnp.asarray(columns, dtype=jnp.int32)]
 
 
-def s_transform_vector(Hp, Hz, dps, dz):
-    """``dx - H (G^T H)^-1 G^T dx`` with G the primitive rows of H (inner constraints)."""
-    GtH = sum(jnp.einsum("npd,npe->de", H, H) for H in Hp)
+def inner_gram(Hp):
+    """``G^T H`` (d x d) of the inner constraints, G the primitive rows of H."""
+    return sum(jnp.einsum("npd,npe->de", H, H) for H in Hp)
+
+
+def s_transform_vector(Hp, Hz, dps, dz, GtH_inv=None):
+    """``dx - H (G^T H)^-1 G^T dx`` with G the primitive rows of H (inner constraints);
+    ``GtH_inv``: ``(G^T H)^-1`` when it is at hand (many vectors with one H)."""
     Gtx = sum(jnp.einsum("npd,np->d", H, dp) for H, dp in zip(Hp, dps))
-    coef = jnp.linalg.solve(GtH, Gtx)
+    if GtH_inv is None:
+        coef = small_spd_solve(inner_gram(Hp), Gtx)
+    else:
+        coef = GtH_inv @ Gtx
     dps = tuple(dp - jnp.einsum("npd,d->np", H, coef) for H, dp in zip(Hp, dps))
     return dps, dz - Hz @ coef
 
@@ -95,29 +104,29 @@ def inner_constraint_cofactor(Hp, Hz, Ninv, Y, Qzz):
     (r, r). Returns (per family diagonal blocks (n, p, p), per family (n, p, r) blocks with the
     reduced unknowns, the (r, r) block). Linear in the number of primitives.
     """
-    C = sum(jnp.einsum("npd,npr->dr", H, y) for H, y in zip(Hp, Y))  # Hp^T Y
-    M = jnp.linalg.inv(sum(jnp.einsum("npd,npe->de", H, H) for H in Hp))
-    Wz = -C @ Qzz  # (d, r)
+    # The products over all primitives as matrix products (``mm``), those per primitive over
+    # its few components written out (``bmm``): no batched dots (:mod:`tlsjax._linalg`).
+    T = lambda a: jnp.swapaxes(a, -1, -2)
+    flat = lambda a: a.reshape(-1, a.shape[-1])
+    C = sum(flat(H).T @ flat(y) for H, y in zip(Hp, Y))  # Hp^T Y (d, r)
+    GtH = inner_gram(Hp)
+    M = small_spd_solve(GtH, jnp.eye(GtH.shape[0], dtype=GtH.dtype))
+    CQ = C @ Qzz
+    Wz = -CQ  # (d, r)
     Wp = tuple(
-        jnp.einsum("npd,npq->ndq", H, Ni) + jnp.einsum("dr,npr->ndp", C @ Qzz, y)
-        for H, Ni, y in zip(Hp, Ninv, Y)
+        bmm(T(H), Ni) + T(mm(y, CQ.T)) for H, Ni, y in zip(Hp, Ninv, Y)
     )  # per family (n, d, p): columns of W for the primitives
-    WG = sum(jnp.einsum("npd,npq,nqe->de", H, Ni, H) for H, Ni in zip(Hp, Ninv)) + C @ Qzz @ C.T
+    WG = sum(flat(H).T @ flat(bmm(Ni, H)) for H, Ni in zip(Hp, Ninv)) + CQ @ C.T
     Z = M @ WG @ M.T
     HzM = Hz @ M
     Qzz_s = Qzz - HzM @ Wz - Wz.T @ HzM.T + Hz @ Z @ Hz.T
     diag, cross = [], []
     for H, Ni, y, W in zip(Hp, Ninv, Y, Wp):
-        HM = jnp.einsum("npd,de->npe", H, M)
-        YQ = jnp.einsum("npr,rq->npq", y, Qzz)
-        Qii = Ni + jnp.einsum("npq,nsq->nps", YQ, y)
-        HMW = jnp.einsum("npd,ndq->npq", HM, W)
-        HZH = jnp.einsum("npd,de,nqe->npq", H, Z, H)
-        diag.append(Qii - HMW - jnp.swapaxes(HMW, -1, -2) + HZH)
-        cross.append(
-            -YQ
-            - jnp.einsum("npd,dr->npr", HM, Wz)
-            - jnp.einsum("ndp,rd->npr", W, HzM)
-            + jnp.einsum("npd,de,re->npr", H, Z, Hz)
-        )
+        HM = mm(H, M)
+        YQ = mm(y, Qzz)
+        Qii = Ni + bmm(YQ, T(y))
+        HMW = bmm(HM, W)
+        HZH = bmm(mm(H, Z), T(H))
+        diag.append(Qii - HMW - T(HMW) + HZH)
+        cross.append(-YQ - mm(HM, Wz) - mm(T(W), HzM.T) + mm(mm(H, Z), Hz.T))
     return tuple(diag), tuple(cross), Qzz_s

@@ -81,6 +81,14 @@ def robust_fit(xb, xa, tol, sigma2, rng, hypotheses: int):
     m = len(xb)
     if m < 3:
         return None
+    # Without gross errors the least-squares fit on all correspondences is the answer the
+    # search below ends with (its final fit on an inlier set that is then all of them): when
+    # every residual of it is within tolerance it is returned at once. A gross error beyond
+    # ``tol`` shows in its residual (the fit spreads it over m points) and takes the search.
+    if m >= 3:
+        R1, t1, q = weighted_fit(xb, xa, 1.0 / sigma2)
+        if np.all(np.linalg.norm(xb @ R1.T + t1 - xa, axis=-1) < tol):
+            return R1, t1, np.ones(m, dtype=bool), q
     sub = np.sort(rng.choice(m, SCREEN_SIZE, replace=False)) if m > SCREEN_SIZE else np.arange(m)
     pb, pa, ts = xb[sub], xa[sub], tol[sub]
     db = np.linalg.norm(pb[:, None] - pb[None], axis=-1)

@@ -12,6 +12,50 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+# Contractions over small axes are written out as sums of elementwise products: XLA fuses them
+# with their neighbours into one loop, where ``jnp.sum`` over a small axis or a tiny einsum is
+# a reduction or batched-dot kernel of its own (each 10-80 us on the CPU at these shapes,
+# measured; PERFORMANCE.md).
+
+
+def small_sum(x, axis: int):
+    """``x.sum(axis)`` over a small static axis, as a chain of adds (of an input: a computed
+    ``x`` would be materialised before it is sliced; write such sums over slices of its
+    operands instead, as :func:`outer` does)."""
+    terms = [lax.index_in_dim(x, i, axis, keepdims=False) for i in range(x.shape[axis])]
+    return sum(terms[1:], terms[0])
+
+
+def outer(a, b):
+    """(..., k, i) x (..., k, j) -> (..., i, j): ``sum_k a_ki b_kj``."""
+    if a.shape[-2] == 0:
+        return jnp.zeros(
+            jnp.broadcast_shapes(a.shape[:-2], b.shape[:-2]) + (a.shape[-1], b.shape[-1]), a.dtype
+        )
+    return sum(a[..., k, :, None] * b[..., k, None, :] for k in range(a.shape[-2]))
+
+
+def matvec_t(a, e):
+    """(..., k, i), (..., k) -> (..., i): ``sum_k a_ki e_k``."""
+    if a.shape[-2] == 0:
+        return jnp.zeros(jnp.broadcast_shapes(a.shape[:-2], e.shape[:-1]) + a.shape[-1:], a.dtype)
+    return sum(a[..., k, :] * e[..., k, None] for k in range(a.shape[-2]))
+
+
+def bmm(a, b):
+    """(..., i, k) x (..., k, j) -> (..., i, j), a batch of small matrix products."""
+    return outer(jnp.swapaxes(a, -1, -2), b)
+
+
+def mm(a, b):
+    """``a[..., k] b[k, ...]`` as one matrix product over all of a's leading axes (a plain GEMM:
+    no batch axes, no transposed operands)."""
+    k = a.shape[-1]
+    if k == 0:
+        return jnp.zeros(a.shape[:-1] + b.shape[1:], jnp.result_type(a, b))
+    out = a.reshape(-1, k) @ b.reshape(k, -1)
+    return out.reshape(a.shape[:-1] + b.shape[1:])
+
 
 def spd_inverse(A):
     """Inverse of a batch of small SPD matrices ``A[..., p, p]`` by unrolled Cholesky."""
@@ -145,9 +189,9 @@ def _rank_revealing_loop(A, damping, fixed, tol):
     return L, dep, piv, Ld
 
 
-def estimable_cholesky_damped(A, damping, fixed, tol, check):
-    """:func:`rank_revealing_cholesky_damped` with the columns in ``check`` (the APs) tested
-    against *all* other columns, not only the ones before them.
+def estimable_cholesky_damped(A, damping, fixed, tol, n_check: int):
+    """:func:`rank_revealing_cholesky_damped` with the last ``n_check`` columns (the APs)
+    tested against *all* other columns, not only the ones before them.
 
     The in-order pivot of column j is ``1 - R^2`` of j regressed on the columns before it; a
     near dependency on columns *after* j stays hidden (A1 without an independent scale: the
@@ -158,14 +202,49 @@ def estimable_cholesky_damped(A, damping, fixed, tol, check):
     smallest such value below ``tol`` is held fixed and the matrix refactorised, until none is
     (backward elimination, at most once per checked column; in practice zero or one round).
     Returns (L, dependent, pivots, L_damped) as :func:`rank_revealing_cholesky_damped`, the
-    pivots of the checked columns being their ``1 - R^2`` against all others."""
+    pivots of the checked columns being their ``1 - R^2`` against all others.
+
+    The common case (no free column dependent) is one library Cholesky: with the held columns
+    replaced by unit columns its squared diagonal is the in-order pivot, and as the checked
+    columns come last, ``(A^-1)_jj`` of them are the squared column norms of the inverse of
+    L's trailing block alone (:func:`triangular_inverse`). Only when a test fails do the
+    column loops below run (a ``lax.cond``; under ``vmap`` both branches run). Measured on the
+    Chow room's 40 x 40 system: the column loops were about a third of an adjustment's
+    kernels."""
+    n = A.shape[0]
+    free = ~fixed
+    eye = jnp.eye(n, dtype=A.dtype)
+    check = jnp.arange(n) >= n - n_check
+    A0 = jax.lax.stop_gradient(A)
+    Ah = jnp.where(free[:, None] & free[None, :], A, 0.0) + jnp.where(fixed, 1.0, 0.0) * eye
+    L = jnp.linalg.cholesky(Ah)
+    piv = jnp.diagonal(L) ** 2
+    if n_check:
+        W = triangular_inverse(jax.lax.stop_gradient(L)[n - n_check :, n - n_check :])
+        q = jnp.sum(W**2, axis=0)
+        r2 = jnp.concatenate([piv[: n - n_check], 1.0 / jnp.where(q > 0, q, 1.0)])
+    else:
+        r2 = piv
+    ok = jnp.all(jnp.isfinite(L)) & jnp.all(fixed | ((piv > tol) & (r2 > tol)))
+
+    def fast():
+        damped = jnp.where(fixed, 0.0, 1.0) * eye
+        Ld = lax.cond(damping > 0, lambda: jnp.linalg.cholesky(Ah + damping * damped), lambda: L)
+        return L, fixed, jnp.where(check & free, r2, piv), Ld
+
+    return lax.cond(ok, fast, lambda: _estimable_loop(A, A0, damping, fixed, tol, check))
+
+
+def _estimable_loop(A, A0, damping, fixed, tol, check):
+    """The backward elimination of :func:`estimable_cholesky_damped` when a column is found
+    dependent: the in-order loop of :func:`rank_revealing_cholesky` and the inverse's diagonal
+    per round."""
     n = A.shape[0]
     eye = jnp.eye(n, dtype=A.dtype)
+
     # Which columns to hold is a decision, not a differentiable quantity: it is taken on the
     # value of A (a while loop, which reverse mode could not transpose), and the factors
     # returned come from the differentiable in-order factorisation with those columns held.
-    A0 = jax.lax.stop_gradient(A)
-
     def factor(held):
         L, dep, _ = rank_revealing_cholesky(A0, held, tol)
         q = jnp.sum(forward_substitution(L, eye) ** 2, axis=0)  # diag(A^-1), independent cols
@@ -191,6 +270,42 @@ def estimable_cholesky_damped(A, damping, fixed, tol, check):
     return L, dep, jnp.where(check & ~dep, r2, piv), Ld
 
 
+#: Blocks of at most this many columns are inverted by :func:`triangular_inverse` with one
+#: library triangular solve; larger ones are split in two.
+TRIANGULAR_LEAF = 16
+
+
+def triangular_inverse(L):
+    """``L^-1`` of a lower-triangular ``L[..., n, n]`` by the block formula
+    ``[[A, 0], [B, C]]^-1 = [[A^-1, 0], [-C^-1 B A^-1, C^-1]]``, recursively down to blocks of
+    at most :data:`TRIANGULAR_LEAF` columns, each one LAPACK triangular solve.
+
+    Written by hand because XLA's CPU triangular solve with a matrix right-hand side calls
+    OpenBLAS's ``trsm``, which runs multithreaded from about 32 columns on, and its threads
+    spin on a shared 2-core machine (measured at 40 x 40: 15 us alone, 1.4-7.9 ms under
+    load); a ``fori_loop`` over rows costs several kernels per row, and an unrolled
+    elementwise inverse one kernel per entry (XLA does not fuse scalar chains). This is three
+    solves and four matrix products at n = 40."""
+    n = L.shape[-1]
+    if n <= TRIANGULAR_LEAF:
+        eye = jnp.broadcast_to(jnp.eye(n, dtype=L.dtype), L.shape)
+        return lax.linalg.triangular_solve(L, eye, left_side=True, lower=True)
+    half = (n + 1) // 2
+    h = (half + TRIANGULAR_LEAF - 1) // TRIANGULAR_LEAF * TRIANGULAR_LEAF  # whole leaves
+    Ai = triangular_inverse(L[..., :h, :h])
+    Ci = triangular_inverse(L[..., h:, h:])
+    low = -(Ci @ (L[..., h:, :h] @ Ai))
+    top = jnp.concatenate([Ai, jnp.zeros(L.shape[:-2] + (h, n - h), L.dtype)], axis=-1)
+    return jnp.concatenate([top, jnp.concatenate([low, Ci], axis=-1)], axis=-2)
+
+
+def small_spd_solve(A, B):
+    """``A^-1 B`` for one small SPD matrix (the datum's d x d normal matrix) by LAPACK's
+    Cholesky and two triangular solves: seven kernels, where an LU solve runs a pivot loop
+    and an unrolled inverse one kernel per entry."""
+    return jax.scipy.linalg.cho_solve((jnp.linalg.cholesky(A), True), B)
+
+
 def forward_substitution(L, B):
     """``L^-1 B`` for lower-triangular L, row by row in a ``fori_loop``.
 
@@ -211,5 +326,6 @@ def cholesky_solve(L, b):
 
 
 def cholesky_inverse(L):
-    Li = forward_substitution(L, jnp.eye(L.shape[0], dtype=L.dtype))
+    """``(L L^T)^-1`` from the Cholesky factor (:func:`triangular_inverse`)."""
+    Li = triangular_inverse(L)
     return Li.T @ Li
