@@ -29,8 +29,8 @@ false alarms at the level; ``expected_share_correct`` and the share among the dr
 power >= 90 % separate that from the selection's own errors.
 
 Writes benchmarks/results/identification.json (per term: draws, share correct, the statistics
-of X and ALT, the CV of both when tried, the design's figures above, timings). Terms run in
-parallel processes (``--jobs``).
+of X and ALT, the CV of both when tried, the design's figures above, timings). Each term runs
+in a fresh process, ``--jobs`` of them at once.
 """
 
 from __future__ import annotations
@@ -251,11 +251,10 @@ def main():
     work = [(t, args.draws, args.corr, args.targets, args.seed) for t in args.terms]
     t0 = time.perf_counter()
     load0 = loadavg()
-    if args.jobs > 1:
-        with ProcessPoolExecutor(args.jobs) as ex:
-            results = list(ex.map(run_term, work))
-    else:
-        results = [run_term(w) for w in work]
+    # Each term in a fresh process: every term registers its own ALT and compiles its programs,
+    # and one process holding all of them ran out of memory (LLVM) on a shared machine.
+    with ProcessPoolExecutor(args.jobs, max_tasks_per_child=1) as ex:
+        results = list(ex.map(run_term, work))
     for r in results:
         print(
             f"{r['term']:4s} vs ALT ({r['term']} + {r.get('lambda', 0):.3g} {r.get('alternative_of')}): "
