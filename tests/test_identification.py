@@ -323,6 +323,29 @@ def test_selection_tries_alternatives_and_ends_no_worse_than_the_start(c3_room):
     assert result.to_dict()["selection"]["steps"][0]["cv_mm"] == sel.steps[0].cv_mm
 
 
+def test_a_near_equivalent_of_a_term_in_the_model_enters_only_if_it_predicts_better(c3_room):
+    """C3 in the data; a registered C3W = C3 + 0.05 sin(5 alpha), after C3 its near-equivalent
+    (|r| > 0.9 between the two estimates) whose extra effect is noise. At a lenient level
+    (test_level 0.9, so that its statistic passes) it used to enter beside C3; now it is tried
+    and, predicting held-out scans no better than the model without it, not entered."""
+    from tlsjax._model._aps import _REGISTRY
+
+    s, _, _ = c3_room
+    basis = lambda r, t, a, sc: jnp.cos(a) + 0.05 * jnp.sin(5 * a)
+    tj.register_ap("C3W", "el", basis, "rad", "C3 and a little sin(5 alpha)", overwrite=True)
+    selection = tj.SelectionOptions(candidates=("C3", "C3W"), test_level=0.9)
+    try:
+        options = tj.CalibrationOptions(vce=None, selection=selection)
+        sel = tj.self_calibrate(s.network, MODEL, options).selection
+    finally:  # every registered term is a default candidate: none left for later tests
+        _REGISTRY.pop("C3W", None)
+    assert "C3" in sel.aps and "C3W" not in sel.aps
+    (late,) = [st for st in sel.steps if st.action == "try" and st.aps[-2:] == ("C3", "C3W")]
+    assert late.statistic > sel.critical and late.max_abs_corr > 0.9
+    without = next(st for st in sel.steps if st.action == "add" and st.term == "C3")
+    assert late.cv_mm >= without.cv_mm and "not entered" in late.reason
+
+
 # --- The architecture from the data (issue 41.5) ----------------------------------------------
 
 
@@ -348,6 +371,62 @@ def test_hybrid_data_read_as_panoramic_are_named(physical_room):
         assert abs(h.aps[name] - s.true_aps[name]) < 3 * res.ap_sigmas[k], name
     assert abs(p.aps["B6"] - s.true_aps["B6"]) > 5 * res.ap_sigmas[1]
     assert cmp.to_dict()["best"] == "hybrid" and "warning" in cmp.summary()
+
+
+def test_a_failed_fit_is_reported_as_failed_and_not_compared(physical_room, monkeypatch, tmp_path):
+    """The hybrid calibration of hybrid data made to fail (one Gauss-Newton step: it does not
+    converge): the comparison reports it as failed with its reason and draws no conclusion
+    from it (no architecture called better, not "clearly", a warning that the architecture
+    was not checked), where it used to call panoramic clearly better."""
+    from tlsjax._inference import _architecture
+
+    s, _, _ = physical_room
+    run = _architecture.run_tests
+
+    def hybrid_fails(network, model, options):
+        if model.scanner.architecture == "hybrid":
+            options = dataclasses.replace(options, solver=tj.SolverOptions(max_iterations=1))
+        return run(network, model, options)
+
+    monkeypatch.setattr(_architecture, "run_tests", hybrid_fails)
+    cmp = tj.compare_architectures(s.network, MODEL)
+    h, p = cmp.fits["hybrid"], cmp.fits["panoramic"]
+    assert not h.ok and h.message and p.ok
+    assert cmp.given == "hybrid" and cmp.best is None and not cmp.clearly
+    assert "no comparison drawn" in cmp.reason and h.message in cmp.reason
+    assert "not checked" in cmp.warning and "clearly" not in cmp.warning
+    text = cmp.summary()
+    assert f"hybrid: failed: {h.message}" in text and "explains the data better" not in text
+    doc = cmp.to_dict()
+    assert doc["best"] is None and not doc["clearly"] and not doc["fits"]["hybrid"]["ok"]
+    page = open(tj.write_html_report({"architecture_check": doc}, tmp_path / "r.html")).read()
+    assert "no comparison drawn" in page and "Explains the data better" not in page
+
+
+def test_score_test_summary_prints_a_header_only_with_content():
+    """Score tests with no testable candidate (none at all, or only terms the design cannot
+    estimate) say so in one line; no "missing terms (score tests of 0 candidate(s) ...)"
+    header over nothing. With a testable candidate, the header has it (or the largest) under
+    or beside it."""
+    note = "a change of the network's scale"
+    a1 = tj.ScoreTest("A1", "range", *(np.nan,) * 5, "1", False, False, note)
+    c3 = tj.ScoreTest("C3", "el", 30.0, 1e-7, 0.2, 1e-4, 1e-5, "rad", True, True)
+    texts = {
+        "empty": tj.ScoreTests((), 100.0, 0.001, 10.83).summary(),
+        "not estimable": tj.ScoreTests((a1,), 100.0, 0.001, 10.83).summary(),
+        "significant": tj.ScoreTests((c3, a1), 100.0, 0.001, 10.83).summary(),
+    }
+    assert texts["empty"] == "missing terms: no candidate could be tested (no candidate terms)"
+    assert texts["not estimable"] == f"missing terms: no candidate could be tested (A1: {note})"
+    lines = texts["significant"].splitlines()
+    assert lines[0].startswith("missing terms (score tests of 1 candidate(s)")
+    assert lines[1].strip().startswith("C3 (el) T = 30.0") and "A1: " + note in lines[2]
+    for text in texts.values():
+        assert "0 candidate(s)" not in text and "none significant" not in text
+        rows = text.splitlines()
+        for i, row in enumerate(rows):  # a line ending with ':' has an indented line under it
+            if row.endswith(":"):
+                assert i + 1 < len(rows) and rows[i + 1].startswith("  "), text
 
 
 # --- The HTML report reads the parts' to_dict() (issue 41.7) ----------------------------------

@@ -19,7 +19,9 @@ One is *clearly* better when its cross-validated misfit is lower by more than
 :attr:`ArchitectureCheckOptions.margin` standard errors of the paired difference over the
 folds (without folds: the other's sigma0 more than ``sigma0_ratio`` times its own); where
 the architecture the network was read as is clearly worse, the comparison says so in a warning
-naming the other.
+naming the other. A fit that failed (did not converge, a rank defect) is reported as failed
+with its reason, and nothing is concluded from it: no architecture is called better, and a
+warning says that the architecture was not checked.
 """
 
 from __future__ import annotations
@@ -88,14 +90,47 @@ class ArchitectureComparison:
     architecture, ``given`` the one the network was read as (None: unknown), ``best`` the one
     that explains the data better, ``clearly`` whether by more than the folds' scatter (or the
     sigma0 ratio), ``reason`` how it was decided and ``warning`` (empty unless ``given`` is
-    clearly worse)."""
+    clearly worse or a fit failed). Where a fit failed, ``best`` is None: no comparison is
+    drawn from a failed fit (:meth:`of`)."""
 
     fits: dict
     given: str | None
-    best: str
+    best: str | None
     clearly: bool
     reason: str
     warning: str = ""
+
+    @classmethod
+    def of(
+        cls, fits: dict, given: str, margins: ArchitectureCheckOptions | None = None
+    ) -> ArchitectureComparison:
+        """The verdict on ``fits`` (architecture -> :class:`ArchitectureFit`) for data read as
+        ``given``. A fit that failed is reported as failed, with its reason, and no
+        comparison is drawn from it: ``best`` None, not ``clearly``, and a warning that the
+        architecture was not checked (a failed fit is no evidence against its architecture:
+        it may fail on the data's gross errors or the solver's settings)."""
+        failed = [a for a, f in fits.items() if not f.ok]
+        if failed:
+            why = "; ".join(f"as {a} the calibration failed: {fits[a].message}" for a in failed)
+            reason = f"no comparison drawn ({why})"
+            warning = (
+                f"architecture check: {reason}; whether the data, read as {given}, are in the "
+                "instrument's representation is not checked"
+            )
+            return cls(fits, given, None, False, reason, warning)
+        best, clearly, reason = _decide(fits, margins or ArchitectureCheckOptions())
+        warning = ""
+        if clearly and best != given:
+            f, g = fits[best], fits[given]
+            warning = (
+                f"the data were read as {given}, but {best} explains them clearly better "
+                f"(sigma0 {f.sigma0:.3f} against {g.sigma0:.3f}; held-out misfit "
+                f"{_mm(f.cv_mm)} against {_mm(g.cv_mm)}): the instrument probably measures "
+                f"{'in two faces' if best == 'panoramic' else 'in one face over the full turn'}; "
+                f"read the target lists with architecture '{best}' (--architecture {best}), or "
+                "the APs will be wrong"
+            )
+        return cls(fits, given, best, clearly, reason, warning)
 
     def summary(self) -> str:
         """Each architecture's sigma0 and cross-validated misfit, the verdict, the warning."""
@@ -103,7 +138,10 @@ class ArchitectureComparison:
         for arch, f in self.fits.items():
             mark = " (as read)" if arch == self.given else ""
             lines.append(f"  {f.summary()}{mark}")
-        lines.append(f"  explains the data better: {self.best} ({self.reason})")
+        if self.best is None:
+            lines.append(f"  {self.reason}")
+        else:
+            lines.append(f"  explains the data better: {self.best} ({self.reason})")
         if self.warning:
             lines.append(f"warning: {self.warning}")
         return "\n".join(lines)
@@ -196,24 +234,7 @@ def compare_architectures(
     margins = options.architecture_check or ArchitectureCheckOptions()
     fitting = _fitting_options(options)
     fits = {a: _fit(network, model, a, fitting) for a in ARCHITECTURES}
-    best, clearly, reason = _decide(fits, margins)
-    warning = ""
-    if clearly and best != given:
-        f, g = fits[best], fits[given]
-        why = (
-            f"sigma0 {f.sigma0:.3f} against {g.sigma0:.3f}; held-out misfit {_mm(f.cv_mm)} "
-            f"against {_mm(g.cv_mm)}"
-            if g.ok
-            else f"sigma0 {f.sigma0:.3f}; as {given} the calibration failed: {g.message}"
-        )
-        warning = (
-            f"the data were read as {given}, but {best} explains them clearly better "
-            f"({why}): the instrument probably measures "
-            f"{'in two faces' if best == 'panoramic' else 'in one face over the full turn'}; "
-            f"read the target lists with architecture '{best}' (--architecture {best}), or the "
-            "APs will be wrong"
-        )
-    return ArchitectureComparison(fits, given, best, clearly, reason, warning)
+    return ArchitectureComparison.of(fits, given, margins)
 
 
 def _mm(x: float) -> str:
@@ -221,14 +242,9 @@ def _mm(x: float) -> str:
 
 
 def _decide(fits: dict, margins: ArchitectureCheckOptions) -> tuple:
-    """(best, clearly, reason): by the cross-validated misfit where both have one, else by
-    the a priori sigma0."""
-    ok = {a: f for a, f in fits.items() if f.ok}
-    if len(ok) == 1:
-        (a,) = ok
-        return a, True, "the other calibration failed"
-    if not ok:
-        return ARCHITECTURES[0], False, "both calibrations failed"
+    """(best, clearly, reason) of two successful fits: by the cross-validated misfit where
+    both have one, else by the a priori sigma0."""
+    ok = fits
     h, p = (ok[a] for a in ARCHITECTURES)
     if np.isfinite(h.cv_mm) and np.isfinite(p.cv_mm):
         best = min(ok, key=lambda a: ok[a].cv_mm)

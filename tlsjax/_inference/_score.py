@@ -176,7 +176,14 @@ class ScoreTests:
         return next((g for g in self.groups if name in g), (name,))
 
     def summary(self) -> str:
+        """The significant candidates (each group of alternatives together), else the largest
+        statistic, and the candidates the design cannot estimate. A header only with a
+        candidate under it: without a testable one, one line says so."""
         n = sum(t.testable for t in self.tests)
+        gone = self.not_estimable
+        if not n:
+            why = "; ".join(f"{t.name}: {t.note}" for t in gone) or "no candidate terms"
+            return f"missing terms: no candidate could be tested ({why})"
         stat = (
             "chi^2(1)"
             if self.variance_factor == 1.0
@@ -210,7 +217,6 @@ class ScoreTests:
                 lines += [f"    {self.test(a).summary()}" for a in group]
             else:
                 lines.append(f"  {t.summary()}")
-        gone = self.not_estimable
         if gone:
             lines.append(
                 "  not estimable in this design (never proposed): "

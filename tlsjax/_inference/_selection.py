@@ -24,6 +24,11 @@ statistic; the cross-validation confirms it or overrides it: a member that predi
 held-out scans better by more than twice the standard error of the paired difference over the
 folds enters instead. (With a correct stochastic model the statistic is the more powerful
 judge; where the misfit holds what the model does not describe, prediction is the honest one.)
+The same holds for a term that would enter beside a near-equivalent already in the model
+(their correlation beyond ``max_correlation``): its statistic passes on the small part of its
+effect that the other does not carry, while the two estimates become inflated and opposite; it
+enters only where the cross-validation confirms it, i.e. predicts held-out scans better than
+the model without it (issue 41: C0 and C1 correlated 1.000 in a model of eight terms).
 
 **The end point by prediction.** Every model on the path is cross-validated with the folds of
 the calibration's ``cross_validation`` settings (one compiled adjustment serves every fit and
@@ -69,8 +74,9 @@ class SelectionOptions(Settings):
     """Stepwise AP selection, starting from the model's APs (module docstring).
     ``candidates``: the terms that may be added (names or presets); ``test_level``: family-wise
     level of the one statistic by which terms enter and leave (1 %: each step tests many
-    candidates); ``max_correlation``: a term entered with a larger absolute correlation with
-    another unknown is reported as such (it stays, since it explains the misfit);
+    candidates); ``max_correlation``: a term whose absolute correlation with another unknown
+    would exceed it enters only where it predicts held-out scans better than the model without
+    it (with cross-validation; without, it enters and is reported as such);
     ``max_steps``: bound on add/remove steps. The prediction check of alternatives and of the
     end point uses the folds of ``cross_validation`` of :class:`tlsjax.CalibrationOptions` (None: not
     checked, the path's last model is the end point)."""
@@ -399,6 +405,14 @@ def _forward(fit, current, res, visited, unestimable, crit, options, steps):
             continue
         corr, partner = float(r.ap_max_abs_corr[i]), r.ap_max_corr_with[i]
         why = f"{entered}; |t| = {abs(float(r.ap_t[i])):.2f}"
+        worse = corr > options.max_correlation and _predicts_no_better(fit, trial, current)
+        if worse:
+            why = f"{entered}; |r| = {corr:.2f} with {partner}: {worse}"
+            steps.append(
+                _record("try", chosen, trial, r, why, fit.cv(trial), t.statistic, z[chosen])
+            )
+            left.remove(chosen)
+            continue
         if corr > options.max_correlation:
             why += (
                 f"; high correlation |r| = {corr:.2f} with {partner}: entered because it explains "
@@ -409,6 +423,19 @@ def _forward(fit, current, res, visited, unestimable, crit, options, steps):
             why += f", max |corr| = {corr:.2f} with {partner}"
         return chosen, r, why, t.statistic, z[chosen]
     return None
+
+
+def _predicts_no_better(fit, trial, current) -> str:
+    """Why ``trial`` (``current`` and a term the design separates poorly from one in it) does
+    not enter: it predicts held-out scans no better than ``current`` (module docstring); ""
+    where it does, or where the two cannot be cross-validated."""
+    a, b = fit.cv(trial), fit.cv(current)
+    if a is None or b is None or not (a.ok and b.ok) or a.cv_mm < b.cv_mm:
+        return ""
+    return (
+        f"the design separates the two poorly and it predicts held-out scans no better (CV "
+        f"{a.cv_mm:.3f} mm against {b.cv_mm:.3f} mm without it): not entered"
+    )
 
 
 def _by_prediction(fit, current, group, z, steps):

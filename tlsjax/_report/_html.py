@@ -624,7 +624,11 @@ def _section_architecture(doc) -> str:
     return (
         "<h2>Architecture from the data</h2>"
         + _table(head, rows, "small")
-        + f"<p>Explains the data better: <b>{_e(ac.get('best'))}</b> ({_e(ac.get('reason'))}).</p>"
+        + (
+            f"<p>Explains the data better: <b>{_e(ac['best'])}</b> ({_e(ac.get('reason'))}).</p>"
+            if ac.get("best")
+            else f"<p>{_e(ac.get('reason'))}.</p>"
+        )
         + warn
     )
 
