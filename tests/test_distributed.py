@@ -24,7 +24,7 @@ import tlsjax
 _HEAD = """
 import os, sys
 os.environ["JAX_PLATFORMS"] = "cpu"
-os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=1"
+os.environ["XLA_FLAGS"] = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=1"
 import jax
 jax.config.update("jax_enable_x64", True)
 port, procs, me, out = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4]

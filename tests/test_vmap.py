@@ -81,9 +81,9 @@ def test_compatibility_chunk_size_invariance(reference):
 
 def test_device_count_invariance(reference):
     _, ref = reference
-    env = dict(
-        os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu"
-    )
+    # The suite's XLA flags (its optimisation level, tests/conftest.py) and two host devices.
+    flags = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
+    env = dict(os.environ, XLA_FLAGS=flags.strip(), JAX_PLATFORMS="cpu")
     proc = subprocess.run(
         [sys.executable, "-c", SCRIPT], capture_output=True, text=True, env=env, timeout=600
     )
