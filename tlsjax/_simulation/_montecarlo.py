@@ -236,6 +236,19 @@ def _simulator(truth: SimulationTruth, ap_sigma) -> _Simulator:
     )
 
 
+@functools.partial(jit, static_argnums=0)
+def _contraction(scanner, aps, rows):
+    """``max |d Delta / d l|`` (row sums) over ``rows``: per term, sum_k |a_k| |d basis_k /
+    d l| bounds it (no cancellation). Compiled once per scanner (its hash holds the registry's
+    tokens) and shape: dispatched eagerly, its Jacobians were a hundred operations per call."""
+
+    def jac(c):
+        return jax.vmap(jax.jacfwd(lambda l: ap_corrections(c, scanner.aps, l, scanner)))(rows)
+
+    J = jax.vmap(jac)(jnp.eye(len(scanner.aps)))
+    return jnp.max(jnp.einsum("k,kmij->mi", jnp.abs(aps), jnp.abs(J)))
+
+
 def _fixed_point_iterations(truth, F_t, F_p, aps, slices) -> int:
     """Iterations of the fixed point ``l = base + Delta(l)`` that reach float64 rounding for
     this design: it contracts by ``q = max |d Delta / d l|`` (row sums, at the error-free
@@ -251,14 +264,7 @@ def _fixed_point_iterations(truth, F_t, F_p, aps, slices) -> int:
             rows = F[inst == i]
             if not len(rows) or not sc.aps:
                 continue
-
-            # Per term: sum_k |a_k| |d basis_k / d l| bounds |d Delta / d l| (no cancellation).
-            def jac(c, L, s=sc):
-                return jax.vmap(jax.jacfwd(lambda l: ap_corrections(c, s.aps, l, s)))(L)
-
-            J = jax.vmap(jac, in_axes=(0, None))(jnp.eye(b - a), jnp.asarray(rows))
-            bound = jnp.einsum("k,kmij->mi", jnp.abs(jnp.asarray(aps[a:b])), jnp.abs(J))
-            q = max(q, float(jnp.max(bound)))
+            q = max(q, float(_contraction(sc, np.asarray(aps[a:b]), np.asarray(rows))))
     if not 0.0 < q < 0.5:
         return FIXED_POINT_ITERATIONS
     need = int(np.ceil(np.log(np.finfo(np.float64).eps) / np.log(q))) + 2

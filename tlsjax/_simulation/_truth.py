@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._adjustment._network import Network, ObservationTable, make_network
+from .._jit import jit
 from .._model._geometry import is_face2, spherical_from_cartesian
 from .._model._points import point_geometry
 from .._model._scanner import Scanner
@@ -121,10 +122,15 @@ class SimulationTruth:
         )
 
 
+# One compiled program per shape: an un-jitted vmap dispatched a hundred operations one by one
+# on every call (each Monte Carlo check network, every error-free evaluation).
+_scanner_coordinates = jit(jax.vmap(point_geometry))
+
+
 def _spherical(X, E, l_obs, panoramic):
     if len(X) == 0:
         return np.zeros((0, 3))
-    x = np.asarray(jax.vmap(point_geometry)(jnp.asarray(X), jnp.asarray(E)))
+    x = np.asarray(_scanner_coordinates(jnp.asarray(X), jnp.asarray(E)))
     face2 = panoramic & np.asarray(is_face2(l_obs[:, 2], xp=np))
     return np.asarray(spherical_from_cartesian(x, face2, xp=np))
 
