@@ -244,7 +244,7 @@ def _mm(x: float) -> str:
 def _decide(fits: dict, margins: ArchitectureCheckOptions) -> tuple:
     """(best, clearly, reason) of two successful fits: by the cross-validated misfit where
     both have one, else by the a priori sigma0."""
-    ok = fits
+    ok = fits  # every fit succeeded (ArchitectureComparison.of)
     h, p = (ok[a] for a in ARCHITECTURES)
     if np.isfinite(h.cv_mm) and np.isfinite(p.cv_mm):
         best = min(ok, key=lambda a: ok[a].cv_mm)

@@ -635,8 +635,9 @@ def monte_carlo(
 
 
 @jit
-def _draw_many(simulator, seed_key, indices):
-    return jax.vmap(lambda i: simulator.draw(jax.random.fold_in(seed_key, i)))(indices)
+def _draw_many(simulator, seed, indices):
+    key = jax.random.PRNGKey(seed)  # in the program: no key made by an eager operation
+    return jax.vmap(lambda i: simulator.draw(jax.random.fold_in(key, i)))(indices)
 
 
 def monte_carlo_network(
@@ -651,9 +652,7 @@ def monte_carlo_network(
     sim = _simulator(truth, ap_sigma)
     many = not np.isscalar(index)
     idx = np.atleast_1d(np.asarray(index, dtype=np.int64))
-    draws = jax.tree.map(
-        np.asarray, _draw_many(sim, jax.random.PRNGKey(int(seed)), jnp.asarray(idx))
-    )
+    draws = jax.tree.map(np.asarray, _draw_many(sim, np.int64(seed), idx))
     net = truth.network
     multi = len(net.instruments) > 1
     labels = [
