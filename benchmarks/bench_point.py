@@ -273,6 +273,7 @@ def machine_info():
         "jaxlib_version": getattr(jax.lib, "__version__", None) or _jaxlib_version(),
         "jax_backend": jax.default_backend(),
         "jax_devices": [str(d) for d in jax.devices()],
+        "jax_device_kind": jax.devices()[0].device_kind,
         "jax_x64": bool(jax.config.jax_enable_x64),
         "numpy_version": np.__version__,
         "scipy_version": scipy.__version__,

@@ -6,6 +6,8 @@ The default test runs the one batch runner that Monte Carlo and the compatibilit
 share (``run_batched``) on a small compiled function, so it costs three interpreter starts. The
 same check on the public ``tj.monte_carlo`` compiles the whole chord adjustment in three
 processes (about a minute of CPU): it runs with ``TLSJAX_TEST_DISTRIBUTED=1``.
+
+Internal: the chunk size the runner picks per device kind (``_batch.auto_chunk``).
 """
 
 import os
@@ -158,3 +160,31 @@ def test_monte_carlo_over_two_processes_equals_one_bit_for_bit(tmp_path):
     (both,) = _finish([_start(MONTE_CARLO, tmp_path, 2, "two", env)], deadline_s=600)
     assert np.all(one["res"] == 0)
     _assert_equal(one, both, ("aps", "s0", "it", "res", "cov"))
+
+
+class _Device:
+    def __init__(self, platform, limit):
+        self.platform, self._limit = platform, limit
+
+    def memory_stats(self):
+        return {"bytes_limit": self._limit}
+
+
+@pytest.mark.internal
+def test_chunk_sized_by_cache_on_cpu_and_by_memory_on_an_accelerator(monkeypatch):
+    """On a CPU a chunk's share stays near the cache-sized working set (measured optimum); on
+    an accelerator it takes an eighth of the device's memory, capped, never above the runs."""
+    import jax
+
+    from tlsjax._simulation import _batch
+
+    row = 225e3  # the Chow room's Jacobian rows per realisation, 4 APs [bytes]
+    n = jax.local_device_count()
+    cpu = _batch.auto_chunk(row, 1000)
+    assert cpu == _batch.round_chunk(n * int(_batch.DEVICE_WORKING_SET // row))
+    monkeypatch.setattr(jax, "local_devices", lambda: [_Device("gpu", 80e9)] * n)
+    assert _batch.auto_chunk(row, 1000) == _batch.round_chunk(1000)
+    assert _batch.auto_chunk(row, 10**6) == _batch.round_chunk(n * _batch.ACCELERATOR_MAX_ITEMS)
+    small = 8 * 50 * row  # memory for 50 realisations' rows
+    monkeypatch.setattr(jax, "local_devices", lambda: [_Device("gpu", small)] * n)
+    assert _batch.auto_chunk(row, 1000) == _batch.round_chunk(n * 50)

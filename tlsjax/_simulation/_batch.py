@@ -58,11 +58,35 @@ def round_chunk(chunk_size: int) -> int:
 
 
 def auto_chunk(bytes_per_item: float, runs: int) -> int:
-    """Items per compiled call: as many per device as fit :data:`DEVICE_WORKING_SET` (1 to
-    64), but no more than ``runs`` need; a multiple of the device count."""
+    """Items per compiled call: as many per device as fit the device's working set (see
+    :func:`device_working_set`), but no more than ``runs`` need; a multiple of the device count."""
     n_dev = jax.local_device_count()
-    per_device = int(min(max(DEVICE_WORKING_SET // max(bytes_per_item, 1.0), 1), 64))
+    budget, cap = device_working_set()
+    per_device = int(min(max(budget // max(bytes_per_item, 1.0), 1), cap))
     return round_chunk(min(per_device * n_dev, int(runs)))
+
+
+#: Most members of a chunk on one accelerator: beyond a few thousand the vmapped solve gains
+#: nothing and the last chunk's padding costs more.
+ACCELERATOR_MAX_ITEMS = 4096
+
+
+def device_working_set() -> tuple[float, int]:
+    """(bytes, most items) of one device's share of a chunk.
+
+    A CPU core runs a chunk's members one after another through its cache, so the share is kept
+    near :data:`DEVICE_WORKING_SET`. An accelerator runs them side by side and idles while the
+    host launches the next chunk, so its share is as large as its memory allows: an eighth of
+    the memory XLA may use (the Jacobian rows are a fraction of a member's buffers), at most
+    :data:`ACCELERATOR_MAX_ITEMS` members."""
+    d = jax.local_devices()[0]
+    if d.platform == "cpu":
+        return DEVICE_WORKING_SET, 64
+    try:
+        limit = float((d.memory_stats() or {}).get("bytes_limit", 0.0))
+    except Exception:  # noqa: BLE001 - a backend without memory statistics
+        limit = 0.0
+    return (limit / 8 if limit > 0 else 1e9), ACCELERATOR_MAX_ITEMS
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
