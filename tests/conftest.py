@@ -28,6 +28,12 @@ if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (
         os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0"
     ).strip()
+# The tests' own ``jax.jit`` (around ``grad``, ``vmap`` or ``jvp`` of tlsjax functions) compiles
+# with the code generators that tlsjax's programs use (``_jit.PREFERRED_OPTIONS``): XLA's newer
+# fusion emitters took twice the CPU time to compile the reverse-mode adjustment and run nothing
+# that tlsjax compiles itself.
+if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] += " --xla_cpu_use_fusion_emitters=false"
 
 
 # The edit-test loop: ``./scripts/test -m fast`` runs the tests listed in tests/fast.txt (node

@@ -227,7 +227,9 @@ def test_calibration_at_xla_default_level_agrees_with_the_suite():
     on ill-conditioned normal equations."""
     assert "--xla_backend_optimization_level=0" in os.environ.get("XLA_FLAGS", "")
     flags = " ".join(
-        f for f in os.environ["XLA_FLAGS"].split() if "xla_backend_optimization_level" not in f
+        f
+        for f in os.environ["XLA_FLAGS"].split()
+        if "xla_backend_optimization_level" not in f and "xla_cpu_use_fusion_emitters" not in f
     )
     env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
     proc = subprocess.run(
