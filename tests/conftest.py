@@ -18,6 +18,9 @@ _SUITE_CACHE = None
 if "TLSJAX_CACHE_DIR" not in os.environ:
     _SUITE_CACHE = tempfile.mkdtemp(prefix="tlsjax-test-cache-")
     os.environ["TLSJAX_CACHE_DIR"] = _SUITE_CACHE
+    # Unbounded: JAX's bounded cache scans the whole folder on every store, and the suite
+    # stores some 3,000 programs (a minute of CPU in the scans; tlsjax._jit.CACHE_MAX_BYTES_ENV).
+    os.environ.setdefault("TLSJAX_CACHE_MAX_BYTES", "unbounded")
 
 # XLA's backend optimisations (LLVM) take about 40 % of the suite's CPU time and change no
 # result beyond rounding: the suite compiles without them, as the notebooks' kernels and the

@@ -21,6 +21,8 @@ def test_the_suite_compiles_into_the_cache_folder_tlsjax_names():
     assert folder == _jit.cache_dir()
     assert jax.config.jax_persistent_cache_min_compile_time_secs == 0.0  # small ones too
     assert _jit.cache_dir().endswith(f"tlsjax-{tj.__version__}")  # keyed on the version
+    # The bound read at import: the suite's throw-away folder is unbounded (tests/conftest.py).
+    assert jax.config.jax_compilation_cache_max_size == _jit.cache_max_bytes()
 
 
 def test_cache_dir_is_off_when_asked(monkeypatch):
@@ -29,6 +31,17 @@ def test_cache_dir_is_off_when_asked(monkeypatch):
         assert _jit.cache_dir() is None
     monkeypatch.setenv("TLSJAX_CACHE_DIR", "/some/folder")
     assert _jit.cache_dir() == os.path.join("/some/folder", f"tlsjax-{tj.__version__}")
+
+
+def test_cache_bound_from_the_environment(monkeypatch):
+    monkeypatch.delenv("TLSJAX_CACHE_MAX_BYTES", raising=False)
+    assert _jit.cache_max_bytes() == _jit.CACHE_MAX_BYTES
+    for value, bound in (("5e8", 500_000_000), ("unbounded", -1), ("0", -1), ("-3", -1)):
+        monkeypatch.setenv("TLSJAX_CACHE_MAX_BYTES", value)
+        assert _jit.cache_max_bytes() == bound, value
+    monkeypatch.setenv("TLSJAX_CACHE_MAX_BYTES", "1 GB")
+    with pytest.warns(UserWarning, match="TLSJAX_CACHE_MAX_BYTES='1 gb' is not a number"):
+        assert _jit.cache_max_bytes() == _jit.CACHE_MAX_BYTES
 
 
 def _counting(traced):
@@ -82,6 +95,7 @@ def test_a_process_killed_mid_store_does_not_stop_later_stores(tmp_path):
         "print(float(jnp.sin(jnp.arange(3.0)).sum()))\n"
     )
     env = dict(os.environ, TLSJAX_CACHE_DIR=str(tmp_path), JAX_PLATFORMS="cpu")
+    env.pop("TLSJAX_CACHE_MAX_BYTES", None)  # the default: bounded, with access-time files
     run = subprocess.run([sys.executable, "-c", program], env=env, capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     assert "Error writing persistent compilation cache" not in run.stderr

@@ -7,7 +7,8 @@ share (``run_batched``) on a small compiled function, so it costs three interpre
 same check on the public ``tj.monte_carlo`` compiles the whole chord adjustment in three
 processes (about a minute of CPU): it runs with ``TLSJAX_TEST_DISTRIBUTED=1``.
 
-Internal: the chunk size the runner picks per device kind (``_batch.auto_chunk``).
+Private import: ``_simulation._batch``, the runner itself and the chunk size it picks per
+device kind (``auto_chunk``).
 """
 
 import os
