@@ -1,8 +1,8 @@
 """Target centres from point clouds (issue 33): simulated spheres, checkerboards and circles
 extracted, matched and calibrated against the simulation's truth.
 
-Private imports: ``tlsjax._cli.main`` (the console script) and the chunked scan reader
-``open_scans``, whose chunking is checked.
+Private imports: ``tlsjax._cli.main`` (the console script), the chunked scan reader
+``open_scans``, whose chunking is checked, and the batched fit ``_clouds._lsq``, whose device is.
 """
 
 import csv
@@ -424,3 +424,34 @@ def test_checkerboard_points_go_onto_the_plate_along_their_noise():
     )
     assert np.all(np.isfinite(err))
     assert np.sqrt(np.mean(np.sum(err**2, axis=1))) < 0.35e-3
+
+
+@pytest.mark.internal
+def test_target_fits_run_on_the_host_cpu_whatever_the_default_device(monkeypatch):
+    """The small batched fits ask for the CPU device (an accelerator's default device is not
+    used for them), and run on the default device where JAX has no CPU backend."""
+    import jax
+
+    from tlsjax._clouds import _lsq
+
+    asked = []
+    real = jax.default_device
+
+    def recording(device):
+        asked.append(device)
+        return real(device)
+
+    monkeypatch.setattr(jax, "default_device", recording)
+    x = np.tile(np.linspace(0.0, 1.0, 8), (3, 1))
+    line = lambda y, a: y[0] + y[1] * a[0] - a[1]  # noqa: E731
+    y, *_ = _lsq.fit_batch(line, np.zeros((3, 2)), (x, 2.0 + 3.0 * x))
+    np.testing.assert_allclose(y, [[2.0, 3.0]] * 3, atol=1e-9)
+    assert [d.platform for d in asked] == ["cpu"]
+
+    def no_cpu(*backend):
+        raise RuntimeError("Unknown backend cpu")
+
+    monkeypatch.setattr(jax, "devices", no_cpu)
+    y, *_ = _lsq.fit_batch(line, np.zeros((3, 2)), (x, 1.0 - x))
+    np.testing.assert_allclose(y, [[1.0, -1.0]] * 3, atol=1e-9)
+    assert asked[-1] is None

@@ -91,16 +91,30 @@ def fit_batch(residual, y0, args, max_steps: int = 32):
     moved every unknown by less than 1e-6 of its size, or no step lowers the cost any more)."""
     y0 = np.asarray(y0, dtype=np.float64)
     out = []
-    for a in range(0, len(y0), FIT_BATCH):
-        b = min(len(y0), a + FIT_BATCH)
-        res = _solve(
-            residual,
-            jnp.asarray(_rows(y0, a, b)),
-            tuple(jnp.asarray(_rows(x, a, b)) for x in args),
-            max_steps,
-        )
-        out.append([np.asarray(o)[: b - a] for o in res])
+    with jax.default_device(host_device()):
+        for a in range(0, len(y0), FIT_BATCH):
+            b = min(len(y0), a + FIT_BATCH)
+            res = _solve(
+                residual,
+                jnp.asarray(_rows(y0, a, b)),
+                tuple(jnp.asarray(_rows(x, a, b)) for x in args),
+                max_steps,
+            )
+            out.append([np.asarray(o)[: b - a] for o in res])
     return tuple(np.concatenate(parts) for parts in zip(*out))
+
+
+def host_device():
+    """The CPU device the fits run on whatever JAX's default device (None: JAX runs without its
+    CPU backend, e.g. ``JAX_PLATFORMS=cuda``; then the default). A batch of 16 fits of 2,048
+    points is far too small to gain from an accelerator, whose transfers would cost more than
+    the fit; and on an H200 (jax 0.11.2, CUDA 13) the compiled fit stopped with an XLA runtime
+    error ("Reshape input and output shapes must be the same, got 1 -> 1x32") that the same
+    program on the CPU does not raise (2026-11-27)."""
+    try:
+        return jax.devices("cpu")[0]
+    except RuntimeError:
+        return None
 
 
 def covariance(residuals, normal, n_used, n_unknowns):
