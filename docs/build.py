@@ -19,6 +19,12 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     flags = os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0"
     os.environ["XLA_FLAGS"] = flags.strip()
+# The examples' own operations and jax.jit compile with the code generators of tlsjax's programs
+# (tlsjax._jit.PREFERRED_OPTIONS), as the test suite's do (tests/conftest.py).
+if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (
+        os.environ.get("XLA_FLAGS", "") + " --xla_cpu_use_fusion_emitters=false"
+    ).strip()
 
 from sphinx.cmd.build import build_main  # noqa: E402
 

@@ -331,7 +331,7 @@ def fit_checkerboards(items, options):
         return out
     y = np.asarray(starts)
     UV, inten, sw, _, used = _pack(items, owner, y[:, :2], 0.4 * s)
-    y, r, _, ok = fit_batch(_checker_residual, y, (UV, inten, sw), max_steps=_STEPS)
+    y, r, _, ok = fit_batch(_checker_residual, y, (UV, inten, sw), _STEPS, used.max())
     cost = np.where(ok, np.sum(r**2, axis=1) / np.maximum(used, 1), np.inf)
     best = {}
     for i, q in enumerate(owner):
@@ -342,12 +342,12 @@ def fit_checkerboards(items, options):
     # The best start again on a window centred on its estimate, then with the weights of
     # _effective_weights (the covariance reported).
     UV, inten, sw, sig, used = _pack(items, qs, y[:, :2], 0.4 * s)
-    y, r, _, ok = fit_batch(_checker_residual, y, (UV, inten, sw), max_steps=_STEPS)
+    y, r, _, ok = fit_batch(_checker_residual, y, (UV, inten, sw), _STEPS, used.max())
     for k in range(len(qs)):
         m = used[k]
         if m:  # an estimate that wandered off has an empty window: no weights, no fit
             sw[k, :m], _ = _effective_weights(y[k], UV[k, :m], inten[k, :m], sig[k, :m])
-    y2, r2, N2, ok2 = fit_batch(_checker_residual, y, (UV, inten, sw), max_steps=_STEPS)
+    y2, r2, N2, ok2 = fit_batch(_checker_residual, y, (UV, inten, sw), _STEPS, used.max())
     cov, _ = covariance(r2, N2, used, 6)
     for k, q in enumerate(qs):
         m = used[k]

@@ -3,8 +3,12 @@
 A sphere or a checkerboard is a fit of 4 to 6 unknowns to a few hundred to a few thousand
 points. Candidates are fitted :data:`FIT_BATCH` at a time in one vmapped, compiled call.
 Shapes are static: each candidate's points are padded (or thinned) to :data:`FIT_POINTS` rows
-with weight zero, and the batch to :data:`FIT_BATCH`, so that one compiled program per kind of
-target serves every scan; trimming outliers between calls changes weights, never shapes.
+with weight zero, and the batch to :data:`FIT_BATCH`; a call whose candidates all have fewer
+points runs on the smallest of :data:`ROW_BUCKETS` that holds them, and a last batch of at most
+:data:`SMALL_BATCH` candidates on that many rows, so that a few compiled programs per kind of
+target serve every scan (the padded rows weigh zero: they change no sum), and a scan of small
+targets does not pay for 16 candidates of 2,048 points (four 536-point checkerboards: 0.09 ->
+0.01 s a call); trimming outliers between calls changes weights, never shapes.
 
 Written here rather than with optimistix, which the guide prefers for small dense fits,
 because batching is what these fits need and optimistix does it badly on the CPU: a vmapped
@@ -34,6 +38,10 @@ from .._jit import jit
 FIT_POINTS = 2048
 #: Candidates per compiled call.
 FIT_BATCH = 16
+#: A last call with at most this many candidates runs on this many (module docstring).
+SMALL_BATCH = 4
+#: Point rows a call runs on: the smallest that holds every candidate's used rows.
+ROW_BUCKETS = (256, 512, 1024, FIT_POINTS)
 
 
 def pad(arrays, rng, size: int = FIT_POINTS):
@@ -77,27 +85,36 @@ def _solve(residual, y0, args, max_steps):
     return jax.vmap(one)(y0, args)
 
 
-def _rows(x, a: int, b: int):
-    """Rows a..b of x, padded to :data:`FIT_BATCH` with copies of row a."""
+def _rows(x, a: int, b: int, size: int, points: int | None):
+    """Rows a..b of x, padded to ``size`` with copies of row a; with ``points``, an array with
+    a point axis (axis 1 of :data:`FIT_POINTS` rows) keeps its first ``points`` rows."""
     x = np.asarray(x)
-    return np.concatenate([x[a:b], np.repeat(x[a : a + 1], FIT_BATCH - (b - a), axis=0)])
+    if points is not None and x.ndim >= 2 and x.shape[1] == FIT_POINTS:
+        x = x[:, :points]
+    return np.concatenate([x[a:b], np.repeat(x[a : a + 1], size - (b - a), axis=0)])
 
 
-def fit_batch(residual, y0, args, max_steps: int = 32):
+def fit_batch(residual, y0, args, max_steps: int = 32, rows: int | None = None):
     """Fit every row of ``y0`` (k, p) with its ``args`` (tuple of arrays with leading axis k):
     (values (k, p), residuals (k, n), normal matrices (k, p, p), converged (k,)), as numpy.
-    Runs :data:`FIT_BATCH` rows per call, the last call padded with copies of its first row.
+    Runs :data:`FIT_BATCH` rows per call, the last call padded with copies of its first row
+    (to :data:`SMALL_BATCH` where it holds that few). ``rows``: how many leading rows of the
+    point axis (axis 1 of the arguments with :data:`FIT_POINTS` rows) any candidate uses, the
+    rest weighing zero; the fits then run on the smallest of :data:`ROW_BUCKETS` that holds
+    them, and the residuals have that many columns (module docstring).
     ``max_steps``: Levenberg-Marquardt steps (fixed; converged means the last step taken
     moved every unknown by less than 1e-6 of its size, or no step lowers the cost any more)."""
     y0 = np.asarray(y0, dtype=np.float64)
+    points = None if rows is None else next(n for n in ROW_BUCKETS if n >= min(rows, FIT_POINTS))
     out = []
     with jax.default_device(host_device()):
         for a in range(0, len(y0), FIT_BATCH):
             b = min(len(y0), a + FIT_BATCH)
+            size = SMALL_BATCH if b - a <= SMALL_BATCH else FIT_BATCH
             res = _solve(
                 residual,
-                jnp.asarray(_rows(y0, a, b)),
-                tuple(jnp.asarray(_rows(x, a, b)) for x in args),
+                jnp.asarray(_rows(y0, a, b, size, None)),
+                tuple(jnp.asarray(_rows(x, a, b, size, points)) for x in args),
                 max_steps,
             )
             out.append([np.asarray(o)[: b - a] for o in res])

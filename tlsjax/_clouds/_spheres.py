@@ -267,7 +267,9 @@ def _fit(model, centres, radii, pts, inl, options):
         sig = radial_sigma(pts[q], centres[q], options.sigma_range, options.sigma_angle)
         sw[q, :m] = np.where(inl[q], 1.0 / sig, 0.0)
     mode = np.tile(SPHERE_MODELS[model], (k, 1))
-    y, r, N, ok = fit_batch(_sphere_residual, np.zeros((k, 4)), (P, sw, radii, U, centres, mode))
+    used = max(len(p) for p in pts)
+    args = (P, sw, radii, U, centres, mode)
+    y, r, N, ok = fit_batch(_sphere_residual, np.zeros((k, 4)), args, rows=used)
     y = y.copy()
     y[:, :3] += centres
     return y, r[:, :-1], N, ok

@@ -29,6 +29,7 @@ move scans across the edge of the field of view.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import equinox as eqx
 import jax
@@ -41,6 +42,7 @@ from .._adjustment._config import CalibrationModel
 from .._adjustment._families import Params
 from .._adjustment._implicit import NetworkInputs
 from .._adjustment._network import ObservationTable, make_network, make_plane_network
+from .._jit import jit
 from .._model._aps import ap_corrections
 from .._model._geometry import TWO_PI, rotation_matrix, second_face, spherical_from_cartesian
 from .._model._levelling import compensator_reading
@@ -152,6 +154,17 @@ def _aps_and_sigmas(sim: DesignSimulation) -> tuple:
 
 def _sigmoid_edge(x):
     return jax.nn.sigmoid(x / VISIBILITY_EDGE)
+
+
+@functools.partial(jit, static_argnums=0)
+def _network_arrays(dn, design, noise, levelling_noise):
+    """What :meth:`DesignProblem.network` reads of a design: its inputs without the smooth
+    visibility (the sigmas of the drawn network are the design's) and the rows' incidence
+    cosines and elevations; one compiled program per problem (run eagerly, their operations
+    compiled and dispatched one by one: about 90 small XLA compiles per problem)."""
+    _, cosb, alpha = dn._geometry(design)
+    inputs = dataclasses.replace(dn, smooth_visibility=False).inputs(design, noise, levelling_noise)
+    return inputs, cosb, alpha
 
 
 def _observe(X, eop, aps, noise, scanner: Scanner):
@@ -377,6 +390,9 @@ class DesignProblem:
     def hard_visibility(self, design) -> np.ndarray:
         """Rows inside the field of view and the incidence limit (hard cut)."""
         _, cosb, alpha = (np.asarray(a) for a in self._geometry(design))
+        return self._hard_cut(cosb, alpha)
+
+    def _hard_cut(self, cosb: np.ndarray, alpha: np.ndarray) -> np.ndarray:
         keep = np.ones(len(cosb), dtype=bool)
         if self.fov is not None:
             keep &= (alpha >= self.fov[0]) & (alpha <= self.fov[1])
@@ -393,11 +409,10 @@ class DesignProblem:
         noise = lev_noise = None
         if seed is not None:
             rng = np.random.default_rng(seed)
-            noise = jnp.asarray(rng.standard_normal((n, 3)))
-            lev_noise = jnp.asarray(rng.standard_normal((s, 2)))
-        smooth = dataclasses.replace(self, smooth_visibility=False)
-        th = smooth.inputs(design, noise, lev_noise)
-        keep = self.hard_visibility(design) if cut else np.ones(n, dtype=bool)
+            noise = rng.standard_normal((n, 3))
+            lev_noise = rng.standard_normal((s, 2))
+        th, cosb, alpha = jax.device_get(_network_arrays(self, design, noise, lev_noise))
+        keep = self._hard_cut(cosb, alpha) if cut else np.ones(n, dtype=bool)
         if rows is not None:
             keep = keep & np.asarray(rows, dtype=bool)
         scans = [f"S{j + 1}" for j in range(s)]

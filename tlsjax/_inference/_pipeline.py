@@ -33,7 +33,6 @@ from typing import NamedTuple
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .._adjustment._calibrate import PIN_SIGMA, analyze
@@ -41,6 +40,7 @@ from .._adjustment._config import CalibrationModel, SolverOptions
 from .._adjustment._network import Network
 from .._adjustment._quality import condition_w_tests
 from .._adjustment._result import CalibrationResult, assemble
+from .._jit import jit
 from .._model._geometry import rotation_matrix
 from .._model._levelling import compensator_reading
 from .._model._planes import observation_residuals
@@ -649,15 +649,33 @@ def removed_plane_residuals(ctx: TestingContext, state: TestingState) -> np.ndar
     net, plan = ctx.network, ctx.reweighter.plan
     params, spec = state.adjusted.solution.params, plan.spec
     k = np.flatnonzero(~state.plane_mask)
-    si = net.plane_scan_index[k]
-    sl = (spec.scanners, spec.ap_names, spec.ap_slices)
-    v = jax.vmap(lambda P, E, l, w, i: observation_residuals(P, E, params.aps, l, w, *sl, i))(
-        params.prims[plan.plane_family][net.plane_index[k]],
-        params.eops[si],
-        jnp.asarray(net.plane_observations[k]),
-        jnp.asarray(1.0 / ctx.plane_sigma[k]),
-        jnp.asarray(net.instrument_of_scan[si]),
+    # The removed points padded to a power of two (copies of the first): one compiled program
+    # serves runs that removed about as many.
+    rows = np.concatenate([k, np.full(max(8, 1 << (len(k) - 1).bit_length()) - len(k), k[0])])
+    si = net.plane_scan_index[rows]
+    v = _removed_residuals(
+        (spec.scanners, spec.ap_names, spec.ap_slices),
+        params.prims[plan.plane_family],
+        params.eops,
+        params.aps,
+        net.plane_index[rows],
+        si,
+        net.plane_observations[rows],
+        1.0 / ctx.plane_sigma[rows],
+        net.instrument_of_scan[si],
     )
     out = np.array(res.plane_residuals, dtype=float)
-    out[k] = np.asarray(v)
+    out[k] = np.asarray(v)[: len(k)]
     return out
+
+
+@functools.partial(jit, static_argnums=0)
+def _removed_residuals(sl, prims, eops, aps, plane, scan, l, weight, instrument):
+    """:func:`observation_residuals` of the points (plane, scan, l, weight, instrument), in one
+    compiled program (vmapped eagerly, its operations and their derivatives ran one by one:
+    about 2 s of a plane calibration's report)."""
+
+    def one(p, s, l, w, i):
+        return observation_residuals(prims[p], eops[s], aps, l, w, *sl, i)
+
+    return jax.vmap(one)(plane, scan, l, weight, instrument)
