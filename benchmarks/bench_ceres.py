@@ -348,9 +348,7 @@ def montecarlo(binary, sim, model, args, tmp, scipy_single_s: float) -> dict:
     scanner = model.scanner
     truth = sim.truth()
     net = truth.network
-    draws = _draw_many(
-        _simulator(truth, None), jax.random.PRNGKey(args.seed), jax.numpy.arange(args.runs)
-    )
+    draws = _draw_many(_simulator(truth, None), np.int64(args.seed), jax.numpy.arange(args.runs))
     l_t, _, lev, _, _, true_aps = (np.asarray(a) for a in draws)
     true = dict(zip(sim.scanner.aps, np.asarray(true_aps[0])))
     start = (truth.targets, truth.eops, np.array([true.get(a, 0.0) for a in scanner.aps]))
