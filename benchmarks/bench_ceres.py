@@ -386,7 +386,11 @@ def montecarlo(binary, sim, model, args, tmp, scipy_single_s: float) -> dict:
         "loadavg": loads,
     }
     if binary is None:
-        return {**base, "ceres": {"skipped": "the peer was not built"}}
+        return {
+            **base,
+            "times_s": {"tlsjax": stats(times["tlsjax"])},
+            "ceres": {"skipped": "the peer was not built"},
+        }
     aps = np.array([r["aps"] for r in peer["results"]])
     s0sq = np.array([r["s0sq"] for r in peer["results"]])
     dev = np.abs(aps - mc.ap_values) / mc.ap_sigmas
@@ -428,6 +432,9 @@ def main(argv=None) -> int:
     p.add_argument("--no-montecarlo", action="store_true")
     p.add_argument("--no-cli", action="store_true", help="skip the command-line timings")
     p.add_argument(
+        "--no-peer", action="store_true", help="neither build nor run the Ceres peer (tlsjax only)"
+    )
+    p.add_argument(
         "--max-load",
         type=float,
         default=1.25 * (os.cpu_count() or 1),
@@ -457,7 +464,7 @@ def _main(args) -> int:
         "uptime": _uptime(),
         "args": {k: v for k, v in vars(args).items() if k != "quiet"},
     }
-    binary, why = _ceres.build()
+    binary, why = (None, "--no-peer") if args.no_peer else _ceres.build()
     out["ceres"] = {"binary": str(binary)} if binary is not None else {"skipped": why}
     if binary is None:
         print(f"# Ceres peer skipped: {why}")

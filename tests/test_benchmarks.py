@@ -3,9 +3,9 @@
 The benchmark reaches into the engine's private functions (the compiled draws of Monte Carlo,
 the adjustment program); a change of one of them once broke it for a whole working session
 without any test failing. This runs it in a new process, as a user would, with the load gate
-open and the command-line timings off: no time is asserted, only that it completes, writes
-strict JSON, and that its tlsjax Monte Carlo converged on every realisation (and the Ceres peer,
-where this machine has it, agrees with tlsjax).
+open, the command-line timings off and the Ceres peer left out (building it takes a minute where
+Ceres is installed): no time is asserted, only that it completes, writes strict JSON, and that
+its tlsjax Monte Carlo converged on every realisation.
 """
 
 import json
@@ -21,7 +21,7 @@ def test_bench_ceres_runs_and_writes_its_results(tmp_path):
     out = tmp_path / "ceres.json"
     argv = [sys.executable, str(ROOT / "benchmarks" / "bench_ceres.py"), "--cases", "physical"]
     argv += ["--rounds", "1", "--repeats", "1", "--scipy-repeats", "1", "--runs", "8"]
-    argv += ["--no-cli", "--max-load", "1e9", "--wait", "0", "--devices", "1"]
+    argv += ["--no-cli", "--no-peer", "--max-load", "1e9", "--wait", "0", "--devices", "1"]
     argv += ["--out", str(out)]
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     run = subprocess.run(argv, cwd=ROOT, env=env, capture_output=True, text=True)
@@ -32,10 +32,7 @@ def test_bench_ceres_runs_and_writes_its_results(tmp_path):
     assert case["montecarlo"]["tlsjax_successful"] == 8
     single = case["single"]["times_s"]
     assert {"run", "solve", "calibrate"} <= set(single)
-    if "skipped" not in result["ceres"]:
-        checks = case["montecarlo"]["checks"]
-        assert checks["ceres_converged"] == 8
-        assert checks["max_ap_diff_sigma"] < 1e-3
+    assert result["ceres"] == {"skipped": "--no-peer"}
 
 
 def _refuse(constant):
