@@ -13,18 +13,13 @@ import sys
 import time
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
-# Compiling dominates the examples' time, and XLA's backend optimisations double it; the
-# examples' results do not depend on them (the notebooks' test runs the same way).
-# Added to flags already set (a device count, say), unless the caller chose a level.
-if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
-    flags = os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0"
-    os.environ["XLA_FLAGS"] = flags.strip()
-# The examples' own operations and jax.jit compile with the code generators of tlsjax's programs
-# (tlsjax._jit.PREFERRED_OPTIONS), as the test suite's do (tests/conftest.py).
-if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (
-        os.environ.get("XLA_FLAGS", "") + " --xla_cpu_use_fusion_emitters=false"
-    ).strip()
+# Compiling dominates the examples' time: they compile with the test suite's quick-compile
+# flags (no backend optimisation, tlsjax's code generators; tlsjax._jit.QUICK_COMPILE_FLAGS),
+# which change no result beyond rounding. Added to flags already set (a device count, say),
+# unless the caller named them.
+from tlsjax._jit import quick_compile_flags  # noqa: E402
+
+os.environ["XLA_FLAGS"] = quick_compile_flags(os.environ.get("XLA_FLAGS", ""))
 
 from sphinx.cmd.build import build_main  # noqa: E402
 

@@ -23,20 +23,15 @@ if "TLSJAX_CACHE_DIR" not in os.environ:
     os.environ.setdefault("TLSJAX_CACHE_MAX_BYTES", "unbounded")
 
 # XLA's backend optimisations (LLVM) take about 40 % of the suite's CPU time and change no
-# result beyond rounding: the suite compiles without them, as the notebooks' kernels and the
-# documentation build do. Set before JAX starts its backend (the workers import this first);
-# a level already named in XLA_FLAGS is kept. tests/test_engine.py checks that a calibration at
-# XLA's default level, what a user runs, agrees with the suite's to rounding.
-if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (
-        os.environ.get("XLA_FLAGS", "") + " --xla_backend_optimization_level=0"
-    ).strip()
-# The tests' own ``jax.jit`` (around ``grad``, ``vmap`` or ``jvp`` of tlsjax functions) compiles
-# with the code generators that tlsjax's programs use (``_jit.PREFERRED_OPTIONS``): XLA's newer
-# fusion emitters took twice the CPU time to compile the reverse-mode adjustment and run nothing
-# that tlsjax compiles itself.
-if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] += " --xla_cpu_use_fusion_emitters=false"
+# result beyond rounding, and XLA's newer fusion emitters took twice the CPU time to compile a
+# test's own ``jax.jit`` of the reverse-mode adjustment: the suite compiles with
+# ``tlsjax._jit.QUICK_COMPILE_FLAGS``, as the notebooks' kernels (which inherit them) and the
+# documentation build do. Set before JAX starts its backend (the workers import this first); a
+# flag already named in XLA_FLAGS is kept. tests/test_engine.py checks that a calibration with
+# XLA's defaults, what a user runs, agrees with the suite's to rounding.
+from tlsjax._jit import quick_compile_flags  # noqa: E402  (after the cache's variables)
+
+os.environ["XLA_FLAGS"] = quick_compile_flags(os.environ.get("XLA_FLAGS", ""))
 
 
 # The edit-test loop: ``./scripts/test -m fast`` runs the tests listed in tests/fast.txt (node

@@ -103,3 +103,13 @@ def test_a_process_killed_mid_store_does_not_stop_later_stores(tmp_path):
     stored = {n for n in entries if n.endswith("-cache")} - {"jit_orphan-0123456789abcdef-cache"}
     assert stored, entries  # the new program was stored
     assert all(n[: -len("cache")] + "atime" in entries for n in entries if n.endswith("-cache"))
+
+
+def test_quick_compile_flags_add_what_is_not_named():
+    assert _jit.quick_compile_flags("") == (
+        "--xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false"
+    )
+    named = "--xla_force_host_platform_device_count=2 --xla_backend_optimization_level=2"
+    assert _jit.quick_compile_flags(named) == named + " --xla_cpu_use_fusion_emitters=false"
+    # The suite runs with them (tests/conftest.py).
+    assert all(f"--{n}=" in os.environ["XLA_FLAGS"] for n in _jit.QUICK_COMPILE_FLAGS)

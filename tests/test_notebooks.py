@@ -62,12 +62,9 @@ def test_committed_notebook_is_its_builders_and_was_executed(path):
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=IDS)
 def test_notebook_runs_top_to_bottom(path, monkeypatch):
-    # The kernel inherits these: the notebooks' fast mode, faster compiles, and the suite's
-    # compilation cache (TLSJAX_CACHE_DIR, tests/conftest.py), shared with the other kernels.
+    # The kernel inherits these: the notebooks' fast mode, and the suite's quick-compile XLA
+    # flags and compilation cache (tests/conftest.py), shared with the other kernels.
     monkeypatch.setenv("TLSJAX_NOTEBOOK_FAST", "1")
-    monkeypatch.setenv(
-        "XLA_FLAGS", "--xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false"
-    )
     monkeypatch.setenv("JAX_PLATFORMS", "cpu")
     nb = nbformat.read(path, as_version=4)
     for cell in nb.cells:

@@ -51,6 +51,25 @@ PREFERRED_OPTIONS = {
 }
 
 
+#: XLA flags for processes that compile much and compute little (the test suite, the
+#: notebooks' test kernels, the documentation's examples): no backend (LLVM) optimisation, which
+#: changes results only by rounding, and for programs that tlsjax does not compile itself (a
+#: test's own ``jax.jit`` around ``grad`` or ``vmap``) the code generators of its own programs.
+QUICK_COMPILE_FLAGS = {
+    "xla_backend_optimization_level": "0",
+    "xla_cpu_use_fusion_emitters": str(PREFERRED_OPTIONS["xla_cpu_use_fusion_emitters"]).lower(),
+}
+
+
+def quick_compile_flags(flags: str = "") -> str:
+    """``flags`` (a value of ``XLA_FLAGS``) with each of :data:`QUICK_COMPILE_FLAGS` it does not
+    name added; set it before JAX starts its backend."""
+    for name, value in QUICK_COMPILE_FLAGS.items():
+        if name not in flags:
+            flags = f"{flags} --{name}={value}"
+    return flags.strip()
+
+
 @functools.cache
 def compiler_options() -> dict:
     """The options of :data:`PREFERRED_OPTIONS` this jaxlib accepts (each checked once)."""
