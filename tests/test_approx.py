@@ -379,3 +379,36 @@ def test_robust_fit_recovers_the_motion_with_a_third_of_the_points_wrong():
     np.testing.assert_array_equal(np.flatnonzero(~inlier), np.sort(wrong))
     np.testing.assert_allclose(R_est, R, atol=1e-12)
     np.testing.assert_allclose(t_est, t, atol=1e-11)
+
+
+def test_memoised_per_network_data_never_stale():
+    """A network is adjusted many times; its approximate values and plan are computed once per
+    data. The source: the uncached computation (``_approximate``) on the same arrays, before
+    and after an in-place edit of the network."""
+    import gc
+
+    from tlsjax._adjustment import _network
+    from tlsjax._adjustment._approx._approximate import _approximate
+
+    net = tj.simulate(seed=3).network
+    first = approximate(net)
+    first.targets[:] = 0.0  # the caller's copy: the memo is untouched
+    again = approximate(net)
+    fresh = _approximate(net, ApproxConfig())
+    np.testing.assert_array_equal(again.targets, fresh.targets)
+    np.testing.assert_array_equal(again.eops, fresh.eops)
+    model = tj.CalibrationModel()
+    assert tj.analyze(net, model).plan is tj.analyze(net, model).plan
+    other = tj.CalibrationModel(tj.Scanner(aps=("A0", "B6")))
+    assert tj.analyze(net, other).plan is not tj.analyze(net, model).plan
+    # An in-place edit (a target moved by 0.3 m in one scan) is new data: computed afresh.
+    rows = np.flatnonzero(net.target_index == net.target_index[0])
+    net.observations[rows[0], 0] += 0.3
+    edited = approximate(net)
+    np.testing.assert_array_equal(edited.targets, _approximate(net, ApproxConfig()).targets)
+    assert not edited.target_inlier[rows[0]] and fresh.target_inlier[rows[0]]
+    # Held weakly: a network no longer referenced takes its values with it.
+    n_before = len(_network._MEMO)
+    del net, first, again, edited
+    gc.collect()
+    assert len(_network._MEMO) == n_before - 1

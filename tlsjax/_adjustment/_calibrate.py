@@ -25,7 +25,7 @@ from .._model._aps import get_ap
 from .._model._plausibility import PlausibilityWarning
 from ._config import CalibrationModel, SolverOptions
 from ._families import Params, grid_layout, on_grid
-from ._network import Network, check_calibration_arguments, network_design_warnings
+from ._network import Network, check_calibration_arguments, memoised, network_design_warnings
 from ._plan import build_plan, initial_params
 from ._quality import quality_from, summary_from
 from ._result import CalibrationResult, assemble, not_estimable_aps, result_code_of
@@ -127,6 +127,17 @@ def _replace(module, **changes):
 PIN_SIGMA = 1.0
 
 
+def _device_plan(network: Network, model: CalibrationModel):
+    """The index plan with its problem's arrays on the device and its layouts chosen."""
+    plan = build_plan(network, model)
+    # The layout of each family's sums, chosen once from the static structure (grid or
+    # segment sums, :func:`._families.grid_layout`).
+    layouts = tuple(grid_layout(f, plan.spec.n_scans) for f in plan.problem.families)
+    # The plan is built in numpy; its arrays go to the device in one call.
+    problem = jax.device_put(_replace(plan.problem, layouts=layouts))
+    return dataclasses.replace(plan, problem=problem)
+
+
 class Adjustment:
     """One analysed adjustment: the index plan, the static spec and the approximate values of a
     (network, model) pair, built once on the host (the two phases of jaxls's ``analyze()`` then
@@ -144,13 +155,10 @@ class Adjustment:
         self.network = network
         self.model = model or CalibrationModel()
         self.options = options or SolverOptions()
-        plan = build_plan(network, self.model)
-        # The layout of each family's sums, chosen once from the static structure (grid or
-        # segment sums, :func:`._families.grid_layout`).
-        layouts = tuple(grid_layout(f, plan.spec.n_scans) for f in plan.problem.families)
-        # The plan is built in numpy; its arrays go to the device in one call.
-        problem = jax.device_put(_replace(plan.problem, layouts=layouts))
-        self.plan = dataclasses.replace(plan, problem=problem)
+        # Once per network's data and model (:func:`._network.memoised`).
+        self.plan = memoised(
+            network, ("plan", self.model), lambda: _device_plan(network, self.model)
+        )
         self._params0 = None
         self._leaves = None
         self._absent = {}  # support of the data -> (APs found not estimable, their diagnoses)

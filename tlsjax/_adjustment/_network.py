@@ -8,8 +8,11 @@ connectivity) and builds the index plan once: which observations share a target,
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import os
+import threading
 import warnings
+import weakref
 from collections import defaultdict
 from collections.abc import Mapping, Sequence
 
@@ -1029,6 +1032,57 @@ def _check_connected(scan_names, target_names, scan_index, target_index, source)
             f"{source}: scan(s) {', '.join(missing)} are disconnected from scan {scan_names[0]}: "
             "no chain of scans sharing at least 3 targets or planes links them"
         )
+
+
+def digest(network: Network) -> bytes:
+    """A digest of everything a network holds (its arrays' bytes, shapes and dtypes, and its
+    names): equal digests, equal data. About 50 us for a room of 2,000 observations."""
+    h = hashlib.blake2b(digest_size=16)
+    for field in dataclasses.fields(network):
+        value = getattr(network, field.name)
+        if isinstance(value, np.ndarray):
+            h.update(f"{field.name}{value.shape}{value.dtype}".encode())
+            h.update(np.ascontiguousarray(value).tobytes())
+        else:
+            h.update(f"{field.name}={value!r}".encode())
+    return h.digest()
+
+
+#: Host results memoised per network (:func:`memoised`): each network's digest and its values.
+_MEMO: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_MEMO_LOCK = threading.Lock()
+#: Values kept per network (models tried on one network, each with its plan).
+MEMO_SIZE = 16
+
+
+def memoised(network: Network, key, build):
+    """``build()``, computed once per network's data and ``key`` (hashable; an unhashable key is
+    not memoised). Approximate values and index plans are pure functions of the network and
+    the model, and one network is adjusted many times (models tried, VCE, snooping, selection,
+    cross-validation folds, benchmarks): they are the host's share of a calibration.
+
+    Held weakly per network object, and checked against the digest of its arrays on every call
+    (:func:`digest`): a network whose arrays were changed in place is computed afresh, never
+    answered from its old values. At most :data:`MEMO_SIZE` keys per network (the oldest go)."""
+    try:
+        hash(key)
+    except TypeError:
+        return build()
+    d = digest(network)
+    with _MEMO_LOCK:
+        held = _MEMO.get(network)
+        if held is None or held[0] != d:
+            held = (d, {})
+            _MEMO[network] = held
+        if key in held[1]:
+            return held[1][key]
+    value = build()
+    with _MEMO_LOCK:
+        values = held[1]
+        values[key] = value
+        while len(values) > MEMO_SIZE:
+            values.pop(next(iter(values)))
+    return value
 
 
 def network_design_warnings(network, model) -> list[str]:

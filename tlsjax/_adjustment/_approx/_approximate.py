@@ -24,11 +24,12 @@ match).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import numpy as np
 
-from .._network import Network
+from .._network import Network, memoised
 from ._config import ApproxConfig, Approximation
 from ._consistency import check_determined, consensus, inconsistencies, raise_undetermined
 from ._frame import orient, to_frame
@@ -162,8 +163,21 @@ def _general(net, data: Data, cfg: ApproxConfig, rng):
 
 def approximate(net: Network, config: ApproxConfig | None = None) -> Approximation:
     """Approximate values of any network (targets, planes or both), with the gross errors the
-    registration found among the correspondences (see the module docstring)."""
+    registration found among the correspondences (see the module docstring).
+
+    Computed once per network's data and config (:func:`.._network.memoised`: a network is
+    calibrated many times); every call logs the inconsistencies and returns its own arrays."""
     cfg = config or ApproxConfig()
+    a = memoised(net, ("approximate", cfg), lambda: _approximate(net, cfg))
+    for item in a.inconsistent:
+        _LOG.warning("%s: inconsistent correspondence: %s", net.source, item)
+    copy = lambda x: x.copy() if isinstance(x, np.ndarray) else x
+    return dataclasses.replace(
+        a, **{f.name: copy(getattr(a, f.name)) for f in dataclasses.fields(a)}
+    )
+
+
+def _approximate(net: Network, cfg: ApproxConfig) -> Approximation:
     rng = np.random.default_rng(0)
     data = local_data(net)
     found = _by_targets(data, cfg, rng) if data.n_planes == 0 else None
@@ -172,8 +186,6 @@ def approximate(net: Network, config: ApproxConfig | None = None) -> Approximati
         found = _general(net, data, cfg, rng)
     A, S, tree, regs, use_p, use_t = found
     inconsistent = inconsistencies(net, data, A, S, use_p, use_t, cfg)
-    for item in inconsistent:
-        _LOG.warning("%s: inconsistent correspondence: %s", net.source, item)
     targets, planes = _object_values(data, A, S, use_p, use_t, cfg)
     control = (net.control_index, net.control_xyz) if len(net.control_index) else None
     targets, eops, planes = to_frame(A, S, targets, planes, net.is_levelled, control)
