@@ -77,7 +77,6 @@ def _design_schur(tj, score, room, term, names, seed):
         adj.plan.spec,
         problem,
         params,
-        score.jnp.asarray(float(adj.options.rank_tolerance)),
         score.jnp.asarray(score.station_positions(np.asarray(params.eops))),
     )
     K = np.asarray(out[0])

@@ -330,6 +330,30 @@ def reduce(spec, problem, blocks: Blocks, Hz, damping, rank_tolerance, dependent
     well when ``damping > 0``: with damped primitive blocks the Schur complement no longer
     shows that the primitives absorb a parameter entirely.
     """
+    inv_list, Y_list, K = schur(blocks, damping)
+    diag = jnp.diagonal(blocks.Nzz)
+    ok = diag > 0
+    scale = jnp.where(ok, 1.0 / jnp.sqrt(jnp.where(ok, diag, 1.0)), 0.0)
+    Ks = K * scale[:, None] * scale[None, :]
+    if Hz.shape[1]:
+        Ks = Ks + datum_projector(Hz / jnp.where(ok, scale, 1.0)[:, None])
+    Ks = jnp.where(ok[:, None] & ok[None, :], Ks, 0.0)
+    # Rank is judged on the undamped system; the damped one is factorised with the same
+    # dependent columns held fixed.
+    held = problem.fixed | ~ok
+    if dependent is not None:
+        held = held | ((damping > 0) & dependent)
+    # The APs are tested against every other unknown (not only those before them): a term the
+    # network cannot determine is held, named later (_diagnose), never left to diverge.
+    L, dep, piv, Ld = estimable_cholesky_damped(Ks, damping, held, rank_tolerance, spec.n_aps)
+    L = jnp.where(damping > 0, Ld, L)
+    return Reduced(inv_list, Y_list, scale, L, dep, piv, Ks, K)
+
+
+def schur(blocks: Blocks, damping=0.0):
+    """The primitives eliminated: per family ``N_pp^-1`` (damped by ``damping`` times its
+    diagonal) and ``Y = N_pp^-1 N_pz``, and the reduced matrix ``K = N_zz - sum N_zp Y``
+    (what :func:`reduce` then scales and factorises; the score tests need K alone)."""
     K = blocks.Nzz
     inv_list, Y_list = [], []
     Ep = blocks.Ep or (None,) * len(blocks.Npp)
@@ -349,23 +373,7 @@ def reduce(spec, problem, blocks: Blocks, Hz, damping, rank_tolerance, dependent
         K = K - Yt @ Npz.reshape(-1, r)
         inv_list.append(Ninv)
         Y_list.append(Y)
-    diag = jnp.diagonal(blocks.Nzz)
-    ok = diag > 0
-    scale = jnp.where(ok, 1.0 / jnp.sqrt(jnp.where(ok, diag, 1.0)), 0.0)
-    Ks = K * scale[:, None] * scale[None, :]
-    if Hz.shape[1]:
-        Ks = Ks + datum_projector(Hz / jnp.where(ok, scale, 1.0)[:, None])
-    Ks = jnp.where(ok[:, None] & ok[None, :], Ks, 0.0)
-    # Rank is judged on the undamped system; the damped one is factorised with the same
-    # dependent columns held fixed.
-    held = problem.fixed | ~ok
-    if dependent is not None:
-        held = held | ((damping > 0) & dependent)
-    # The APs are tested against every other unknown (not only those before them): a term the
-    # network cannot determine is held, named later (_diagnose), never left to diverge.
-    L, dep, piv, Ld = estimable_cholesky_damped(Ks, damping, held, rank_tolerance, spec.n_aps)
-    L = jnp.where(damping > 0, Ld, L)
-    return Reduced(tuple(inv_list), tuple(Y_list), scale, L, dep, piv, Ks, K)
+    return tuple(inv_list), tuple(Y_list), K
 
 
 def datum_projector(H):
@@ -375,9 +383,11 @@ def datum_projector(H):
     return Q @ Q.T
 
 
-def reduced_rhs(bp: tuple, bz, red: Reduced):
+def reduced_rhs(bp: tuple, bz, red: Reduced | tuple):
+    """``b_z - sum Y^T b_p``, the right-hand side of the reduced system (``red``: the
+    :class:`Reduced` system or its ``Y`` blocks)."""
     c = bz
-    for Y, b in zip(red.Y, bp):
+    for Y, b in zip(red.Y if isinstance(red, Reduced) else red, bp):
         c = c - jnp.einsum("npr,np->r", Y, b)
     return c
 
