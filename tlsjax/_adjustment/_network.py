@@ -18,6 +18,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from .._model._aps import on_reregistration
 from .._model._plausibility import PlausibilityWarning, check_ranges, design_warnings
 from .._units import ARCSEC
 
@@ -1053,6 +1054,9 @@ _MEMO: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 _MEMO_LOCK = threading.Lock()
 #: Values kept per network (models tried on one network, each with its plan).
 MEMO_SIZE = 16
+# A plan holds the AP terms as registered when it was built: a re-registered term empties it
+# (a model made before the replacement then gets the new basis, as the compiled caches do).
+on_reregistration(_MEMO.clear)
 
 
 def memoised(network: Network, key, build):
