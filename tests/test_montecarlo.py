@@ -94,31 +94,3 @@ def test_true_aps_drawn_from_distribution(design, model):
     assert np.max(np.abs(r.ap_values[:, 0] - a0) / r.ap_sigmas[:, 0]) < 5
     with pytest.raises(ValueError, match="ap_sigma"):
         monte_carlo(design, model, MonteCarloOptions(runs=2, ap_sigma={"B9": 1.0}))
-
-
-def test_draws_stop_where_settled_at_the_fixed_point():
-    """The Monte Carlo's draws stop once an iteration moves no observation by more than its
-    rounding. Sources: the fixed point's definition ``l = base + Delta(l)`` (its residual at
-    rounding) and the fixed-count loop run to a bound far beyond convergence; a contraction of
-    0.5 (slow) must still reach it, and the cap must hold."""
-    import jax.numpy as jnp
-
-    from tlsjax._model._points import distorted_observations
-
-    rng = np.random.default_rng(0)
-    base = np.column_stack(
-        [rng.uniform(1, 30, 500), rng.uniform(0, 6.2, 500), rng.uniform(-1.2, 1.2, 500)]
-    )
-    for q in (1e-3, 0.1, 0.5):
-        # Amplitude 10 mm / 0.01 rad; the range's slope (the contraction) q.
-        corr = lambda l, q=q: 1e-2 * jnp.sin(l * jnp.array([q / 1e-2, 1.0, 1.0]))
-        settled = np.asarray(distorted_observations(base, corr, 200, until_settled=True))
-        fixed = np.asarray(distorted_observations(base, corr, 200))
-        scale = np.maximum(np.abs(fixed), 1.0)
-        assert np.abs(settled - fixed).max() <= 4 * np.finfo(float).eps * scale.max()
-        resid = settled - base - np.asarray(corr(jnp.asarray(settled)))
-        resid[:, 1] = (resid[:, 1] + np.pi) % (2 * np.pi) - np.pi
-        assert np.abs(resid).max() <= 8 * np.finfo(float).eps * scale.max()
-    # The cap: two iterations of a slow contraction are not the fixed point.
-    capped = np.asarray(distorted_observations(base, corr, 2, until_settled=True))
-    assert np.abs(capped - fixed).max() > 1e-6

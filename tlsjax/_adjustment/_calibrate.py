@@ -269,16 +269,17 @@ class Adjustment:
         one transfer per dtype). ``options``: other numerical settings
         (:meth:`SolverOptions.arrays`, e.g. another ``max_iterations``): the same compiled
         program, they are data."""
-        args = (
-            self.plan.problem if problem is None else problem,
-            self.initial if params0 is None else params0,
-            self.options.arrays() if options is None else options,
-        )
-        if problem is None and params0 is None and options is None:
-            if self._leaves is None:  # the plan's own arguments, flattened once
+        problem = self.plan.problem if problem is None else problem
+        params0 = self.initial if params0 is None else params0
+        if problem is self.plan.problem and params0 is self._params0 and options is None:
+            # The plan's own arguments (solve() again): flattened once, the solver's settings
+            # on the device with them (numpy arguments would be transferred on every call).
+            if self._leaves is None:
+                args = (problem, params0, jax.device_put(self.options.arrays()))
                 self._leaves = jax.tree.flatten(args)
             leaves, treedef = self._leaves
         else:
+            args = (problem, params0, self.options.arrays() if options is None else options)
             leaves, treedef = jax.tree.flatten(args)
         return _flat_run(self.plan.spec, treedef, self.options.full_covariance)(*leaves)
 
