@@ -1052,8 +1052,9 @@ def digest(network: Network) -> bytes:
 #: Host results memoised per network (:func:`memoised`): each network's digest and its values.
 _MEMO: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 _MEMO_LOCK = threading.Lock()
-#: Values kept per network (models tried on one network, each with its plan).
-MEMO_SIZE = 16
+#: Values kept per network (models tried on one network, each with its plan; a plan holds a
+#: device copy of the observations, about 10 MB for a plane network of 130k points).
+MEMO_SIZE = 8
 # A plan holds the AP terms as registered when it was built: a re-registered term empties it
 # (a model made before the replacement then gets the new basis, as the compiled caches do).
 on_reregistration(_MEMO.clear)
