@@ -65,6 +65,7 @@ from ._normal import (
     linearised_cost,
     null_space,
     reduce,
+    reduced_rhs,
     rows_at,
 )
 from ._solver import ROUNDING_FACTOR, rounding_sigma
@@ -126,9 +127,7 @@ def design_factorisation(spec: Spec, problem: Problem, params: Params, rank_tole
 
 def shared_solve(spec: Spec, fact: DesignFactorisation, bp: tuple, bz):
     """``N0^- b`` (primitives per family, reduced unknowns) with the shared factorisation."""
-    c = bz
-    for Y, b in zip(fact.Y, bp):
-        c = c - jnp.einsum("npr,np->r", Y, b)
+    c = reduced_rhs(bp, bz, fact.Y)
     dz = fact.scale * (fact.Kinv @ (c * fact.scale))
     dps = tuple(
         jnp.einsum("npq,nq->np", Ni, b) - jnp.einsum("npr,r->np", Y, dz)

@@ -383,11 +383,11 @@ def datum_projector(H):
     return Q @ Q.T
 
 
-def reduced_rhs(bp: tuple, bz, red: Reduced | tuple):
-    """``b_z - sum Y^T b_p``, the right-hand side of the reduced system (``red``: the
-    :class:`Reduced` system or its ``Y`` blocks)."""
+def reduced_rhs(bp: tuple, bz, Ys: tuple):
+    """``b_z - sum Y^T b_p``, the right-hand side of the reduced system (``Ys``: the ``Y =
+    N_pp^-1 N_pz`` blocks per family, :func:`schur`)."""
     c = bz
-    for Y, b in zip(red.Y if isinstance(red, Reduced) else red, bp):
+    for Y, b in zip(Ys, bp):
         c = c - jnp.einsum("npr,np->r", Y, b)
     return c
 
@@ -395,7 +395,7 @@ def reduced_rhs(bp: tuple, bz, red: Reduced | tuple):
 def solve(spec, red: Reduced, bp: tuple, bz, Hp, Hz):
     """``N^- b`` from the factorisation: the reduced solve, the back substitution of the
     primitives and the S-transformation onto the inner constraints. Returns (dps, dz)."""
-    c = reduced_rhs(bp, bz, red) * red.scale
+    c = reduced_rhs(bp, bz, red.Y) * red.scale
     c = jnp.where(red.dependent, 0.0, c)
     dz = cholesky_solve(red.L, c) * red.scale
     dz = jnp.where(red.dependent, 0.0, dz)

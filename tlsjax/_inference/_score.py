@@ -66,7 +66,7 @@ from .._adjustment._config import CalibrationModel, SolverOptions
 from .._adjustment._diagnose import ABSORBED, is_scale, station_positions
 from .._adjustment._families import Params, PointFamily, on_grid
 from .._adjustment._network import Network
-from .._adjustment._normal import ap_jacobians, linearise_rows, linearised_cost, reduced_rhs, schur
+from .._adjustment._normal import linearise_rows, linearised_cost, reduced_rhs, schur
 from .._jit import StoredProgram
 from .._model._aps import PRESETS, get_ap, registered_aps
 from .._model._plausibility import ap_findings
@@ -273,13 +273,10 @@ def _score_system(spec, problem, params, positions):
     The two are one batch of two (``vmap``): one trace of the linearisation, and a third less
     compile than two copies (1.31 to 0.93 s for the demo room's 23 APs and 8 candidates)."""
     grid = on_grid(problem)
-    ap_jac = ap_jacobians(spec, grid, params)
     at = Params(params.prims, params.eops.at[:, :3].set(positions), params.aps)
     # The observations computed at ``at`` (the unweighted misclosure added to l): no Jacobian.
     obs = tuple(
-        jnp.stack(
-            [f.obs, f.obs + f.residuals(spec, grid, at, fi, unit_weight=True, ap_jac=ap_jac[fi])]
-        )
+        jnp.stack([f.obs, f.obs + f.residuals(spec, grid, at, fi, unit_weight=True)])
         if isinstance(f, PointFamily)
         else None
         for fi, f in enumerate(grid.families)

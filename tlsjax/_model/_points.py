@@ -80,7 +80,7 @@ def distorted_observations(
     can have. ``until_settled``: stop as soon as an iteration moves no observation by more than
     its rounding (:data:`SETTLED_ULPS` units in the last place of ``max(|l|, 1)``), at most
     ``iterations``: the same observations to rounding, in a fraction of the iterations where the
-    bound is pessimistic (the Monte Carlo's draws of the Chow room: 4 to 5 of its 20). A
+    bound is pessimistic (the Monte Carlo's draws of the Chow room: 3 of its 20). A
     ``while_loop``, so not reverse-differentiable: for draws, not for designs one
     differentiates.
     """
