@@ -127,8 +127,69 @@ def test_plane_networks(case):
     _holds(case)
 
 
+#: Two planes crossing a room seen from two stations, no targets: with the suite's compile flags
+#: the last undamped step of its Gauss-Helmert adjustment was rejected by the cost's rounding
+#: from an estimate whose state had not settled, and the loop ran damped to its iteration limit
+#: (tlsjax._adjustment._solver: such a candidate, converged and settled, is taken).
+_ROUNDING_TIE = Case(
+    tj.NetworkDesign(
+        room=(9.8, 13.920520593761573, 3.02851045407511),
+        scans=(
+            (
+                1.3,
+                1.1572325551289797,
+                1.0207803816272314,
+                0.8904703622932736,
+                0.535528926519926,
+                1.4348394828340185,
+            ),
+            (
+                7.096507571019032,
+                1.2853461244695825,
+                0.8836106281788734,
+                -1.4600696177241632,
+                -0.4301382057623237,
+                0.866294932138945,
+            ),
+            (
+                1.3,
+                1.1572325551289797,
+                1.0207803816272314,
+                0.8065342516103962,
+                0.37564530332871643,
+                -1.1606516860270815,
+            ),
+            (
+                7.096507571019032,
+                1.2853461244695825,
+                0.8836106281788734,
+                0.09752733310321489,
+                -0.2620866280207868,
+                0.0128639876771619,
+            ),
+        ),
+        n_targets=0,
+        faces_as_planes=True,
+        planes=(
+            tj.RoomPlane((0.0, 0.0, 1.0), (1.3, 1.1572325551289797, 2.8963205695243137)),
+            tj.RoomPlane((0.0, 0.0, -1.0), (1.3, 1.1572325551289797, 0.12778856829462448)),
+        ),
+        points_per_plane=POINTS_PER_PLANE,
+        architecture="hybrid",
+        aps=APS,
+        levelling=False,
+        elevation_limits=(-1.041410838193476, 0.6981317007977318),
+        max_range=17.29123446565624,
+        noise_scale=0.17644442623118545,
+    ),
+    seed=57447,
+    kind="crossing planes",
+)
+
+
 @settings(max_examples=examples(2))
 @given(case=cases(partial_case))
+@example(case=_ROUNDING_TIE)
 def test_partial_visibility(case):
     _holds(case)
 

@@ -16,6 +16,7 @@ from jax import lax
 # with their neighbours into one loop, where ``jnp.sum`` over a small axis or a tiny einsum is
 # a reduction or batched-dot kernel of its own (each 10-80 us on the CPU at these shapes,
 # measured; PERFORMANCE.md).
+UNROLL_MAX = 8
 
 
 def small_sum(x, axis: int):
@@ -32,6 +33,8 @@ def outer(a, b):
         return jnp.zeros(
             jnp.broadcast_shapes(a.shape[:-2], b.shape[:-2]) + (a.shape[-1], b.shape[-1]), a.dtype
         )
+    if a.shape[-2] > UNROLL_MAX:
+        return jnp.sum(a[..., :, :, None] * b[..., :, None, :], axis=-3)
     return sum(a[..., k, :, None] * b[..., k, None, :] for k in range(a.shape[-2]))
 
 
@@ -39,6 +42,8 @@ def matvec_t(a, e):
     """(..., k, i), (..., k) -> (..., i): ``sum_k a_ki e_k``."""
     if a.shape[-2] == 0:
         return jnp.zeros(jnp.broadcast_shapes(a.shape[:-2], e.shape[:-1]) + a.shape[-1:], a.dtype)
+    if a.shape[-2] > UNROLL_MAX:
+        return jnp.sum(a * e[..., :, None], axis=-2)
     return sum(a[..., k, :] * e[..., k, None] for k in range(a.shape[-2]))
 
 

@@ -99,10 +99,16 @@ def _cell_terms(A, B, over_scans: bool):
     """``sum_rows A^T B`` per cell (n, s, ., .), or per primitive over its scans too (n, ., .),
     written out as products of slices of the inputs (A, B (n, s, rows, .)): XLA fuses them into
     one loop without materialising the products."""
-    ns, rk = A.shape[1], A.shape[2]
-    if over_scans:
-        return sum(A[:, s, i, :, None] * B[:, s, i, None, :] for s in range(ns) for i in range(rk))
-    return sum(A[:, :, i, :, None] * B[:, :, i, None, :] for i in range(rk))
+    rk = A.shape[2]
+    cell = sum(A[:, :, i, :, None] * B[:, :, i, None, :] for i in range(rk))
+    # Over the scans one reduction, not written out: the program's size (and its compile time)
+    # then does not grow with the number of scans.
+    return jnp.sum(cell, axis=1) if over_scans else cell
+
+
+def _flat_rows(J):
+    """``J`` (..., k) as (rows, k); also with k = 0 (no APs), where reshape(-1, 0) is undefined."""
+    return J.reshape(int(np.prod(J.shape[:-1])), J.shape[-1])
 
 
 def _sums_on_grid(shape, Jp, Js, Ja):
@@ -121,7 +127,8 @@ def _sums_on_grid(shape, Jp, Js, Ja):
             _cell_terms(Jp, Ja, True),
             jnp.sum(_cell_terms(Js, Js, False), axis=0),
             jnp.sum(_cell_terms(Js, Ja, False), axis=0),
-            jnp.sum(_cell_terms(Ja, Ja, True), axis=0),
+            # The AP block, a sum over every row: one matrix product.
+            _flat_rows(Ja).T @ _flat_rows(Ja),
         )
     # Contractions as einsums (dot_general): measured 2x faster than broadcast-multiply-sum
     # for these shapes on the CPU.
@@ -161,8 +168,8 @@ def _gradient_sums(grid, fam, ns, r: Rows):
         if e.shape[2] <= SMALL_CELL:
             # As :func:`_sums_on_grid`: products of input slices, reductions over primitives.
             Jp, Js, Ja = g(r.Jp), g(r.Js), g(r.Ja)
-            per_prim = lambda J: sum(
-                J[:, s, i] * e[:, s, i] for s in range(ns_) for i in range(e.shape[2])
+            per_prim = lambda J: jnp.sum(
+                sum(J[:, :, i] * e[:, :, i] for i in range(e.shape[2])), axis=1
             )
             per_cell = sum(Js[:, :, i] * e[:, :, i] for i in range(e.shape[2]))
             return -per_prim(Jp), -jnp.sum(per_cell, axis=0), -jnp.sum(per_prim(Ja), axis=0)
@@ -206,10 +213,11 @@ def _grids(problem: Problem):
     return problem.grids or (None,) * len(problem.families)
 
 
-def gradient(spec: Spec, problem: Problem, params: Params, rows: tuple):
+def gradient(spec: Spec, problem: Problem, params: Params, rows: tuple, Jl=None):
     """The right-hand sides ``b = -J^T e`` of the normal equations at ``params`` from its rows
     (observations, priors on the primitives, orientation readings, AP priors): (per family (n,
-    p), (r,))."""
+    p), (r,)). ``Jl``: the orientation readings' :func:`levelling_jacobian` at ``params``, if
+    already taken."""
     ns = spec.n_scans
     bs = jnp.zeros((ns, 6))
     ba = jnp.zeros((spec.n_aps,))
@@ -220,9 +228,8 @@ def gradient(spec: Spec, problem: Problem, params: Params, rows: tuple):
         bs, ba = bs + gs, ba + ga
     # Orientation pseudo-observations (tilt readings, observed kappa) act on the scan's
     # rotation; AP priors on the APs (linear, weight w).
-    bs = bs - matvec_t(
-        levelling_jacobian(problem, params.eops), levelling_residual(problem, params.eops)
-    )
+    Jl = levelling_jacobian(problem, params.eops) if Jl is None else Jl
+    bs = bs - matvec_t(Jl, levelling_residual(problem, params.eops))
     ba = ba - ap_prior_weight(problem, spec.n_aps) * ap_prior_residual(problem, params.aps)
     return tuple(bp), jnp.concatenate([bs.reshape(-1), ba])
 
@@ -257,7 +264,7 @@ def assemble(spec: Spec, problem: Problem, params: Params, rows: tuple) -> Block
     Nss_full = jnp.where(diag, Nss[:, :, None, :], 0.0).reshape(6 * ns, 6 * ns)
     Nsa_full = Nsa.reshape(6 * ns, na)
     Nzz = jnp.block([[Nss_full, Nsa_full], [Nsa_full.T, Naa]])
-    bp, bz = gradient(spec, problem, params, rows)
+    bp, bz = gradient(spec, problem, params, rows, Jl)
     return Blocks(tuple(Npp), tuple(Npz), bp, Nzz, bz, tuple(Dp), tuple(Ep))
 
 

@@ -210,8 +210,16 @@ def adjust_linearised(spec: Spec, problem: Problem, params0: Params, options: Op
         done_here = undamped & accept & jnp.isfinite(chord) & (chord < 1.0)
         if has_state:
             # The state has settled at the candidate (done_here) or at x (a rejected step).
-            done_here = done_here & (moved_y < threshold)
-            unresolved = unresolved & (loop.moved < threshold)
+            # A rejection that says nothing (a step below the resolution) of a candidate that
+            # has converged (chord) with its state settled, from an x whose state has not: the
+            # candidate is taken, the two being equal within the cost's rounding (else the loop
+            # would go on damped, never undamped again, to the iteration limit; seen on a
+            # plane network at XLA's optimisation level 0).
+            settled_y = jnp.isfinite(chord) & (chord < 1.0) & (moved_y < threshold)
+            tie = unresolved & jnp.isfinite(new_cost) & settled_y & (loop.moved >= threshold)
+            accept = accept | tie
+            done_here = (done_here | tie) & (moved_y < threshold)
+            unresolved = unresolved & ~tie & (loop.moved < threshold)
             chord = jnp.maximum(chord, moved_y / threshold)
         converged = done_here | unresolved
 

@@ -34,6 +34,16 @@ def rotation_matrix(omega, phi, kappa, xp=jnp):
     return xp.stack([ck * r0 + sk * r1, -sk * r0 + ck * r1, r2])
 
 
+def rotation_matrix_column_z(omega, phi, kappa, xp=jnp):
+    """``R e3``, the third column of :func:`rotation_matrix` (the object-space vertical seen in
+    scanner space), written out alone: what a compensator reads, at a fraction of the
+    arithmetic of the whole matrix (and of its derivative)."""
+    cw, sw = xp.cos(omega), xp.sin(omega)
+    sp_cw = xp.sin(phi) * cw
+    ck, sk = xp.cos(kappa), xp.sin(kappa)
+    return xp.stack([sk * sw - ck * sp_cw, ck * sw + sk * sp_cw, xp.cos(phi) * cw])
+
+
 def angles_from_matrix(R: np.ndarray) -> np.ndarray:
     """Cardan angles (omega, phi, kappa) of ``R = R3 R2 R1`` (host side, numpy)."""
     phi = np.arcsin(np.clip(R[2, 0], -1.0, 1.0))

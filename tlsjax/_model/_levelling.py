@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ._geometry import rotation_matrix
+from ._geometry import rotation_matrix_column_z
 
 
 def compensator_reading(eop, xp=jnp):
@@ -20,7 +20,7 @@ def compensator_reading(eop, xp=jnp):
     so rotation about Z stays an exact null vector of the normal equations and the free-network
     solution does not depend on the datum.
     """
-    g = rotation_matrix(eop[..., 3], eop[..., 4], eop[..., 5], xp)[:, 2]
+    g = rotation_matrix_column_z(eop[..., 3], eop[..., 4], eop[..., 5], xp)
     gy = xp.clip(g[1], -1.0, 1.0)
     omega = xp.arcsin(gy)
     phi = xp.arcsin(xp.clip(-g[0] / xp.sqrt(1.0 - gy * gy), -1.0, 1.0))
