@@ -23,6 +23,7 @@ from tlsjax._model._geometry import (
     is_face2,
     rigid_fit,
     rotation_matrix,
+    rotation_matrix_column_z,
     spherical_from_cartesian,
     wrap_angle,
 )
@@ -73,6 +74,11 @@ def test_rotation_matrix_is_R3_R2_R1():
         np.testing.assert_allclose(R_np, R_ref, atol=1e-15)
         np.testing.assert_allclose(R_jax @ R_jax.T, np.eye(3), atol=1e-14)
         assert np.isclose(np.linalg.det(R_jax), 1.0, atol=1e-14)
+        # The compensator's column written out alone: R e3 of the matrices written out by hand,
+        # and bitwise that of the whole matrix (the same products, summed in the same order).
+        np.testing.assert_allclose(rotation_matrix_column_z(w, p, k, np), R_ref[:, 2], atol=1e-15)
+        assert np.array_equal(rotation_matrix_column_z(w, p, k, np), R_np[:, 2])
+        assert np.array_equal(np.asarray(rotation_matrix_column_z(w, p, k)), R_jax[:, 2])
 
 
 def test_rotation_matrix_hand_values():
