@@ -6,12 +6,13 @@ below its own (and from modules of its own subpackage, without circles); nothing
 module except the command line.
 
 1. ``_version`` (the version, which imports nothing), then ``_units``, ``_stats``, ``_jit``,
-   ``_optional``, ``_summary``, ``_linalg``: units and display factors, quantiles and the
-   constants derived from them (scipy), the compiler settings and the persistent
+   ``_optional``, ``_summary``, ``_linalg``, ``_pytree``: units and display factors, quantiles
+   and the constants derived from them (scipy), the compiler settings and the persistent
    compilation cache (keyed on the version), the optional libraries, the
    ``summary()``/``to_dict()`` convention of the result types and the
    ``to_dict()``/``from_dict()`` one of the settings, the small dense linear algebra that the
-   datum and the adjustment share. They import nothing of tlsjax but the version.
+   datum and the adjustment share, the base class of the pytrees (parameters, observations,
+   states). They import nothing of tlsjax but the version.
 2. ``_model``: the mathematics of one observation (geometry, the AP registry, the scanner, the
    point and plane models, levelling, the datum).
 3. ``_adjustment``: one adjustment of a network (data and boundary checks, index plan,

@@ -265,7 +265,7 @@ def _code_digest() -> str:
     from pathlib import Path
 
     h = hashlib.sha256()
-    for pkg in ("jax", "jaxlib", "equinox", "numpy"):
+    for pkg in ("jax", "jaxlib", "numpy"):
         try:
             h.update(f"{pkg}={md.version(pkg)};".encode())
         except md.PackageNotFoundError:

@@ -43,7 +43,7 @@ def _run(spec, problem, params0, options, full_covariance):
 @functools.cache
 def _flat_run(spec, treedef, full_covariance: bool):
     """:func:`_run` as a compiled function of the flattened (problem, params0, options): a call
-    then flattens no pytree of equinox modules in Python (the dispatch of a compiled call with
+    then flattens no pytree of modules in Python (the dispatch of a compiled call with
     a few dozen arguments costs about 20 us instead of about 1 ms)."""
 
     def run(*leaves):
@@ -117,7 +117,7 @@ def _hold_aps(problem, params0, held: np.ndarray, n6: int):
 
 
 def _replace(module, **changes):
-    """``dataclasses.replace`` for an ``eqx.Module`` (a dataclass)."""
+    """``dataclasses.replace`` for a :class:`tlsjax._pytree.Module` (a dataclass)."""
     return dataclasses.replace(module, **changes)
 
 

@@ -39,7 +39,6 @@ noise-free observations, where v = 0.
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jax import lax
@@ -47,6 +46,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._linalg import cholesky_inverse, small_spd_solve
 from .._model._datum import inner_gram, s_transform_vector
+from .._pytree import Module
 from ._families import (
     Params,
     Problem,
@@ -77,7 +77,7 @@ CHORD_ACCURACY = 1e-3
 CHORD_MAX_RATE = 0.5
 
 
-class DesignFactorisation(eqx.Module):
+class DesignFactorisation(Module):
     """The factorisation of one design's normal matrix, shared by its realisations: the Schur
     blocks of the primitives (``Npp^-1``, ``Y = Npp^-1 Npz``), the explicit inverse of the
     scaled reduced matrix, the datum's null space, the AP cofactor block and the dependent
@@ -138,7 +138,7 @@ def shared_solve(spec: Spec, fact: DesignFactorisation, bp: tuple, bz):
     return dps, dz
 
 
-class ChordState(eqx.Module):
+class ChordState(Module):
     params: Params
     cost: Float[Array, ""]  # v^T P v at params (the quadratic model after the last step)
     iteration: Int[Array, ""]

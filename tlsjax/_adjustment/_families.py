@@ -25,7 +25,6 @@ from __future__ import annotations
 import dataclasses
 from typing import ClassVar
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -44,24 +43,25 @@ from .._model._geometry import (
 from .._model._levelling import orientation_reading
 from .._model._planes import PROJECTION_STEPS, plane_step_basis, whitened_condition
 from .._model._points import point_misclosure
+from .._pytree import Module, field
 
 #: vmap axes of :meth:`Family.residual` over the observations of a family.
 OBS_AXES = (0, 0, None, 0, 0, 0, 0)
 
 
-class Spec(eqx.Module):
+class Spec(Module):
     """Static description of the model: instruments, AP blocks, datum defect columns.
 
     Every field is static: a compiled adjustment is specialised on it (and only on it), so it is
     the key of the compilation cache (the scanners carry the identity of their AP terms).
     """
 
-    scanners: tuple = eqx.field(static=True)
-    ap_names: tuple = eqx.field(static=True)
-    ap_slices: tuple = eqx.field(static=True)
-    n_scans: int = eqx.field(static=True)
-    datum_columns: tuple = eqx.field(static=True)  # rigid motions that leave the data invariant
-    inner: bool = eqx.field(static=True)  # inner constraints on the primitives
+    scanners: tuple = field(static=True)
+    ap_names: tuple = field(static=True)
+    ap_slices: tuple = field(static=True)
+    n_scans: int = field(static=True)
+    datum_columns: tuple = field(static=True)  # rigid motions that leave the data invariant
+    inner: bool = field(static=True)  # inner constraints on the primitives
 
     @property
     def n_aps(self) -> int:
@@ -72,7 +72,7 @@ class Spec(eqx.Module):
         return 6 * self.n_scans + self.n_aps
 
 
-class Family(eqx.Module):
+class Family(Module):
     """Observations of one family of eliminated primitives and their index plan.
 
     ``obs`` (m, 3) = (rho, theta, alpha), ``weight`` = 1/sigma (m, 3), ``prim``, ``point``,
@@ -225,7 +225,7 @@ class PointFamily(Family):
     ctrl_weight: Float[Array, "n k 3"]
     bar_length: Float[Array, " n"]
     bar_weight: Float[Array, " n"]
-    k: int = eqx.field(static=True)
+    k: int = field(static=True)
 
     @property
     def p(self) -> int:
@@ -364,7 +364,7 @@ class PlaneFamily(Family):
     degrees of freedom) and :meth:`retract` renormalises it.
     """
 
-    n_planes: int = eqx.field(static=True)
+    n_planes: int = field(static=True)
 
     rows: ClassVar[int] = 1
     # The condition mixes the corrected observation with the plane and the pose, so d g / d AP
@@ -568,7 +568,7 @@ class PlaneFamily(Family):
         return v, redundancy, jnp.sum(active), jnp.sum(rows.e**2)
 
 
-class Problem(eqx.Module):
+class Problem(Module):
     """Everything the compiled adjustment needs: families, scans, levelling, fixed parameters.
 
     ``layouts``: per family a :class:`Layout` or None, chosen on the host from the static
@@ -587,20 +587,20 @@ class Problem(eqx.Module):
     levelling_weight: Float[Array, "s 2"]
     fixed: Bool[Array, " r"]
     layouts: tuple = ()
-    grids: tuple = eqx.field(static=True, default=())
+    grids: tuple = field(static=True, default=())
     heading: Float[Array, " s"] | None = None
     heading_weight: Float[Array, " s"] | None = None
     ap_prior: Float[Array, " a"] | None = None
     ap_prior_weight: Float[Array, " a"] | None = None
 
 
-class Params(eqx.Module):
+class Params(Module):
     prims: tuple  # per family (n, p)
     eops: Float[Array, "s 6"]
     aps: Float[Array, " a"]
 
 
-class Options(eqx.Module):
+class Options(Module):
     """Numerical settings as traced arrays, so changing them never recompiles (see
     :class:`tlsjax.SolverOptions` for their meaning)."""
 
@@ -740,7 +740,7 @@ def count_observations(problem, params):
     return n
 
 
-class Layout(eqx.Module):
+class Layout(Module):
     """A family's observations on a regular grid of (primitive, scan, slot), ``shape`` = (n, s,
     c) with c the most observations of one primitive in one scan. Slot g holds family row
     ``rows[g]`` (``valid``) or is padding (weight 0, a real row of the same primitive so that
@@ -755,7 +755,7 @@ class Layout(eqx.Module):
     rows: Int[Array, " g"]
     valid: Bool[Array, " g"]
     pos: Int[Array, " m"]
-    shape: tuple = eqx.field(static=True)
+    shape: tuple = field(static=True)
 
 
 #: A grid layout is used when at least this share of its slots holds real observations.
@@ -812,11 +812,7 @@ def on_grid(problem: Problem) -> Problem:
             pair_prim=jnp.asarray(np.repeat(np.arange(n), ns)),
             pair_scan=jnp.asarray(np.tile(np.arange(ns), n)),
         )
-        fams.append(
-            eqx.tree_at(
-                lambda f, c=changes: [getattr(f, k) for k in c], fam, list(changes.values())
-            )
-        )
+        fams.append(dataclasses.replace(fam, **changes))
         grids.append(lay.shape)
     return dataclasses.replace(problem, families=tuple(fams), layouts=(), grids=tuple(grids))
 

@@ -47,7 +47,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -57,6 +56,7 @@ from .._jit import jit
 from .._linalg import cholesky_solve
 from .._model._datum import s_transform_vector
 from .._model._planes import plane_condition
+from .._pytree import Module
 from ._families import Family, Params, PlaneFamily, Problem, Spec, cost, settled_state
 from ._normal import linearise, null_space, reduce
 from ._quality import minimal_detectable_bias, quality
@@ -220,7 +220,7 @@ def _solve_implicit_jvp(spec, steps, primals, tangents):
 # --- The differentiable calibration: inputs theta in network row order -> estimates -----------
 
 
-class NetworkInputs(eqx.Module):
+class NetworkInputs(Module):
     """The float inputs theta of one analysed network, in the network's row order (SI units).
 
     ``observations``/``sigmas`` (n, 3) of the target rows (range [m], hz, el [rad]; sigmas with
@@ -275,7 +275,7 @@ def problem_from_inputs(problem: Problem, rows: tuple, plane_family, inputs: Net
     )
 
 
-class Estimates(eqx.Module):
+class Estimates(Module):
     """What the differentiable adjustment returns; every float field is differentiable w.r.t.
     the :class:`NetworkInputs` (SPEC section 12). SI units; a posteriori where it says so.
 

@@ -16,7 +16,6 @@ rank-revealing Cholesky of :mod:`._linalg`. No Jacobian of the whole network is 
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -32,6 +31,7 @@ from .._linalg import (
     outer,
 )
 from .._model._datum import move_eop, null_space_columns, s_transform_vector
+from .._pytree import Module
 from ._families import (
     Params,
     Problem,
@@ -44,7 +44,7 @@ from ._families import (
 )
 
 
-class Blocks(eqx.Module):
+class Blocks(Module):
     """Normal-equation blocks of one linearisation; the right-hand sides are ``-J^T e``."""
 
     Npp: tuple  # per family (n, p, p)
@@ -69,7 +69,7 @@ def ap_jacobians(spec: Spec, problem: Problem, params: Params) -> tuple:
     return tuple(fam.ap_block(spec, problem, params, fi) for fi, fam in enumerate(problem.families))
 
 
-class Rows(eqx.Module):
+class Rows(Module):
     """One family's linearisation per observation: whitened residual rows ``e`` (m, k),
     Jacobian blocks ``Jp`` (m, k, p), ``Js`` (m, k, 6), ``Ja`` (m, k, a), ``raw``, the
     residual the quality pass reports (see :meth:`Family.linear_rows`), and for a
@@ -307,7 +307,7 @@ def null_space(spec: Spec, families, params: Params):
     return Hp, Hz
 
 
-class Reduced(eqx.Module):
+class Reduced(Module):
     """The Schur-reduced system, scaled and factorised."""
 
     Npp_inv: tuple

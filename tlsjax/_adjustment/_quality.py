@@ -29,7 +29,6 @@
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -37,6 +36,7 @@ from jaxtyping import Array, Float
 
 from .._linalg import UNROLL_MAX, bmm, cholesky_inverse, mm, triangular_inverse
 from .._model._datum import inner_constraint_cofactor
+from .._pytree import Module
 from .._stats import DELTA0
 from ._families import (
     Params,
@@ -93,7 +93,7 @@ def external_reliability_factor(redundancy, delta0: float = DELTA0):
     return xp.where(ok, xp.sqrt(xp.maximum(1.0 - r, 0.0) / r) * delta0, xp.inf)
 
 
-class Quality(eqx.Module):
+class Quality(Module):
     vtpv: Float[Array, ""]
     dof: Float[Array, ""]
     # Conditions with nonzero weight (three per target observation, one per plane point),
@@ -388,7 +388,7 @@ def _full_cofactor(spec, red, Qzz, Hp, Hz):
     return Q
 
 
-class Summary(eqx.Module):
+class Summary(Module):
     """The estimable part of the quality that a Monte Carlo realisation needs (SPEC section 9):
     ``v^T P v``, the redundancy ``r = n - u + d``, the AP cofactor block (datum invariant) and
     the parameters the rank test found dependent."""

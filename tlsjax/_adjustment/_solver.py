@@ -53,12 +53,14 @@ rejected by rounding alone.
 
 from __future__ import annotations
 
-import equinox as eqx
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 from jax import lax
 from jaxtyping import Array, Bool, Float, Int
 
+from .._pytree import Module
 from ._families import (
     Options,
     Params,
@@ -92,7 +94,7 @@ ROUNDING_FACTOR = 1e4
 COST_RESOLUTION = 10.0
 
 
-class SolveState(eqx.Module):
+class SolveState(Module):
     params: Params
     cost: Float[Array, ""]
     damping: Float[Array, ""]
@@ -109,7 +111,7 @@ class SolveState(eqx.Module):
     state: tuple = ()
 
 
-class Linearisation(eqx.Module):
+class Linearisation(Module):
     """What the loop hands to the quality pass: per-family rows (:class:`._normal.Rows`) with
     the residuals at the final estimate and the Jacobians of the last factorisation, the datum's
     null-space columns and that undamped reduced system."""
@@ -143,7 +145,7 @@ def adjust(spec: Spec, problem: Problem, params0: Params, options: Options) -> S
     return adjust_linearised(spec, on_grid(problem), params0, options)[0]
 
 
-class _Loop(eqx.Module):
+class _Loop(Module):
     state: SolveState  # at the current estimate x (with the state update from its rows)
     rows: tuple  # at x
     lin: Linearisation  # the factorisation at x that made the candidate
@@ -340,9 +342,7 @@ def _residuals_into(at, factorised):
     quality's cofactors, redundancy numbers and reliability then come from one linearisation
     (so that their identities, e.g. sum r_i = dof, hold to rounding), its residuals from the
     estimate."""
-    return tuple(
-        eqx.tree_at(lambda r: (r.e, r.raw), f, (a.e, a.raw)) for a, f in zip(at, factorised)
-    )
+    return tuple(dataclasses.replace(f, e=a.e, raw=a.raw) for a, f in zip(at, factorised))
 
 
 def _where(flag, a, b):

@@ -31,7 +31,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -48,6 +47,7 @@ from .._model._geometry import TWO_PI, rotation_matrix, second_face, spherical_f
 from .._model._levelling import compensator_reading
 from .._model._points import distorted_observations
 from .._model._scanner import Scanner
+from .._pytree import Module
 from .._simulation._design import DesignSimulation, NetworkDesign, simulate_design
 from .._simulation._room import Simulation
 from .._units import DEG
@@ -57,7 +57,7 @@ VISIBILITY_EDGE = 1.0 * DEG
 VISIBILITY_FLOOR = 1e-6
 
 
-class TargetDesign(eqx.Module):
+class TargetDesign(Module):
     """A target-based calibration design (SPEC section 13); all SI units, all arrays.
 
     ``eops`` (s, 6) = (Xs, Ys, Zs, omega, phi, kappa); ``targets`` (t, 3); ``normals`` (t, 3) unit
@@ -118,7 +118,7 @@ class TargetDesign(eqx.Module):
         )
 
 
-class PlaneDesign(eqx.Module):
+class PlaneDesign(Module):
     """A plane-based calibration design: ``eops`` (s, 6), ``planes`` (k, 4) = (n, d) with
     ``n . X = d``, true ``aps``, and the sigmas as in :class:`TargetDesign`."""
 

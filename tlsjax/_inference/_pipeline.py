@@ -31,7 +31,6 @@ import functools
 from collections.abc import Callable, Mapping
 from typing import NamedTuple
 
-import equinox as eqx
 import jax
 import numpy as np
 
@@ -111,8 +110,8 @@ class Reweighter:
         opts = None
         if max_iterations is not None:
             # e.g. 0: the misclosures and redundancy numbers at params0 (data: the same program)
-            opts = eqx.tree_at(
-                lambda o: o.max_iterations, adj.options.arrays(), np.asarray(int(max_iterations))
+            opts = dataclasses.replace(
+                adj.options.arrays(), max_iterations=np.asarray(int(max_iterations))
             )
         plan, state, q, absent = adj.run_estimable(problem, params0, opts)
         res = assemble(self.net, self.model, plan, state, q, absent)

@@ -37,7 +37,6 @@ import functools
 import weakref
 from collections.abc import Mapping
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -52,6 +51,7 @@ from .._jit import jit
 from .._model._aps import ap_corrections, on_reregistration
 from .._model._levelling import compensator_reading
 from .._model._points import FIXED_POINT_ITERATIONS, distorted_observations
+from .._pytree import Module, field
 from .._stats import t_critical_value
 from .._summary import Settings, to_json_value
 from .._units import display_unit
@@ -126,7 +126,7 @@ def _truth_of(simulation) -> SimulationTruth:
     )
 
 
-class _Simulator(eqx.Module):
+class _Simulator(Module):
     """Everything a realisation is drawn from, as arrays (network row order), and the static
     AP blocks of the instruments that generate the data."""
 
@@ -145,9 +145,9 @@ class _Simulator(eqx.Module):
     bar_sigma: jax.Array
     true_aps: jax.Array  # all instruments' true APs, concatenated
     draw_sigma: jax.Array
-    scanners: tuple = eqx.field(static=True)
-    slices: tuple = eqx.field(static=True)  # per instrument (start, stop) in true_aps
-    iterations: int = eqx.field(static=True, default=FIXED_POINT_ITERATIONS)
+    scanners: tuple = field(static=True)
+    slices: tuple = field(static=True)  # per instrument (start, stop) in true_aps
+    iterations: int = field(static=True, default=FIXED_POINT_ITERATIONS)
 
     def draw(self, key):
         """Observations, levelling, control coordinates, bar lengths and true APs of one
