@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import os
 import warnings
 
@@ -416,11 +417,8 @@ def _pack(leaves):
 
 def _unpack(buffers, layout) -> list:
     """Numpy views of the packed outputs (:func:`_pack`) on the host."""
-    out = []
-    for b, off, shape in layout:
-        size = int(np.prod(shape, dtype=np.int64))
-        out.append(buffers[b][off : off + size].reshape(shape))
-    return out
+    # math.prod, not np.prod: about 40 outputs a call, and np.prod of a tuple costs 3 us.
+    return [buffers[b][off : off + math.prod(shape)].reshape(shape) for b, off, shape in layout]
 
 
 def _aval(x) -> tuple:
