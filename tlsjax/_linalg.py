@@ -135,68 +135,11 @@ def rank_revealing_cholesky(A, fixed, tol):
     return L, dep, piv
 
 
-def rank_revealing_cholesky_damped(A, damping, fixed, tol):
-    """:func:`rank_revealing_cholesky` of ``A`` and the Cholesky of ``A + damping I`` with the
-    same columns held (the rank is judged on the undamped matrix; a damped one has no new
-    dependencies). Returns (L, dependent, pivots, L_damped).
-
-    Written by hand because LAPACK has no in-order rank-revealing Cholesky, but the common
-    case needs none: with the held columns replaced by unit columns, LAPACK's Cholesky
-    (``potrf``) gives the same factor, and its squared diagonal is the same in-order pivot
-    ``1 - R^2`` as long as no free column is dependent. That case (every pivot above ``tol``)
-    takes two library calls; otherwise the column loop of :func:`_rank_revealing_loop` runs
-    (measured on the 40 x 40 reduced system of the Chow room: 0.01-0.03 ms against 0.06-0.25 ms
-    for the loop). Under ``vmap`` both branches run.
-    """
-    n = A.shape[0]
-    free = ~fixed
-    eye = jnp.eye(n, dtype=A.dtype)
-    Ah = jnp.where(free[:, None] & free[None, :], A, 0.0) + jnp.where(fixed, 1.0, 0.0) * eye
-    L = jnp.linalg.cholesky(Ah)
-    piv = jnp.diagonal(L) ** 2
-    ok = jnp.all(jnp.isfinite(L)) & jnp.all(fixed | (piv > tol))
-
-    def fast():
-        Ld = jnp.linalg.cholesky(Ah + damping * jnp.where(fixed, 0.0, 1.0) * eye)
-        return L, fixed, piv, Ld
-
-    return lax.cond(ok, fast, lambda: _rank_revealing_loop(A, damping, fixed, tol))
-
-
-def _rank_revealing_loop(A, damping, fixed, tol):
-    """The column loop behind :func:`rank_revealing_cholesky_damped`: both factors in one
-    ``fori_loop`` (under ``vmap`` a ``lax.cond`` between two loops would run both)."""
-    n = A.shape[0]
-    idx = jnp.arange(n)
-
-    def col(A, j, is_dep):
-        d = A[j, j]
-        c = A[:, j] / jnp.sqrt(jnp.where(is_dep, 1.0, d))
-        c = jnp.where((idx > j) & ~is_dep, c, 0.0)
-        return c.at[j].set(jnp.where(is_dep, 1.0, jnp.sqrt(jnp.maximum(d, 0.0))))
-
-    def body(j, carry):
-        A, Ad, L, Ld, dep, piv = carry
-        d = A[j, j]
-        is_dep = fixed[j] | (d <= tol)
-        c, cd = col(A, j, is_dep), col(Ad, j, is_dep)
-        keep = jnp.where(is_dep, 0.0, 1.0)
-        A = A - keep * (c[:, None] * c[None, :])
-        Ad = Ad - keep * (cd[:, None] * cd[None, :])
-        L = jnp.where(is_dep, L.at[j, :].set(0.0), L).at[:, j].set(c)
-        Ld = jnp.where(is_dep, Ld.at[j, :].set(0.0), Ld).at[:, j].set(cd)
-        return A, Ad, L, Ld, dep.at[j].set(is_dep), piv.at[j].set(d)
-
-    Ad = A + damping * jnp.eye(n, dtype=A.dtype)
-    zero = jnp.zeros_like(A)
-    init = (A, Ad, zero, zero, jnp.zeros(n, dtype=bool), jnp.zeros(n, dtype=A.dtype))
-    _, _, L, Ld, dep, piv = lax.fori_loop(0, n, body, init)
-    return L, dep, piv, Ld
-
-
 def estimable_cholesky_damped(A, damping, fixed, tol, n_check: int):
-    """:func:`rank_revealing_cholesky_damped` with the last ``n_check`` columns (the APs)
-    tested against *all* other columns, not only the ones before them.
+    """The in-order rank-revealing Cholesky of :func:`rank_revealing_cholesky` of ``A`` and
+    the Cholesky of ``A + damping I`` with the same columns held (the rank is judged on the
+    undamped matrix; a damped one has no new dependencies), with the last ``n_check`` columns
+    (the APs) tested against *all* other columns, not only the ones before them.
 
     The in-order pivot of column j is ``1 - R^2`` of j regressed on the columns before it; a
     near dependency on columns *after* j stays hidden (A1 without an independent scale: the
@@ -206,14 +149,15 @@ def estimable_cholesky_damped(A, damping, fixed, tol, n_check: int):
     ratio, independent of the parameters' units and of their order. The checked column with the
     smallest such value below ``tol`` is held fixed and the matrix refactorised, until none is
     (backward elimination, at most once per checked column; in practice zero or one round).
-    Returns (L, dependent, pivots, L_damped) as :func:`rank_revealing_cholesky_damped`, the
-    pivots of the checked columns being their ``1 - R^2`` against all others.
+    Returns (L, dependent, pivots, L_damped), the pivots of the checked columns being their
+    ``1 - R^2`` against all others.
 
     The common case (no free column dependent) is one library Cholesky: with the held columns
     replaced by unit columns its squared diagonal is the in-order pivot, and as the checked
     columns come last, ``(A^-1)_jj`` of them are the squared column norms of the inverse of
-    L's trailing block alone (:func:`triangular_inverse`). Only when a test fails do the
-    column loops below run (a ``lax.cond``; under ``vmap`` both branches run). Measured on the
+    L's trailing block alone (:func:`triangular_inverse`). Only when a test fails does the
+    column loop run (:func:`_estimable_loop`, a ``lax.cond``; under ``vmap`` both branches run;
+    written by hand because LAPACK has no in-order rank-revealing Cholesky). Measured on the
     Chow room's 40 x 40 system: the column loops were about a third of an adjustment's
     kernels."""
     n = A.shape[0]
@@ -242,36 +186,48 @@ def estimable_cholesky_damped(A, damping, fixed, tol, n_check: int):
 
 def _estimable_loop(A, A0, damping, fixed, tol, check):
     """The backward elimination of :func:`estimable_cholesky_damped` when a column is found
-    dependent: the in-order loop of :func:`rank_revealing_cholesky` and the inverse's diagonal
-    per round."""
+    dependent: per round the in-order loop of :func:`rank_revealing_cholesky` with the columns
+    held so far and the inverse's diagonal, holding the weakest checked column, until none is
+    below ``tol``.
+
+    The column loop is written once (a round per held column, the first with none added): each
+    copy of it made the compiled adjustment about 0.15 s longer to compile, for a branch that
+    rarely runs. The factors returned are the library Cholesky of ``A`` with the dependent
+    columns replaced by unit columns, the same factor the column loop makes (to rounding),
+    differentiable in ``A``."""
     n = A.shape[0]
     eye = jnp.eye(n, dtype=A.dtype)
 
     # Which columns to hold is a decision, not a differentiable quantity: it is taken on the
     # value of A (a while loop, which reverse mode could not transpose), and the factors
-    # returned come from the differentiable in-order factorisation with those columns held.
-    def factor(held):
-        L, dep, _ = rank_revealing_cholesky(A0, held, tol)
-        q = jnp.sum(forward_substitution(L, eye) ** 2, axis=0)  # diag(A^-1), independent cols
-        return dep, jnp.where(dep, 0.0, 1.0 / jnp.where(q > 0, q, 1.0))
-
+    # returned come from the differentiable factorisation with those columns held.
     def weakest(held, r2):
         free = check & ~held
         j = jnp.argmin(jnp.where(free, r2, jnp.inf))
         return j, free[j] & (r2[j] <= tol)
 
     def body(carry):
-        held, r2, rounds = carry
-        held = held.at[weakest(held, r2)[0]].set(True)
-        return (held, factor(held)[1], rounds + 1)
+        held, _, _, r2, rounds = carry
+        held = jnp.where(rounds >= 0, held.at[weakest(held, r2)[0]].set(True), held)
+        L, dep, piv = rank_revealing_cholesky(A0, held, tol)
+        q = jnp.sum(triangular_inverse(L) ** 2, axis=0)  # diag(A^-1) of the independent cols
+        r2 = jnp.where(dep, 0.0, 1.0 / jnp.where(q > 0, q, 1.0))
+        return held, dep, piv, r2, rounds + 1
 
     def cond(carry):
-        held, r2, rounds = carry
-        return weakest(held, r2)[1] & (rounds < n)
+        held, _, _, r2, rounds = carry
+        return (rounds < 0) | (weakest(held, r2)[1] & (rounds < n))
 
-    held0 = jnp.asarray(fixed)
-    held, r2, _ = jax.lax.while_loop(cond, body, (held0, factor(held0)[1], jnp.asarray(0)))
-    L, dep, piv, Ld = rank_revealing_cholesky_damped(A, damping, held, tol)
+    zeros = jnp.zeros(n, dtype=A.dtype)
+    init = (jnp.asarray(fixed), jnp.asarray(fixed), zeros, zeros, jnp.asarray(-1))
+    held, dep, piv, r2, _ = jax.lax.while_loop(cond, body, init)
+    keep = ~dep
+    Ah = jnp.where(keep[:, None] & keep[None, :], A, 0.0) + jnp.where(dep, 1.0, 0.0) * eye
+    L = jnp.linalg.cholesky(Ah)
+    Ld = jnp.linalg.cholesky(Ah + damping * jnp.where(dep, 0.0, 1.0) * eye)
+    # The pivots of the columns held, as the factorisation with them held reports them: 1 (a
+    # unit column) when they are all the dependent ones, else their in-order pivots.
+    piv = jnp.where(jnp.all(dep == held) & held, 1.0, piv)
     return L, dep, jnp.where(check & ~dep, r2, piv), Ld
 
 

@@ -316,7 +316,9 @@ def adjust_linearised(spec: Spec, problem: Problem, params0: Params, options: Op
         state0,
     )
     rows0 = jax.eval_shape(lambda p: rows_at(spec, problem, p, ap_jac, state0), params0)
-    shapes = jax.eval_shape(factorise, params0, rows0, jnp.asarray(0.0), init.dependent)[0]
+    shapes = jax.eval_shape(factorise, params0, rows0, jnp.zeros((), jnp.float64), init.dependent)[
+        0
+    ]
     zeros = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
     start = _Loop(
         init,
