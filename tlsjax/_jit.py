@@ -33,6 +33,7 @@ import dataclasses
 import functools
 import math
 import os
+import threading
 import warnings
 
 import jax
@@ -288,6 +289,11 @@ def traced_folder() -> str | None:
     return os.path.join(folder, "traced")
 
 
+#: Programs :meth:`StoredProgram.prepare` queued: (program, leaves, avals), started in the
+#: background at the next compile of another stored program.
+_QUEUED: list = []
+
+
 class StoredProgram:
     """``jax.jit(fun)`` of flat array arguments, stored traced in the cache folder (above) under
     ``key``, a description of everything ``fun`` closes over; without a cache folder, or for a
@@ -303,6 +309,57 @@ class StoredProgram:
         self._fun, self._key, self._host = fun, key, host
         self._calls = {}  # avals -> (compiled callable of flat leaves, output treedef, layout)
         self._last = ((), None)  # the last call's jax-array arguments and its entry
+        self._pending = {}  # avals -> thread preparing that entry (:meth:`prepare`)
+        self._lock = threading.Lock()
+
+    def prepare(self, *leaves) -> None:
+        """Have the program for arguments shaped as ``leaves`` traced (or loaded) and compiled
+        in a background thread, unless it is at hand or under way, starting when the calling
+        thread next compiles another stored program: XLA compiles without Python's lock, so
+        the second program's trace runs beside the first one's compile (both traces at once
+        would only take turns), and its compile beside the Python work that follows. A later
+        call with such arguments waits for it instead of compiling; one that comes before any
+        other compile does the work itself. Nothing is dispatched when the entry exists."""
+        avals = tuple(_aval(x) for x in leaves)
+        with self._lock:
+            if avals in self._calls or avals in self._pending:
+                return
+            self._pending[avals] = None  # queued: no thread yet
+        _QUEUED.append((self, leaves, avals))
+
+    def _start(self, leaves, avals):
+        # Not a daemon: an interpreter that exits waits for the compile to end rather than
+        # tear down under it.
+        thread = threading.Thread(target=self._prepare, args=(leaves, avals))
+        with self._lock:
+            self._pending[avals] = thread
+        thread.start()
+
+    def _prepare(self, leaves, avals):
+        try:
+            entry = self._load_or_trace(leaves, avals)
+            entry[0].lower(*leaves).compile()  # the compiled call, stored with the jit
+        except Exception:  # noqa: BLE001 - the call that needs it traces and reports it
+            entry = None
+        with self._lock:
+            if entry is not None:
+                self._calls.setdefault(avals, entry)
+            del self._pending[avals]
+
+    def _entry(self, leaves, avals):
+        """The entry for ``avals``: at hand, prepared in the background (waited for), or
+        loaded or traced here."""
+        with self._lock:
+            thread = self._pending.get(avals)
+            if avals in self._pending and thread is None:  # queued, not started: done here
+                del self._pending[avals]
+                _QUEUED[:] = [q for q in _QUEUED if not (q[0] is self and q[2] == avals)]
+        if thread is not None:
+            thread.join()
+        call = self._calls.get(avals)
+        if call is None:
+            call = self._calls[avals] = self._load_or_trace(leaves, avals)
+        return call
 
     def __call__(self, *leaves):
         last, call = self._last
@@ -318,11 +375,13 @@ class StoredProgram:
             seen = tuple(x.aval if hasattr(x, "aval") else _aval(x) for x in leaves)
             call = self._calls.get(seen)
             if call is None:
-                avals = tuple(_aval(x) for x in leaves)
-                call = self._calls.get(avals)
-                if call is None:
-                    call = self._calls[avals] = self._load_or_trace(leaves, avals)
+                call = self._entry(leaves, tuple(_aval(x) for x in leaves))
                 self._calls[seen] = call
+                # This call compiles (or loads) now: the programs queued by :meth:`prepare`
+                # start beside it.
+                while _QUEUED:
+                    program, queued_leaves, queued_avals = _QUEUED.pop(0)
+                    program._start(queued_leaves, queued_avals)
             if all(isinstance(x, jax.Array) for x in leaves):
                 self._last = (leaves, call)
         fn, treedef, layout = call

@@ -61,6 +61,10 @@ def run_tests(
     re-adjustment is the one compiled adjustment of the model with other weights: nothing
     recompiles, except once for a model that selection chose."""
     ctx = TestingContext.make(network, model, options)
+    if options.tests.score_tests and ctx.score_tester is not None and ctx.score_tester.candidates:
+        # Compiled while the model's adjustment compiles (XLA runs without Python's lock):
+        # a first run waits for the longer of the two programs, not for both.
+        ctx.score_tester.prepare()
     snooping = options.snooping or SnoopingOptions()
     crit = snooping_critical_value(
         snooping.w_test_level,

@@ -342,6 +342,27 @@ class ScoreTester:
         )
         return tests_in(adj, problem, wide, self.candidates, alpha)
 
+    def prepare(self) -> None:
+        """Compile the tests in the background (:func:`prepare_tests`), at the start values
+        and the network's weights (the shapes of every later call)."""
+        adj = self.adjustment
+        prepare_tests(adj, adj.problem(fixed_aps=adj.model.fixed_aps), adj.initial)
+
+
+def _program_and_arguments(adjustment, problem, params):
+    """The score tests' compiled program for ``adjustment`` and its flat arguments."""
+    positions = station_positions(np.asarray(params.eops))
+    leaves, treedef = jax.tree.flatten((problem, params, positions))
+    return _score_program(adjustment.plan.spec, treedef), leaves
+
+
+def prepare_tests(adjustment, problem, params) -> None:
+    """Compile the program of :func:`tests_in` for arguments shaped as these in the
+    background (:meth:`tlsjax._jit.StoredProgram.prepare`), e.g. while the first adjustment
+    of a pipeline compiles."""
+    program, leaves = _program_and_arguments(adjustment, problem, params)
+    program.prepare(*leaves)
+
 
 def tests_in(adjustment, problem, params, names, alpha: float) -> ScoreTests:
     """Score tests of the terms ``names`` of an analysed ``adjustment`` whose ``problem`` holds
@@ -349,9 +370,8 @@ def tests_in(adjustment, problem, params, names, alpha: float) -> ScoreTests:
     stepwise selection asks of its one wide adjustment, and :class:`ScoreTester` of its own."""
     spec, tol = adjustment.plan.spec, float(adjustment.options.rank_tolerance)
     labels = adjustment.plan.ap_labels
-    positions = station_positions(np.asarray(params.eops))
-    leaves, treedef = jax.tree.flatten((problem, params, positions))
-    out = jax.device_get(_score_program(spec, treedef)(*leaves))
+    program, leaves = _program_and_arguments(adjustment, problem, params)
+    out = jax.device_get(program(*leaves))
     K, rhs, vtpv, nzz, K_d, nzz_d = (np.asarray(a) for a in out)
     free = ~np.asarray(problem.fixed)
     idx = np.array([labels.index(n) for n in names], dtype=int)
