@@ -69,6 +69,48 @@ def test_a_stored_program_is_loaded_not_traced_by_a_new_instance(tmp_path, monke
     assert len(second) == 2 and len(list(tmp_path.glob("*.bin"))) == 3
 
 
+def _compiles(events):
+    def listen(name, duration, **kwargs):
+        if name.endswith("backend_compile_duration"):
+            events.append(name)
+
+    return listen
+
+
+@pytest.mark.parametrize("stored", [True, False])
+def test_a_prepared_program_is_compiled_beside_the_next_compile(tmp_path, monkeypatch, stored):
+    """:meth:`StoredProgram.prepare` queues the program; the next call of another stored
+    program that compiles starts it in the background; the call that needs it compiles
+    nothing and gets the same numbers as a program compiled in the foreground."""
+    monkeypatch.setattr(_jit, "traced_folder", lambda: str(tmp_path) if stored else None)
+    monkeypatch.setattr(_jit, "_QUEUED", [])
+    x, y = jnp.arange(5.0) + 0.5, np.linspace(0, 1, 5)
+    traced, events = [], []
+    later = _jit.StoredProgram(_counting(traced), ("prepared later", stored))
+    later.prepare(x, y)
+    later.prepare(x, y)  # queued once
+    assert traced == [] and len(_jit._QUEUED) == 1
+    first = _jit.StoredProgram(lambda a: {"a": a * 3.0}, ("first", stored))
+    first(x)  # compiles, and starts the queued one beside it
+    assert _jit._QUEUED == []
+    for thread in list(later._pending.values()):
+        thread.join()
+    assert len(traced) == 1 and later._pending == {}
+    listen = _compiles(events)
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        out = later(x, y)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert events == [] and len(traced) == 1  # neither compiled nor traced again
+    np.testing.assert_array_equal(out["sum"], np.asarray(x) + y)
+    # Prepared but called before any other compile: the call does the work itself, once.
+    alone = _jit.StoredProgram(_counting(traced), ("prepared alone", stored))
+    alone.prepare(x, y)
+    np.testing.assert_array_equal(alone(x, y)["scaled"], 2.0 * np.asarray(x))
+    assert len(traced) == 2 and alone._pending == {} and _jit._QUEUED == []
+
+
 def test_a_key_without_a_stable_description_is_never_stored(tmp_path, monkeypatch):
     monkeypatch.setattr(_jit, "traced_folder", lambda: str(tmp_path))
     traced = []
