@@ -234,10 +234,12 @@ def gradient(spec: Spec, problem: Problem, params: Params, rows: tuple, Jl=None)
     return tuple(bp), jnp.concatenate([bs.reshape(-1), ba])
 
 
-def assemble(spec: Spec, problem: Problem, params: Params, rows: tuple) -> Blocks:
+def assemble(spec: Spec, problem: Problem, params: Params, rows: tuple, Jl=None) -> Blocks:
     """The normal-equation :class:`Blocks` from the rows at ``params``: on each family's grid
     when it has one (:class:`._families.Layout`), by segment sums otherwise; a family's hard
-    constraints (:meth:`._families.Family.constraint_basis`) ride along for :func:`reduce`."""
+    constraints (:meth:`._families.Family.constraint_basis`) ride along for :func:`reduce`.
+    ``Jl``: the orientation readings' :func:`levelling_jacobian` at ``params``, if already
+    taken."""
     ns, na = spec.n_scans, spec.n_aps
     Nss = jnp.zeros((ns, 6, 6))
     Nsa = jnp.zeros((ns, 6, na))
@@ -257,7 +259,7 @@ def assemble(spec: Spec, problem: Problem, params: Params, rows: tuple) -> Block
         Nss, Nsa, Naa = Nss + nss, Nsa + nsa, Naa + naa
     # Orientation pseudo-observations (tilt readings, observed kappa) act on the scan's
     # rotation; AP priors on the APs (linear, weight w: w^2 on the diagonal).
-    Jl = levelling_jacobian(problem, params.eops)
+    Jl = levelling_jacobian(problem, params.eops) if Jl is None else Jl
     Nss = Nss + outer(Jl, Jl)
     Naa = Naa + jnp.diag(ap_prior_weight(problem, na) ** 2)
     diag = np.eye(ns, dtype=bool)[:, None, :, None]

@@ -68,6 +68,7 @@ from ._families import (
     Spec,
     count_observations,
     initial_state,
+    levelling_jacobian,
     on_grid,
     predicted_state,
     rows_after,
@@ -148,6 +149,7 @@ def adjust(spec: Spec, problem: Problem, params0: Params, options: Options) -> S
 class _Loop(Module):
     state: SolveState  # at the current estimate x (with the state update from its rows)
     rows: tuple  # at x
+    Jl: Float[Array, "s 3 6"]  # the orientation readings' Jacobian at x
     lin: Linearisation  # the factorisation at x that made the candidate
     candidate: Params  # the point the next pass evaluates (the start, then x + dx)
     candidate_state: tuple  # the families' states the candidate's rows are evaluated with
@@ -180,8 +182,8 @@ def adjust_linearised(spec: Spec, problem: Problem, params0: Params, options: Op
     has_state = any(st is not None for st in state0)
 
     @jax.jit  # a nested jit, so that eval_shape below reuses the loop body's trace
-    def factorise(params, rows, damping, dependent):
-        blocks = assemble(spec, problem, params, rows)
+    def factorise(params, rows, damping, dependent, Jl):
+        blocks = assemble(spec, problem, params, rows, Jl)
         Hp, Hz = null_space(spec, problem.families, params)
         red = reduce(spec, problem, blocks, Hz, damping, options.rank_tolerance, dependent)
         return Linearisation(rows, Hp, Hz, red), blocks.bp, blocks.bz
@@ -203,7 +205,10 @@ def adjust_linearised(spec: Spec, problem: Problem, params0: Params, options: Op
         undamped = ~first & (state.damping == 0)
         unresolved = undamped & ~accept & (loop.step < resolvable)
         # The chord step at the candidate with the factorisation at hand (module docstring).
-        bp, bz = gradient(spec, problem, y, rows_y)
+        # The orientation readings' Jacobian at the candidate: for its gradient here and, when
+        # the step is accepted, for the factorisation at it (one copy of it in the program).
+        Jl_y = levelling_jacobian(problem, y.eops)
+        bp, bz = gradient(spec, problem, y, rows_y, Jl_y)
         bp = tuple(f.tangent_gradient(P, b) for f, P, b in zip(problem.families, y.prims, bp))
         cps, cz = solve(spec, loop.lin.reduced, bp, bz, loop.lin.Hp, loop.lin.Hz)
         s0 = jnp.sqrt(jnp.maximum(new_cost, 0.0) / dof)
@@ -227,6 +232,7 @@ def adjust_linearised(spec: Spec, problem: Problem, params0: Params, options: Op
 
         params = _where(accept, y, state.params)
         rows = _where(accept, rows_y, loop.rows)
+        Jl = jnp.where(accept, Jl_y, loop.Jl)
         fam_state = _where(accept, state_y, state.state)
         moved = jnp.where(accept, moved_y, loop.moved)
         cost_x = jnp.where(accept, new_cost, state.cost)
@@ -282,7 +288,7 @@ def adjust_linearised(spec: Spec, problem: Problem, params0: Params, options: Op
                 bp,
                 bz,
             ),
-            lambda: factorise(params, rows_out, used, state.dependent),
+            lambda: factorise(params, rows_out, used, state.dependent, Jl),
         )
         dps, dz = solve(spec, lin.reduced, b_p, b_z, lin.Hp, lin.Hz)
         step = jnp.sqrt(jnp.maximum(norm_squared(dps, dz, b_p, b_z), 0.0))
@@ -301,7 +307,7 @@ def adjust_linearised(spec: Spec, problem: Problem, params0: Params, options: Op
         # The candidate's state: the linear Gauss-Helmert prediction of the step.
         cand_state = predicted_state(problem, rows, fam_state, dps, dz, spec.n_scans)
         return _Loop(
-            new_state, rows, lin, candidate, cand_state, step, moved, jnp.asarray(False), stop
+            new_state, rows, Jl, lin, candidate, cand_state, step, moved, jnp.asarray(False), stop
         )
 
     init = SolveState(
@@ -316,13 +322,14 @@ def adjust_linearised(spec: Spec, problem: Problem, params0: Params, options: Op
         state0,
     )
     rows0 = jax.eval_shape(lambda p: rows_at(spec, problem, p, ap_jac, state0), params0)
-    shapes = jax.eval_shape(factorise, params0, rows0, jnp.zeros((), jnp.float64), init.dependent)[
-        0
-    ]
+    Jl0 = jnp.zeros((spec.n_scans, 3, 6))
+    strong_zero = jnp.zeros((), jnp.float64)  # as the loop's damping: one trace of factorise
+    shapes = jax.eval_shape(factorise, params0, rows0, strong_zero, init.dependent, Jl0)[0]
     zeros = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
     start = _Loop(
         init,
         zeros.rows,
+        Jl0,
         zeros,
         params0,
         # The start is evaluated with its state settled at fixed unknowns: a step's cost is
