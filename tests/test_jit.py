@@ -2,7 +2,7 @@
 transformation, the same numbers either way.
 
 Private imports: tlsjax's jit wrapper is a private mechanism; its properties are tested
-directly.
+directly, as those of Monte Carlo's background computation (``_InBackground``).
 """
 
 import functools
@@ -100,3 +100,31 @@ def test_point_jacobian_right_at_backend_optimisation_level_0():
         axis=1,
     )
     np.testing.assert_allclose(J, want, rtol=1e-10, atol=1e-12 * np.abs(want).max())
+
+
+def test_a_result_computed_in_the_background_has_its_shapes_at_once():
+    """Monte Carlo's design factorisation is compiled in a background thread while the chunk
+    program is compiled on its shapes (``tlsjax._simulation._montecarlo._InBackground``): the
+    shapes are those of the value, the value that of a direct call, and an error raised in the
+    thread is raised where the value is asked for."""
+    from tlsjax._simulation._montecarlo import _InBackground
+
+    x = jnp.linspace(0.0, 1.0, 7)
+    fun = jit(lambda: {"a": jnp.cumsum(x) ** 2, "n": jnp.sum(x > 0.5)})
+    pending = _InBackground(fun)
+    assert pending.shapes["a"].shape == (7,) and pending.shapes["n"].shape == ()
+    out = pending.result()
+    np.testing.assert_array_equal(out["a"], np.cumsum(np.asarray(x)) ** 2)
+    assert int(out["n"]) == 3
+
+    calls = []
+
+    def fails():  # traced by eval_shape, fails when run
+        calls.append(1)
+        if len(calls) > 1:
+            raise RuntimeError("no factorisation")
+        return jnp.zeros(())
+
+    broken = _InBackground(fails)
+    with pytest.raises(RuntimeError, match="no factorisation"):
+        broken.result()
