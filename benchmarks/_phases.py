@@ -63,7 +63,7 @@ def phase_times(spec, problem, params, options, repeats: int = 20, costs: dict |
     from tlsjax._adjustment import _families as F
     from tlsjax._adjustment import _normal as N
     from tlsjax._adjustment import _quality as Q
-    from tlsjax._linalg import rank_revealing_cholesky
+    from tlsjax._linalg import estimable_cholesky_damped
 
     grid = F.on_grid(problem)
     out, raw = {}, {}
@@ -89,8 +89,12 @@ def phase_times(spec, problem, params, options, repeats: int = 20, costs: dict |
         raw,
         "reduce",
     )
+    # What the engine runs: the library Cholesky and the AP test, the column loop only when a
+    # column is dependent (:func:`tlsjax._linalg.estimable_cholesky_damped`).
     out["factorisation"], _ = _time(
-        lambda K, fx: rank_revealing_cholesky(K, fx, options.rank_tolerance),
+        lambda K, fx: estimable_cholesky_damped(
+            K, jnp.asarray(0.0), fx, options.rank_tolerance, spec.n_aps
+        ),
         (red.Ks, grid.fixed),
         repeats,
         raw,
