@@ -47,6 +47,13 @@ def test_to_json_value_nulls_what_is_undefined():
         "code": 2,
     }
     assert type(value["i"]) is int and type(value["b"]) is bool
+    # Lists of plain floats (the fast path) and of mixed values: the same rules.
+    assert to_json_value([[1.5, math.inf], (2.0, -0.0), [math.nan, np.float64(3.0)]]) == [
+        [1.5, None],
+        [2.0, -0.0],
+        [None, 3.0],
+    ]
+    assert to_json_value(()) == [] and to_json_value([0.5, 2.0]) == [0.5, 2.0]
     text = dumps_strict({"x": [math.nan, 1e308 * 10]})
     assert json.loads(text) == {"x": [None, None]} and "NaN" not in text
     with pytest.raises(TypeError, match="object"):
