@@ -138,6 +138,12 @@ def _device_plan(network: Network, model: CalibrationModel):
     return dataclasses.replace(plan, problem=problem)
 
 
+@functools.cache
+def _default_options() -> SolverOptions:
+    """One default :class:`SolverOptions` (frozen): its device arrays are made once."""
+    return SolverOptions()
+
+
 class Adjustment:
     """One analysed adjustment: the index plan, the static spec and the approximate values of a
     (network, model) pair, built once on the host (the two phases of jaxls's ``analyze()`` then
@@ -154,7 +160,7 @@ class Adjustment:
         check_calibration_arguments(network, model, options, "analyze")
         self.network = network
         self.model = model or CalibrationModel()
-        self.options = options or SolverOptions()
+        self.options = options or _default_options()
         # Once per network's data and model (:func:`._network.memoised`).
         self.plan = memoised(
             network, ("plan", self.model), lambda: _device_plan(network, self.model)
@@ -167,7 +173,13 @@ class Adjustment:
     def initial(self) -> Params:
         """Approximate values (computed on first use, :mod:`._approx`)."""
         if self._params0 is None:
-            self._params0 = jax.device_put(initial_params(self.network, self.plan))
+            # Kept with the memoised plan (valid while it is: the network's data unchanged), on
+            # the device: a calibration of a network met before transfers nothing.
+            cached = self.plan.__dict__.get("_initial")
+            if cached is None:
+                cached = jax.device_put(initial_params(self.network, self.plan))
+                self.plan.__dict__["_initial"] = cached
+            self._params0 = cached
         return self._params0
 
     def problem(
@@ -275,7 +287,7 @@ class Adjustment:
             # The plan's own arguments (solve() again): flattened once, the solver's settings
             # on the device with them (numpy arguments would be transferred on every call).
             if self._leaves is None:
-                args = (problem, params0, jax.device_put(self.options.arrays()))
+                args = (problem, params0, self.options.device_arrays())
                 self._leaves = jax.tree.flatten(args)
             leaves, treedef = self._leaves
         else:
