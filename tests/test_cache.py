@@ -93,8 +93,8 @@ def test_a_prepared_program_is_compiled_beside_the_next_compile(tmp_path, monkey
     first = _jit.StoredProgram(lambda a: {"a": a * 3.0}, ("first", stored))
     first(x)  # compiles, and starts the queued one beside it
     assert _jit._QUEUED == []
-    for thread in list(later._pending.values()):
-        thread.join()
+    for task in list(later._pending.values()):
+        task.result()
     assert len(traced) == 1 and later._pending == {}
     listen = _compiles(events)
     jax.monitoring.register_event_duration_secs_listener(listen)

@@ -294,6 +294,31 @@ def traced_folder() -> str | None:
 _QUEUED: list = []
 
 
+class Background:
+    """``fun()`` computed in a thread of its own, e.g. a compile (XLA compiles without
+    Python's lock); :meth:`result` waits for it and returns its value or raises its error.
+    Not a daemon thread: an interpreter that exits waits for the work to end rather than tear
+    down under it."""
+
+    def __init__(self, fun):
+        self._out = None
+        self._thread = threading.Thread(target=self._run, args=(fun,))
+        self._thread.start()
+
+    def _run(self, fun):
+        try:
+            self._out = (fun(), None)
+        except BaseException as err:  # noqa: BLE001 - raised where the result is asked for
+            self._out = (None, err)
+
+    def result(self):
+        self._thread.join()
+        value, err = self._out
+        if err is not None:
+            raise err
+        return value
+
+
 class StoredProgram:
     """``jax.jit(fun)`` of flat array arguments, stored traced in the cache folder (above) under
     ``key``, a description of everything ``fun`` closes over; without a cache folder, or for a
@@ -309,7 +334,7 @@ class StoredProgram:
         self._fun, self._key, self._host = fun, key, host
         self._calls = {}  # avals -> (compiled callable of flat leaves, output treedef, layout)
         self._last = ((), None)  # the last call's jax-array arguments and its entry
-        self._pending = {}  # avals -> thread preparing that entry (:meth:`prepare`)
+        self._pending = {}  # avals -> :class:`Background` preparing it, None: queued
         self._lock = threading.Lock()
 
     def prepare(self, *leaves) -> None:
@@ -328,12 +353,8 @@ class StoredProgram:
         _QUEUED.append((self, leaves, avals))
 
     def _start(self, leaves, avals):
-        # Not a daemon: an interpreter that exits waits for the compile to end rather than
-        # tear down under it.
-        thread = threading.Thread(target=self._prepare, args=(leaves, avals))
         with self._lock:
-            self._pending[avals] = thread
-        thread.start()
+            self._pending[avals] = Background(lambda: self._prepare(leaves, avals))
 
     def _prepare(self, leaves, avals):
         try:
@@ -350,12 +371,12 @@ class StoredProgram:
         """The entry for ``avals``: at hand, prepared in the background (waited for), or
         loaded or traced here."""
         with self._lock:
-            thread = self._pending.get(avals)
-            if avals in self._pending and thread is None:  # queued, not started: done here
+            task = self._pending.get(avals)
+            if avals in self._pending and task is None:  # queued, not started: done here
                 del self._pending[avals]
                 _QUEUED[:] = [q for q in _QUEUED if not (q[0] is self and q[2] == avals)]
-        if thread is not None:
-            thread.join()
+        if task is not None:
+            task.result()  # :meth:`_prepare` reports no error: on one, the entry is traced here
         call = self._calls.get(avals)
         if call is None:
             call = self._calls[avals] = self._load_or_trace(leaves, avals)

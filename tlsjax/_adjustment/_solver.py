@@ -148,7 +148,6 @@ def adjust(spec: Spec, problem: Problem, params0: Params, options: Options) -> S
 
 class _Loop(Module):
     state: SolveState  # at the current estimate x (with the state update from its rows)
-    rows: tuple  # at x
     Jl: Float[Array, "s 3 6"]  # the orientation readings' Jacobian at x
     lin: Linearisation  # the factorisation at x that made the candidate
     candidate: Params  # the point the next pass evaluates (the start, then x + dx)
@@ -231,7 +230,8 @@ def adjust_linearised(spec: Spec, problem: Problem, params0: Params, options: Op
         converged = done_here | unresolved
 
         params = _where(accept, y, state.params)
-        rows = _where(accept, rows_y, loop.rows)
+        # The rows at x are those of the factorisation at x (the loop goes on only after one).
+        rows = _where(accept, rows_y, loop.lin.rows)
         Jl = jnp.where(accept, Jl_y, loop.Jl)
         fam_state = _where(accept, state_y, state.state)
         moved = jnp.where(accept, moved_y, loop.moved)
@@ -307,7 +307,7 @@ def adjust_linearised(spec: Spec, problem: Problem, params0: Params, options: Op
         # The candidate's state: the linear Gauss-Helmert prediction of the step.
         cand_state = predicted_state(problem, rows, fam_state, dps, dz, spec.n_scans)
         return _Loop(
-            new_state, rows, Jl, lin, candidate, cand_state, step, moved, jnp.asarray(False), stop
+            new_state, Jl, lin, candidate, cand_state, step, moved, jnp.asarray(False), stop
         )
 
     init = SolveState(
@@ -322,13 +322,12 @@ def adjust_linearised(spec: Spec, problem: Problem, params0: Params, options: Op
         state0,
     )
     rows0 = jax.eval_shape(lambda p: rows_at(spec, problem, p, ap_jac, state0), params0)
-    Jl0 = jnp.zeros((spec.n_scans, 3, 6))
+    Jl0 = _zeros(jax.eval_shape(lambda e: levelling_jacobian(problem, e), params0.eops))
     strong_zero = jnp.zeros((), jnp.float64)  # as the loop's damping: one trace of factorise
     shapes = jax.eval_shape(factorise, params0, rows0, strong_zero, init.dependent, Jl0)[0]
-    zeros = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
+    zeros = _zeros(shapes)
     start = _Loop(
         init,
-        zeros.rows,
         Jl0,
         zeros,
         params0,
@@ -352,6 +351,10 @@ def _residuals_into(at, factorised):
     (so that their identities, e.g. sum r_i = dof, hold to rounding), its residuals from the
     estimate."""
     return tuple(dataclasses.replace(f, e=a.e, raw=a.raw) for a, f in zip(at, factorised))
+
+
+def _zeros(shapes):
+    return jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)
 
 
 def _where(flag, a, b):

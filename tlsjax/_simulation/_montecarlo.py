@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import threading
 import weakref
 from collections.abc import Mapping
 
@@ -48,7 +47,7 @@ from .._adjustment._config import CalibrationModel, SolverOptions
 from .._adjustment._families import Params, on_grid
 from .._adjustment._quality import Summary
 from .._adjustment._result import MAX_ITERATIONS, NOT_ESTIMABLE, RESULT_MESSAGES, SUCCESS
-from .._jit import jit
+from .._jit import Background, jit
 from .._model._aps import ap_corrections, on_reregistration
 from .._model._levelling import compensator_reading
 from .._model._points import FIXED_POINT_ITERATIONS, distorted_observations
@@ -422,34 +421,16 @@ _COMPILED: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 on_reregistration(_COMPILED.clear)
 
 
-class _InBackground:
-    """``fun()`` computed in a background thread, the shapes of its result known at once
-    (``jax.eval_shape``: a trace that the call reuses). The design's factorisation is compiled
-    this way while the chunk program, which needs only its shapes, is traced: XLA compiles
-    without Python's lock, and a first Monte Carlo call waits for the two programs' compiles
-    side by side with the trace instead of one after the other (the Chow room: about 0.5 of
-    4.8 s)."""
+class _InBackground(Background):
+    """``fun()`` computed in the background (:class:`tlsjax._jit.Background`), the shapes of its
+    result known at once (``jax.eval_shape``: a trace that the call reuses). The design's
+    factorisation is computed this way while the chunk program, which needs only its shapes,
+    is compiled: a first Monte Carlo call waits for the two programs' compiles side by side
+    with the trace instead of one after the other (the Chow room: about 0.5 of 4.8 s)."""
 
     def __init__(self, fun):
         self.shapes = jax.eval_shape(fun)
-        self._out = None
-        # Not a daemon: an interpreter that exits waits for the compile rather than tear
-        # down under it.
-        self._thread = threading.Thread(target=self._run, args=(fun,))
-        self._thread.start()
-
-    def _run(self, fun):
-        try:
-            self._out = (fun(), None)
-        except BaseException as err:  # noqa: BLE001 - raised where the result is asked for
-            self._out = (None, err)
-
-    def result(self):
-        self._thread.join()
-        value, err = self._out
-        if err is not None:
-            raise err
-        return value
+        super().__init__(fun)
 
 
 def _cached_design(simulation, model, ap_sigma):
@@ -473,18 +454,17 @@ def _compiled_chunk(simulation, model, ap_sigma, chunk_size: int | None, runs: i
         chunk = round_chunk(chunk_size)
     key = dkey + (chunk, device_key(), full)
     pending = isinstance(fact, _InBackground)
-    if key in cache and not pending:
-        return design, fact, dataclasses.replace(cache[key], compile_s=0.0)
-    constants = (jax.random.PRNGKey(0), SolverOptions().arrays())
     if key in cache:
         b = dataclasses.replace(cache[key], compile_s=0.0)
-    elif full:
-        b = compile_batched(lambda i, k, o: _full_realisation(design, i, k, o), constants, chunk)
     else:
-        # Compiled on the factorisation's shapes, while it is computed (:class:`_InBackground`).
-        one = lambda i, k, o, f: _realisation(design, i, k, o, f)
-        b = compile_batched(one, constants + (fact.shapes if pending else fact,), chunk)
-    cache[key] = b
+        constants = (jax.random.PRNGKey(0), SolverOptions().arrays())
+        if full:
+            one = lambda i, k, o: _full_realisation(design, i, k, o)
+        else:
+            # Compiled on the factorisation's shapes, while it is computed (_InBackground).
+            one = lambda i, k, o, f: _realisation(design, i, k, o, f)
+            constants += (fact.shapes if pending else fact,)
+        b = cache[key] = compile_batched(one, constants, chunk)
     if pending:
         fact = fact.result()
         cache[dkey] = (design, fact)
