@@ -288,63 +288,70 @@ def _n_stations(eops, tolerance: float = 0.05) -> int | None:
     return len(stations)
 
 
+def _on_host(problem) -> dict:
+    """numpy copies of the problem's arrays a result reads: cached on the (immutable) problem,
+    so that a solve() again does not convert them anew (a few microseconds each, on the host
+    path after every adjustment)."""
+    cached = problem.__dict__.get("_on_host")
+    if cached is None:
+        wa = None if problem.ap_prior_weight is None else np.asarray(problem.ap_prior_weight)
+        cached = dict(
+            fixed=np.asarray(problem.fixed),
+            used=tuple(np.asarray(f.weight) > 0 for f in problem.families),
+            ap_prior_weight=wa,
+            ap_prior=None if wa is None else np.asarray(problem.ap_prior),
+        )
+        problem.__dict__["_on_host"] = cached
+    return cached
+
+
 def _ap_estimates(plan: Plan, q, state, s0sq, absent=()):
     """AP values, a posteriori sigmas, t, the dependent (non-estimable) and fixed masks and the
     AP covariance; non-estimable APs are NaN, never numbers. ``absent``: AP indices an earlier
     pass found not estimable and removed (held in this one; reported as not estimable)."""
-    ns, na = plan.spec.n_scans, plan.spec.n_aps
-    dep = np.asarray(q.dependent)
-    fixed = np.asarray(plan.problem.fixed).copy()
-    ap_idx = 6 * ns + np.arange(na)
-    gone = np.zeros(na, dtype=bool)
+    n6 = 6 * plan.spec.n_scans
+    fixed = _on_host(plan.problem)["fixed"][n6:]
+    gone = np.zeros(plan.spec.n_aps, dtype=bool)
     gone[list(absent)] = True
-    ap_dep = (dep[ap_idx] & ~fixed[ap_idx]) | gone
-    ap_fixed = fixed[ap_idx] & ~gone
-    Qzz = np.asarray(q.Qzz)
+    ap_dep = (np.asarray(q.dependent)[n6:] & ~fixed) | gone
+    ap_fixed = fixed & ~gone
+    # The AP block is datum invariant (SPEC section 6); scaled a posteriori like the sigmas.
+    cov = np.asarray(q.Qzz)[n6:, n6:] * s0sq
+    sig = np.sqrt(np.maximum(cov.diagonal(), 0.0))
     values = np.asarray(state.params.aps).copy()
-    sig = np.sqrt(np.clip(np.diag(Qzz)[ap_idx] * s0sq, 0, None))
-    values[ap_dep] = np.nan
-    sig[ap_dep] = np.nan
+    if ap_dep.any():
+        values[ap_dep] = np.nan
+        sig[ap_dep] = np.nan
+        cov[ap_dep, :] = np.nan
+        cov[:, ap_dep] = np.nan
     sig[ap_fixed] = 0.0
     with np.errstate(invalid="ignore", divide="ignore"):
         tstat = values / sig
-    # The AP block is datum invariant (SPEC section 6); scaled a posteriori like the sigmas.
-    cov = Qzz[np.ix_(ap_idx, ap_idx)] * s0sq
-    cov[ap_dep, :] = np.nan
-    cov[:, ap_dep] = np.nan
     return values, sig, tstat, ap_dep, ap_fixed, cov
 
 
 def _max_correlations(plan: Plan, q, skip):
     """Largest |correlation| of every AP with any other unknown, and that unknown's name, in the
-    datum (inner constraints on the primitives), computed block by block: each AP's row of
-    the cofactor matrix against the primitives (``prim_cross``) and the reduced unknowns."""
-    ns, na = plan.spec.n_scans, plan.spec.n_aps
-    dep = np.asarray(q.dependent)
+    datum (inner constraints on the primitives): each AP's row of the cofactor matrix against
+    the primitives (``prim_cross``) and the reduced unknowns, over the sigmas; NaN and no name
+    where ``skip``. Few numpy calls: this runs after every adjustment."""
+    n6, na = 6 * plan.spec.n_scans, plan.spec.n_aps
+    if na == 0:
+        return np.zeros(0), ()
     Qzz = np.asarray(q.Qzz)
-    ap_idx = 6 * ns + np.arange(na)
-    sz = np.sqrt(np.clip(np.diag(Qzz), 0, None))
-    parts, sigmas = [], []
-    for D, X in zip(q.prim_cofactor, q.prim_cross):
-        D, X = np.asarray(D), np.asarray(X)
-        parts.append(X[:, :, ap_idx].reshape(X.shape[0] * X.shape[1], na).T)  # (a, n p)
-        sigmas.append(np.sqrt(np.clip(np.diagonal(D, axis1=1, axis2=2), 0, None)).reshape(-1))
-    parts.append(Qzz[ap_idx])
-    sigmas.append(np.where(dep, 0.0, sz))
-    R = np.concatenate(parts, axis=1)
-    s = np.concatenate(sigmas)
+    sz = np.sqrt(np.maximum(Qzz.diagonal(), 0.0))
+    R = [np.asarray(X)[:, :, n6:].reshape(-1, na) for X in q.prim_cross] + [Qzz[:, n6:]]
+    s = [np.diagonal(np.asarray(D), axis1=1, axis2=2).reshape(-1) for D in q.prim_cofactor]
+    s = np.sqrt(np.maximum(np.concatenate(s + [np.where(q.dependent, 0.0, sz**2)]), 0.0))
     with np.errstate(invalid="ignore", divide="ignore"):
-        C = R / np.outer(sz[ap_idx], s)
-    n_p = s.size - plan.spec.r
-    C[:, s == 0] = 0.0
-    C[np.arange(na), n_p + ap_idx] = 0.0
-    C = np.nan_to_num(C)
-    max_corr = np.abs(C).max(axis=1) if C.size else np.zeros(na)
-    arg = np.abs(C).argmax(axis=1) if C.size else np.zeros(na, dtype=int)
+        C = np.abs(np.concatenate(R) / np.outer(s, sz[n6:]))  # (u, a)
+    C[s.size - na + np.arange(na), np.arange(na)] = 0.0  # the AP itself
+    C[~np.isfinite(C)] = 0.0  # a sigma 0: a dependent or held unknown
+    arg = C.argmax(axis=0)
     names = plan.parameter_names
-    partner = tuple("" if skip[i] else names[arg[i]] for i in range(na))
-    max_corr[skip] = np.nan
-    return max_corr, partner
+    partner = tuple("" if k else names[i] for k, i in zip(skip.tolist(), arg.tolist()))
+    best = C[arg, np.arange(na)]
+    return np.where(skip, np.nan, best), partner
 
 
 def _result_code(state, q, rank_def, not_est):
@@ -393,7 +400,7 @@ def _observation_arrays(net: Network, plan: Plan, q, state, s0sq):
         rows = plan.family_rows[fi]
         resid[rows] = np.asarray(q.residuals[fi])
         redund[rows] = np.asarray(q.redundancy[fi])
-        used[rows] = np.asarray(plan.problem.families[fi].weight) > 0
+        used[rows] = _on_host(plan.problem)["used"][fi]
         txyz[tg.reshape(-1)] = np.asarray(state.params.prims[fi]).reshape(-1, 3)
         tcov[tg.reshape(-1)] = _point_blocks(np.asarray(q.prim_cofactor[fi])) * s0sq
     tsig = np.sqrt(np.clip(np.diagonal(tcov, axis1=1, axis2=2), 0, None))
@@ -407,7 +414,7 @@ def _observation_arrays(net: Network, plan: Plan, q, state, s0sq):
             plane_covariance=np.asarray(q.prim_cofactor[fp]) * s0sq,
             plane_residuals=np.asarray(q.residuals[fp]),
             plane_redundancy=np.asarray(q.redundancy[fp]),
-            plane_used=np.asarray(plan.problem.families[fp].weight) > 0,
+            plane_used=_on_host(plan.problem)["used"][fp].copy(),
         )
     return resid, redund, used, txyz, tsig, tcov, planes
 
@@ -430,7 +437,7 @@ def assemble(net, model, plan: Plan, state, q, absent: tuple = ()) -> Calibratio
     values, sig, tstat, ap_dep, ap_fixed, ap_cov = _ap_estimates(plan, q, state, s0sq, gone)
     max_corr, partner = _max_correlations(plan, q, ap_dep | ap_fixed)
     dep = np.asarray(q.dependent)
-    fixed = np.asarray(plan.problem.fixed)
+    fixed = _on_host(plan.problem)["fixed"]
     n_p = sum(int(np.prod(P.shape)) for P in state.params.prims)
     names = plan.parameter_names
     eop_dep = dep[: 6 * ns] & ~fixed[: 6 * ns]
@@ -450,9 +457,8 @@ def assemble(net, model, plan: Plan, state, q, absent: tuple = ()) -> Calibratio
     resid, redund, used, txyz, tsig, tcov, plane_out = _observation_arrays(
         net, plan, q, state, s0sq_scale
     )
-    eop_sig = np.sqrt(np.clip(np.diag(np.asarray(q.Qzz))[: 6 * ns] * s0sq_scale, 0, None)).reshape(
-        ns, 6
-    )
+    eop_sig = np.sqrt(np.maximum(np.asarray(q.Qzz).diagonal()[: 6 * ns] * s0sq_scale, 0.0))
+    eop_sig = eop_sig.reshape(ns, 6)
     eop_sig[eop_dep.reshape(ns, 6)] = np.nan
     cov = None if q.Qfull is None else np.asarray(q.Qfull) * s0sq_scale
     # The solver counts one condition per plane point and the hard constraints; a point is
@@ -517,8 +523,9 @@ def _constraint_arrays(plan: Plan, q, state) -> dict:
     nan = lambda a, m: np.where(m, a, np.nan)
     wa = np.zeros(plan.spec.n_aps)
     prior = np.zeros(plan.spec.n_aps)
-    if plan.problem.ap_prior_weight is not None:
-        wa, prior = np.asarray(plan.problem.ap_prior_weight), np.asarray(plan.problem.ap_prior)
+    host = _on_host(plan.problem)
+    if host["ap_prior_weight"] is not None:
+        wa, prior = host["ap_prior_weight"], host["ap_prior"]
     r_prior = q.redundancy_ap_prior
     return dict(
         orientation_residuals=nan(np.asarray(q.orientation_residuals), observed),
