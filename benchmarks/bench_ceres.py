@@ -191,7 +191,7 @@ def _cli_times(tmp: str) -> dict:
     tool = (
         [script]
         if os.path.exists(script)
-        else [py, "-c", "import sys; from tlsjax._cli import main; sys.exit(main())"]
+        else [py, "-c", "from tlsjax._cli import console; console()"]
     )
     # The demo room (tlsjax demo): seed 0, two scans rolled, the 23-term model in the data.
     subprocess.run(

@@ -1,11 +1,14 @@
 """The command line and the result JSON contract (SPEC section 11).
 
-Private import: ``tlsjax._cli.main`` is the ``tlsjax`` console script's entry point
-(pyproject), called in process.
+Private import: ``tlsjax._cli.main`` is what the ``tlsjax`` console script
+(``tlsjax._cli.console``, pyproject) runs, called in process; ``console`` itself runs in a
+subprocess, since it ends the process.
 """
 
 import json
 import re
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -737,3 +740,25 @@ def test_calibrate_help_names_the_recommended_path(capsys):
     text = capsys.readouterr().out
     assert "recommended path for a scanner owner" in text and "--select" in text
     assert "exit 4" in text and "--no-cross-validation" in text
+
+
+def test_the_console_script_exits_with_mains_code_and_its_whole_output(tmp_path, capsys):
+    """``tlsjax`` ends the process without the interpreter's teardown (:func:`console`): its
+    exit codes, printed lines and written files are those of ``main`` in process."""
+    run = "import sys; from tlsjax._cli import console; sys.argv[0] = 'tlsjax'; console()"
+
+    def console(*args):
+        return subprocess.run(
+            [sys.executable, "-c", run, *args], capture_output=True, text=True, timeout=300
+        )
+
+    args = ["simulate", "--scans-out", str(tmp_path / "s.csv"), "--aps", "A0 B6"]
+    done = console(*args, "--out", str(tmp_path / "o.csv"))
+    assert main([*args, "--out", str(tmp_path / "o2.csv")]) == 0
+    printed = capsys.readouterr().out
+    assert done.returncode == 0 and done.stderr == ""
+    assert done.stdout == printed.replace("o2.csv", "o.csv") and done.stdout.endswith("\n")
+    assert (tmp_path / "o.csv").read_text() == (tmp_path / "o2.csv").read_text()
+    missing = console("calibrate", str(tmp_path / "missing.csv"))
+    assert missing.returncode == 2 and missing.stderr.strip().endswith("missing.csv: no such file")
+    assert console().returncode == 2  # argparse's usage error: SystemExit(2) inside main
