@@ -12,7 +12,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from tlsjax._jit import PREFERRED_OPTIONS, compiler_options, jit
+from tlsjax import _jit
+from tlsjax._jit import PREFERRED_OPTIONS, QUICK_OPTIONS, compiler_options, jit
 
 pytestmark = pytest.mark.internal
 
@@ -22,10 +23,19 @@ def _f(x, k):
     return jnp.sin(x) ** k + jnp.cumsum(x)
 
 
-def test_options_are_the_preferred_ones_this_jaxlib_accepts():
+def test_options_are_the_preferred_ones_this_jaxlib_accepts(monkeypatch):
     opts = compiler_options()
     assert set(opts) <= set(PREFERRED_OPTIONS)
     assert all(opts[k] == PREFERRED_OPTIONS[k] for k in opts)
+    quick = compiler_options(quick=True)
+    assert quick == {**opts, **QUICK_OPTIONS}  # this jaxlib knows the optimisation level
+    # An option this jaxlib does not know is dropped, the others kept.
+    monkeypatch.setattr(_jit, "PREFERRED_OPTIONS", {**PREFERRED_OPTIONS, "xla_no_such_option": 1})
+    compiler_options.cache_clear()
+    try:
+        assert compiler_options() == opts and compiler_options(quick=True) == quick
+    finally:
+        compiler_options.cache_clear()
 
 
 def test_same_numbers_at_top_level_and_inside_a_callers_transformations():

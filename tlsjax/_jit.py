@@ -73,16 +73,30 @@ def quick_compile_flags(flags: str = "") -> str:
 
 
 @functools.cache
-def compiler_options() -> dict:
-    """The options of :data:`PREFERRED_OPTIONS` this jaxlib accepts (each checked once)."""
-    out = {}
-    for key, value in PREFERRED_OPTIONS.items():
+def compiler_options(quick: bool = False) -> dict:
+    """The options of :data:`PREFERRED_OPTIONS` (and of :data:`QUICK_OPTIONS` when ``quick``)
+    this jaxlib accepts: all of them in one trial compile, each alone only if that fails."""
+    wanted = dict(PREFERRED_OPTIONS, **(QUICK_OPTIONS if quick else {}))
+
+    def accepted(options) -> bool:
         try:
-            jax.jit(lambda x: x + 1.0).lower(jnp.zeros(())).compile(compiler_options={key: value})
-        except Exception:  # an older or newer jaxlib without the option: its default
-            continue
-        out[key] = value
-    return out
+            jax.jit(lambda x: x + 1.0).lower(jnp.zeros(())).compile(compiler_options=options)
+        except Exception:  # an older or newer jaxlib without an option: its default
+            return False
+        return True
+
+    if accepted(wanted):
+        return wanted
+    return {k: v for k, v in wanted.items() if accepted({k: v})}
+
+
+#: Options of a program that compiles much and runs little (:class:`StoredProgram` ``quick``):
+#: no backend (LLVM) optimisation, which changes results only by rounding. The score tests'
+#: program, run twice per calibration, compiles beside the adjustment's on a first run: the two
+#: share the two cores, and this one's LLVM time at full optimisation took a third of the
+#: adjustment's compile (``tlsjax calibrate`` of the demo room: first run 5.2 -> 4.6 s; each of its
+#: two calls 5 ms slower, 8 -> 13 ms).
+QUICK_OPTIONS = {"xla_backend_optimization_level": 0}
 
 
 class _Jit:
@@ -328,10 +342,12 @@ class StoredProgram:
     ``host=True``: a call returns its outputs on the host, as numpy arrays in the output's
     pytree, fetched in one transfer per dtype: the program concatenates its outputs into one
     buffer per dtype and the host splits them into views (one transfer costs 7-10 us per array
-    of a few dozen; the adjustment's result has about forty)."""
+    of a few dozen; the adjustment's result has about forty). ``quick=True``: compiled with
+    :data:`QUICK_OPTIONS`, for a program that compiles much and runs little."""
 
-    def __init__(self, fun, key, host: bool = False):
+    def __init__(self, fun, key, host: bool = False, quick: bool = False):
         self._fun, self._key, self._host = fun, key, host
+        self._quick = quick
         self._calls = {}  # avals -> (compiled callable of flat leaves, output treedef, layout)
         self._last = ((), None)  # the last call's jax-array arguments and its entry
         self._pending = {}  # avals -> :class:`Background` preparing it, None: queued
@@ -416,7 +432,9 @@ class StoredProgram:
         if folder is None:
             return None
         try:
-            desc = _stable((self._key, self._host, avals, sorted(compiler_options().items())))
+            desc = _stable(
+                (self._key, self._host, avals, sorted(compiler_options(self._quick).items()))
+            )
         except TypeError:
             return None
         import hashlib
@@ -462,15 +480,16 @@ class StoredProgram:
                 return self._plain(leaves)
             _write_atomically(path, data)
         call = functools.wraps(self._fun)(lambda *args: exported.call(*args))
-        return jax.jit(call, compiler_options=compiler_options()), treedef, layout
+        return jax.jit(call, compiler_options=compiler_options(self._quick)), treedef, layout
 
     def _plain(self, leaves):
         """A plain ``jit`` (not stored); traced here once for its output's structure."""
         if not self._host:
-            return jax.jit(self._fun, compiler_options=compiler_options()), None, None
+            return jax.jit(self._fun, compiler_options=compiler_options(self._quick)), None, None
         record = {}
         fn = jax.jit(
-            functools.wraps(self._fun)(self._flat(record)), compiler_options=compiler_options()
+            functools.wraps(self._fun)(self._flat(record)),
+            compiler_options=compiler_options(self._quick),
         )
         fn.lower(*leaves)  # the trace fills ``record`` (reused by the first call)
         return fn, record["tree"], record["layout"]

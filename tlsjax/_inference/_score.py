@@ -259,7 +259,7 @@ def _score_program(spec, treedef):
     def system(*leaves):
         return _score_system(spec, *jax.tree.unflatten(treedef, leaves))
 
-    return StoredProgram(system, ("score tests", spec_key(spec), treedef))
+    return StoredProgram(system, ("score tests", spec_key(spec), treedef), quick=True)
 
 
 def _score_system(spec, problem, params, positions):
