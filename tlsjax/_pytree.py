@@ -54,6 +54,17 @@ class Module:
         return hash(tuple((f.name, getattr(self, f.name)) for f in dataclasses.fields(self)))
 
 
+def kept(obj, name: str, make):
+    """``make()`` computed once and kept on ``obj``, an immutable object (a frozen dataclass:
+    a :class:`Module`, a settings object), under ``name``: later calls return the same value.
+    It is no field (neither a pytree child nor part of equality or hash), and
+    ``dataclasses.replace`` makes an object without it, as the value may depend on any field."""
+    value = obj.__dict__.get(name)
+    if value is None:
+        value = obj.__dict__[name] = make()
+    return value
+
+
 def _leaf_equal(a, b) -> bool:
     if a is b:
         return True

@@ -23,6 +23,7 @@ import numpy as np
 from .._jit import StoredProgram, jit
 from .._model._aps import get_ap
 from .._model._plausibility import PlausibilityWarning
+from .._pytree import kept
 from ._config import CalibrationModel, SolverOptions
 from ._families import Params, grid_layout, on_grid
 from ._network import Network, check_calibration_arguments, memoised, network_design_warnings
@@ -175,11 +176,8 @@ class Adjustment:
         if self._params0 is None:
             # Kept with the memoised plan (valid while it is: the network's data unchanged), on
             # the device: a calibration of a network met before transfers nothing.
-            cached = self.plan.__dict__.get("_initial")
-            if cached is None:
-                cached = jax.device_put(initial_params(self.network, self.plan))
-                self.plan.__dict__["_initial"] = cached
-            self._params0 = cached
+            make = lambda: jax.device_put(initial_params(self.network, self.plan))
+            self._params0 = kept(self.plan, "_initial", make)
         return self._params0
 
     def problem(

@@ -9,6 +9,7 @@ import jax
 import numpy as np
 
 from .._model._scanner import Scanner
+from .._pytree import kept
 from .._summary import Settings
 from ._families import Options
 
@@ -215,10 +216,11 @@ class SolverOptions(Settings):
     def arrays(self) -> Options:
         """The settings as arrays (host arrays: a compiled call takes them without a device
         transfer per field; cached, the options being frozen)."""
-        cached = self.__dict__.get("_arrays")
-        if cached is None:
-            f = lambda v: np.asarray(v, dtype=np.float64)
-            cached = Options(
+        f = lambda v: np.asarray(v, dtype=np.float64)
+        return kept(
+            self,
+            "_arrays",
+            lambda: Options(
                 np.asarray(int(self.max_iterations)),
                 f(self.tolerance),
                 f(self.rank_tolerance),
@@ -227,15 +229,10 @@ class SolverOptions(Settings):
                 f(self.damping_decrease),
                 f(self.damping_min),
                 f(self.damping_max),
-            )
-            object.__setattr__(self, "_arrays", cached)
-        return cached
+            ),
+        )
 
     def device_arrays(self) -> Options:
         """:meth:`arrays` on the device, made once: a transfer of the eight settings costs about
         0.4 ms, a tenth of a calibration of the Chow room."""
-        cached = self.__dict__.get("_device_arrays")
-        if cached is None:
-            cached = jax.device_put(self.arrays())
-            object.__setattr__(self, "_device_arrays", cached)
-        return cached
+        return kept(self, "_device_arrays", lambda: jax.device_put(self.arrays()))

@@ -12,6 +12,7 @@ import numpy as np
 
 from .._model._aps import get_ap
 from .._model._plausibility import ap_findings, implausible_summary, likely_causes
+from .._pytree import kept
 from .._stats import ALPHA0, normal_critical_value
 from ._diagnose import confounded_partners, failure_diagnosis
 from ._json import result_to_dict
@@ -292,17 +293,17 @@ def _on_host(problem) -> dict:
     """numpy copies of the problem's arrays a result reads: cached on the (immutable) problem,
     so that a solve() again does not convert them anew (a few microseconds each, on the host
     path after every adjustment)."""
-    cached = problem.__dict__.get("_on_host")
-    if cached is None:
-        wa = None if problem.ap_prior_weight is None else np.asarray(problem.ap_prior_weight)
-        cached = dict(
+    prior = problem.ap_prior_weight is not None
+    return kept(
+        problem,
+        "_on_host",
+        lambda: dict(
             fixed=np.asarray(problem.fixed),
             used=tuple(np.asarray(f.weight) > 0 for f in problem.families),
-            ap_prior_weight=wa,
-            ap_prior=None if wa is None else np.asarray(problem.ap_prior),
-        )
-        problem.__dict__["_on_host"] = cached
-    return cached
+            ap_prior_weight=np.asarray(problem.ap_prior_weight) if prior else None,
+            ap_prior=np.asarray(problem.ap_prior) if prior else None,
+        ),
+    )
 
 
 def _ap_estimates(plan: Plan, q, state, s0sq, absent=()):
@@ -339,10 +340,11 @@ def _max_correlations(plan: Plan, q, skip):
     if na == 0:
         return np.zeros(0), ()
     Qzz = np.asarray(q.Qzz)
-    sz = np.sqrt(np.maximum(Qzz.diagonal(), 0.0))
+    var = Qzz.diagonal()
     R = [np.asarray(X)[:, :, n6:].reshape(-1, na) for X in q.prim_cross] + [Qzz[:, n6:]]
     s = [np.diagonal(np.asarray(D), axis1=1, axis2=2).reshape(-1) for D in q.prim_cofactor]
-    s = np.sqrt(np.maximum(np.concatenate(s + [np.where(q.dependent, 0.0, sz**2)]), 0.0))
+    s = np.sqrt(np.maximum(np.concatenate(s + [np.where(q.dependent, 0.0, var)]), 0.0))
+    sz = np.sqrt(np.maximum(var, 0.0))
     with np.errstate(invalid="ignore", divide="ignore"):
         C = np.abs(np.concatenate(R) / np.outer(s, sz[n6:]))  # (u, a)
     C[s.size - na + np.arange(na), np.arange(na)] = 0.0  # the AP itself
