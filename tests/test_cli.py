@@ -762,3 +762,30 @@ def test_the_console_script_exits_with_mains_code_and_its_whole_output(tmp_path,
     missing = console("calibrate", str(tmp_path / "missing.csv"))
     assert missing.returncode == 2 and missing.stderr.strip().endswith("missing.csv: no such file")
     assert console().returncode == 2  # argparse's usage error: SystemExit(2) inside main
+
+
+class _GoneReader:
+    """A standard stream whose reader has gone (``tlsjax ... | head``): every write fails."""
+
+    def write(self, text):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    def flush(self):
+        raise BrokenPipeError(32, "Broken pipe")
+
+
+def test_a_reader_that_goes_away_ends_only_the_printing(tmp_path, monkeypatch):
+    """``tlsjax simulate ... | head``: the command completes, writes every file as without the
+    pipe and exits with its own code (Python would end it at the first print, exit code 2
+    "Broken pipe", files not written); the streams are restored after."""
+    args = ["simulate", "--scans-out", str(tmp_path / "s.csv"), "--aps", "A0 B6", *ROOM]
+    assert main([*args, "--out", str(tmp_path / "ref.csv")]) == 0
+    gone = _GoneReader()
+    monkeypatch.setattr(sys, "stdout", gone)
+    monkeypatch.setattr(sys, "stderr", gone)
+    code = main([*args, "--out", str(tmp_path / "o.csv"), "--truth", str(tmp_path / "t.json")])
+    assert sys.stdout is gone and sys.stderr is gone
+    monkeypatch.undo()
+    assert code == 0
+    assert (tmp_path / "o.csv").read_text() == (tmp_path / "ref.csv").read_text()
+    assert load_strict(tmp_path / "t.json")["aps"]

@@ -8,7 +8,8 @@ failure (naming the path); a calibration that fails (non-convergence, rank defec
 components that stop early) exits with 1 after writing what it has. An unexpected error is one
 line too (exit code 3); ``TLSJAX_DEBUG=1`` shows its traceback. Ctrl-C stops a command with
 exit code 130 and leaves no half-written file (every output is written to a temporary file and
-renamed when complete).
+renamed when complete). A reader that goes away (``tlsjax calibrate ... | head``) only ends
+the printing: the command completes, writes its files and exits with its own code.
 """
 
 from __future__ import annotations
@@ -85,7 +86,56 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
         sys.stderr.write(warnings.formatwarning(message, category, filename, lineno, line))
 
 
+class _Reader:
+    """A standard stream whose reader may go away (a pipe into ``head``): from the first
+    ``BrokenPipeError`` on, what is printed is dropped, so the command completes (its files
+    written, its exit code its own) where Python would end it at the next print. The stream's
+    descriptor then points to the null device, so that its buffered rest and the interpreter's
+    last flush are dropped too (the recipe of Python's documentation, "Note on SIGPIPE")."""
+
+    def __init__(self, stream):
+        self._stream, self._gone = stream, False
+
+    def write(self, text):
+        if not self._gone:
+            try:
+                return self._stream.write(text)
+            except BrokenPipeError:
+                self._drop()
+        return len(text)
+
+    def flush(self):
+        if not self._gone:
+            try:
+                self._stream.flush()
+            except BrokenPipeError:
+                self._drop()
+
+    def _drop(self):
+        self._gone = True
+        try:
+            null = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(null, self._stream.fileno())
+            os.close(null)
+        except (OSError, ValueError, AttributeError):  # a stream without a descriptor
+            pass
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
 def main(argv=None) -> int:
+    """The ``tlsjax`` command line (arguments ``argv``, default ``sys.argv[1:]``); returns
+    the exit code. Standard output and error are read through :class:`_Reader` meanwhile."""
+    stdout, stderr = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = _Reader(stdout), _Reader(stderr)
+    try:
+        return _main(argv)
+    finally:
+        sys.stdout, sys.stderr = stdout, stderr
+
+
+def _main(argv) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
     args.argv = argv  # the command line, recorded in what a command writes
