@@ -29,7 +29,7 @@ from ._families import Params, grid_layout, on_grid
 from ._network import Network, check_calibration_arguments, memoised, network_design_warnings
 from ._plan import build_plan, initial_params
 from ._quality import quality_from, summary_from
-from ._result import CalibrationResult, assemble, not_estimable_aps, result_code_of
+from ._result import CalibrationResult, _on_host, assemble, not_estimable_aps, result_code_of
 from ._solver import adjust_linearised
 
 
@@ -345,8 +345,12 @@ class Adjustment:
                 # may not converge from the start again; from the last pass's solution with
                 # the APs at zero it reaches the same minimum of the model without them.
                 state, q = self.run(problem, previous, options)
-            plan = dataclasses.replace(self.plan, problem=problem)
-            dep = np.asarray(q.dependent)[n6:] & ~np.asarray(problem.fixed)[n6:]
+            plan = (
+                self.plan
+                if problem is self.plan.problem
+                else dataclasses.replace(self.plan, problem=problem)
+            )
+            dep = np.asarray(q.dependent)[n6:] & ~_on_host(problem)["fixed"][n6:]
             if not dep.any() or not bool(state.finite):
                 break
             absent += not_estimable_aps(plan, q, state, np.flatnonzero(dep))

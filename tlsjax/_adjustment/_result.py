@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import math
 
 import jax
 import jax.numpy as jnp
@@ -60,12 +61,15 @@ def result_code_of(*, finite, rank_deficient, converged, not_estimable):
     or traced booleans), so the host-side assembly of a result and the compiled batch of a
     Monte Carlo (:func:`._calibrate.result_code`) share it; an int32 code."""
     flags = (finite, rank_deficient, converged, not_estimable)
-    # numpy on the host (Python booleans): no JAX operation dispatched one at a time.
-    xp = jnp if any(isinstance(f, jax.Array) for f in flags) else np
-    code = xp.where(not_estimable, NOT_ESTIMABLE, SUCCESS)
-    code = xp.where(converged, code, MAX_ITERATIONS)
-    code = xp.where(rank_deficient, RANK_DEFICIENT, code)
-    return xp.where(finite, code, NONFINITE).astype(xp.int32)
+    if not any(isinstance(f, jax.Array) for f in flags):
+        # On the host (Python booleans): plain Python, no array operation at all.
+        rules = ((not finite, NONFINITE), (rank_deficient, RANK_DEFICIENT))
+        rules += ((not converged, MAX_ITERATIONS), (not_estimable, NOT_ESTIMABLE))
+        return np.int32(next((code for applies, code in rules if applies), SUCCESS))
+    code = jnp.where(not_estimable, NOT_ESTIMABLE, SUCCESS)
+    code = jnp.where(converged, code, MAX_ITERATIONS)
+    code = jnp.where(rank_deficient, RANK_DEFICIENT, code)
+    return jnp.where(finite, code, NONFINITE).astype(jnp.int32)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -312,23 +316,26 @@ def _ap_estimates(plan: Plan, q, state, s0sq, absent=()):
     pass found not estimable and removed (held in this one; reported as not estimable)."""
     n6 = 6 * plan.spec.n_scans
     fixed = _on_host(plan.problem)["fixed"][n6:]
-    gone = np.zeros(plan.spec.n_aps, dtype=bool)
-    gone[list(absent)] = True
-    ap_dep = (np.asarray(q.dependent)[n6:] & ~fixed) | gone
-    ap_fixed = fixed & ~gone
+    ap_dep = np.asarray(q.dependent)[n6:] & ~fixed
+    ap_fixed = fixed
+    if absent:
+        gone = np.zeros(plan.spec.n_aps, dtype=bool)
+        gone[list(absent)] = True
+        ap_dep, ap_fixed = ap_dep | gone, fixed & ~gone
     # The AP block is datum invariant (SPEC section 6); scaled a posteriori like the sigmas.
     cov = np.asarray(q.Qzz)[n6:, n6:] * s0sq
     sig = np.sqrt(np.maximum(cov.diagonal(), 0.0))
-    values = np.asarray(state.params.aps).copy()
+    values = np.array(state.params.aps)
     if ap_dep.any():
         values[ap_dep] = np.nan
         sig[ap_dep] = np.nan
         cov[ap_dep, :] = np.nan
         cov[:, ap_dep] = np.nan
-    sig[ap_fixed] = 0.0
-    with np.errstate(invalid="ignore", divide="ignore"):
-        tstat = values / sig
-    return values, sig, tstat, ap_dep, ap_fixed, cov
+    if ap_fixed.any():
+        sig[ap_fixed] = 0.0
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return values, sig, values / sig, ap_dep, ap_fixed, cov
+    return values, sig, values / sig, ap_dep, ap_fixed, cov
 
 
 def _max_correlations(plan: Plan, q, skip):
@@ -358,7 +365,7 @@ def _max_correlations(plan: Plan, q, skip):
 
 def _result_code(state, q, rank_def, not_est):
     code = result_code_of(
-        finite=bool(state.finite) and bool(np.isfinite(float(q.vtpv))),
+        finite=bool(state.finite) and math.isfinite(float(q.vtpv)),
         rank_deficient=bool(rank_def),
         converged=bool(state.converged),
         not_estimable=bool(not_est),
@@ -387,36 +394,61 @@ def _point_blocks(cof):
     return cof.reshape(-1, k, 3, k, 3)[:, idx, :, idx, :].transpose(1, 0, 2, 3).reshape(-1, 3, 3)
 
 
+def _in_order(plan: Plan) -> bool:
+    """Whether the network's observation rows and targets are those of the plan's one target
+    family, in order: the result's per-observation arrays are then copies of the quality's."""
+    rows, tg = plan.family_rows, plan.family_targets
+    return kept(
+        plan,
+        "_in_order",
+        lambda: (
+            len(tg) == 1
+            and tg[0].shape[1] == 1
+            and np.array_equal(tg[0][:, 0], np.arange(tg[0].shape[0]))
+            and np.array_equal(rows[0], np.arange(len(rows[0])))
+        ),
+    )
+
+
 def _observation_arrays(net: Network, plan: Plan, q, state, s0sq):
     """Residuals, redundancy numbers and used masks in network row order; target and plane
     estimates with a posteriori sigmas (datum blocks of the cofactor matrix)."""
     n_obs = net.observations.shape[0]
-    resid, redund = np.zeros((n_obs, 3)), np.zeros((n_obs, 3))
-    used = np.ones((n_obs, 3), dtype=bool)
-    txyz = np.zeros((len(net.targets), 3))
-    tcov = np.full((len(net.targets), 3, 3), np.nan)
-    sig_of = lambda fi: np.sqrt(
-        np.clip(np.diagonal(np.asarray(q.prim_cofactor[fi]), axis1=1, axis2=2) * s0sq, 0, None)
-    )
-    for fi, tg in enumerate(plan.family_targets):
-        rows = plan.family_rows[fi]
-        resid[rows] = np.asarray(q.residuals[fi])
-        redund[rows] = np.asarray(q.redundancy[fi])
-        used[rows] = _on_host(plan.problem)["used"][fi]
-        txyz[tg.reshape(-1)] = np.asarray(state.params.prims[fi]).reshape(-1, 3)
-        tcov[tg.reshape(-1)] = _point_blocks(np.asarray(q.prim_cofactor[fi])) * s0sq
+    host = _on_host(plan.problem)
+    if (
+        _in_order(plan)
+        and len(plan.family_rows[0]) == n_obs
+        and len(net.targets) == len(plan.family_targets[0])
+    ):
+        resid, redund = np.array(q.residuals[0]), np.array(q.redundancy[0])
+        used = host["used"][0].copy()
+        txyz = np.array(state.params.prims[0]).reshape(-1, 3)
+        tcov = np.asarray(q.prim_cofactor[0]) * s0sq
+    else:
+        resid, redund = np.zeros((n_obs, 3)), np.zeros((n_obs, 3))
+        used = np.ones((n_obs, 3), dtype=bool)
+        txyz = np.zeros((len(net.targets), 3))
+        tcov = np.full((len(net.targets), 3, 3), np.nan)
+        for fi, tg in enumerate(plan.family_targets):
+            rows = plan.family_rows[fi]
+            resid[rows] = np.asarray(q.residuals[fi])
+            redund[rows] = np.asarray(q.redundancy[fi])
+            used[rows] = host["used"][fi]
+            txyz[tg.reshape(-1)] = np.asarray(state.params.prims[fi]).reshape(-1, 3)
+            tcov[tg.reshape(-1)] = _point_blocks(np.asarray(q.prim_cofactor[fi])) * s0sq
     tsig = np.sqrt(np.clip(np.diagonal(tcov, axis1=1, axis2=2), 0, None))
     planes = {}
     fp = plan.plane_family
     if fp is not None:
+        cof = np.asarray(q.prim_cofactor[fp])
         planes = dict(
             planes=net.planes,
             plane_params=np.asarray(state.params.prims[fp]),
-            plane_sigmas=sig_of(fp),
-            plane_covariance=np.asarray(q.prim_cofactor[fp]) * s0sq,
+            plane_sigmas=np.sqrt(np.clip(np.diagonal(cof, axis1=1, axis2=2) * s0sq, 0, None)),
+            plane_covariance=cof * s0sq,
             plane_residuals=np.asarray(q.residuals[fp]),
             plane_redundancy=np.asarray(q.redundancy[fp]),
-            plane_used=_on_host(plan.problem)["used"][fp].copy(),
+            plane_used=host["used"][fp].copy(),
         )
     return resid, redund, used, txyz, tsig, tcov, planes
 
@@ -440,17 +472,20 @@ def assemble(net, model, plan: Plan, state, q, absent: tuple = ()) -> Calibratio
     max_corr, partner = _max_correlations(plan, q, ap_dep | ap_fixed)
     dep = np.asarray(q.dependent)
     fixed = _on_host(plan.problem)["fixed"]
-    n_p = sum(int(np.prod(P.shape)) for P in state.params.prims)
+    n_p = sum(P.size for P in state.params.prims)
     names = plan.parameter_names
     eop_dep = dep[: 6 * ns] & ~fixed[: 6 * ns]
-    rank_def = tuple(names[n_p + j] for j in np.flatnonzero(eop_dep))
-    new = np.flatnonzero(ap_dep & ~np.isin(np.arange(spec.n_aps), gone))
-    not_est = tuple(absent) + (not_estimable_aps(plan, q, state, new) if new.size else ())
-    not_est = tuple(sorted(not_est, key=lambda t: plan.ap_labels.index(t[0])))
+    rank_def = tuple(names[n_p + j] for j in np.flatnonzero(eop_dep)) if eop_dep.any() else ()
+    # Few statements from here on: each costs several microseconds right after the compiled
+    # call (the host's caches hold its data then), a sixth of a small network's adjustment.
+    new = [j for j in np.flatnonzero(ap_dep).tolist() if j not in gone] if ap_dep.any() else ()
+    not_est = tuple(absent) + (not_estimable_aps(plan, q, state, new) if new else ())
+    if len(not_est) > 1:
+        not_est = tuple(sorted(not_est, key=lambda t: plan.ap_labels.index(t[0])))
     weak = tuple(
-        (plan.ap_labels[i], partner[i], float(max_corr[i]))
-        for i in range(spec.n_aps)
-        if not ap_dep[i] and max_corr[i] > model.correlation_threshold
+        (plan.ap_labels[i], partner[i], c)
+        for i, (c, d) in enumerate(zip(max_corr.tolist(), ap_dep.tolist()))
+        if not d and c > model.correlation_threshold
     )
     code = _result_code(state, q, rank_def, not_est)
     diagnosis = failure_diagnosis(net, plan, q) if code != ResultCode.SUCCESS else {}
