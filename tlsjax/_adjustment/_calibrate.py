@@ -159,6 +159,16 @@ class Adjustment:
         options: SolverOptions | None = None,
     ):
         check_calibration_arguments(network, model, options, "analyze")
+        self._setup(network, model, options)
+
+    @classmethod
+    def _checked(cls, network, model, options) -> Adjustment:
+        """An adjustment of arguments :func:`calibrate` has already checked."""
+        self = cls.__new__(cls)
+        self._setup(network, model, options)
+        return self
+
+    def _setup(self, network, model, options) -> None:
         self.network = network
         self.model = model or CalibrationModel()
         self.options = options or _default_options()
@@ -285,8 +295,16 @@ class Adjustment:
             # The plan's own arguments (solve() again): flattened once, the solver's settings
             # on the device with them (numpy arguments would be transferred on every call).
             if self._leaves is None:
-                args = (problem, params0, self.options.device_arrays())
-                self._leaves = jax.tree.flatten(args)
+                # Kept with the plan per settings, as its approximate values: a calibration of a
+                # network met before flattens nothing, and the compiled call recognises the
+                # very arguments of its last call (:class:`tlsjax._jit.StoredProgram`).
+                flat = kept(self.plan, "_flat_arguments", dict)
+                self._leaves = flat.get(self.options)
+                if self._leaves is None:
+                    args = (problem, params0, self.options.device_arrays())
+                    self._leaves = flat[self.options] = jax.tree.flatten(args)
+                    while len(flat) > 8:  # settings tried on one network: the latest few
+                        flat.pop(next(iter(flat)))
             leaves, treedef = self._leaves
         else:
             args = (problem, params0, self.options.arrays() if options is None else options)
@@ -402,7 +420,7 @@ def calibrate(
     check_calibration_arguments(network, model, options, "calibrate")
     for note in network_design_warnings(network, model):  # the rules of _model._plausibility
         warnings.warn(note, PlausibilityWarning, stacklevel=2)
-    res = analyze(network, model, options).solve(initial=initial)
+    res = Adjustment._checked(network, model, options).solve(initial=initial)
     if throw and not res.ok:
         raise RuntimeError(res.message)
     _, implausible = res.plausibility()  # the rules of _model._plausibility, as the CLI's
