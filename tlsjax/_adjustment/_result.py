@@ -61,15 +61,21 @@ def result_code_of(*, finite, rank_deficient, converged, not_estimable):
     or traced booleans), so the host-side assembly of a result and the compiled batch of a
     Monte Carlo (:func:`._calibrate.result_code`) share it; an int32 code."""
     flags = (finite, rank_deficient, converged, not_estimable)
-    if not any(isinstance(f, jax.Array) for f in flags):
-        # On the host (Python booleans): plain Python, no array operation at all.
-        rules = ((not finite, NONFINITE), (rank_deficient, RANK_DEFICIENT))
-        rules += ((not converged, MAX_ITERATIONS), (not_estimable, NOT_ESTIMABLE))
+    # On the host (Python booleans) plain Python: no array operation at all.
+    host = not any(isinstance(f, jax.Array) for f in flags)
+    negate = (lambda f: not f) if host else jnp.logical_not
+    rules = (
+        (negate(finite), NONFINITE),
+        (rank_deficient, RANK_DEFICIENT),
+        (negate(converged), MAX_ITERATIONS),
+        (not_estimable, NOT_ESTIMABLE),
+    )
+    if host:
         return np.int32(next((code for applies, code in rules if applies), SUCCESS))
-    code = jnp.where(not_estimable, NOT_ESTIMABLE, SUCCESS)
-    code = jnp.where(converged, code, MAX_ITERATIONS)
-    code = jnp.where(rank_deficient, RANK_DEFICIENT, code)
-    return jnp.where(finite, code, NONFINITE).astype(jnp.int32)
+    code = SUCCESS
+    for applies, then in reversed(rules):  # the first rule that applies decides
+        code = jnp.where(applies, then, code)
+    return jnp.asarray(code).astype(jnp.int32)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -331,11 +337,9 @@ def _ap_estimates(plan: Plan, q, state, s0sq, absent=()):
         sig[ap_dep] = np.nan
         cov[ap_dep, :] = np.nan
         cov[:, ap_dep] = np.nan
-    if ap_fixed.any():
-        sig[ap_fixed] = 0.0
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return values, sig, values / sig, ap_dep, ap_fixed, cov
-    return values, sig, values / sig, ap_dep, ap_fixed, cov
+    sig[ap_fixed] = 0.0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return values, sig, values / sig, ap_dep, ap_fixed, cov
 
 
 def _max_correlations(plan: Plan, q, skip):
@@ -394,9 +398,10 @@ def _point_blocks(cof):
     return cof.reshape(-1, k, 3, k, 3)[:, idx, :, idx, :].transpose(1, 0, 2, 3).reshape(-1, 3, 3)
 
 
-def _in_order(plan: Plan) -> bool:
-    """Whether the network's observation rows and targets are those of the plan's one target
-    family, in order: the result's per-observation arrays are then copies of the quality's."""
+def _in_order(net: Network, plan: Plan) -> bool:
+    """Whether the network's observation rows and targets are all those of the plan's one
+    target family, in order: the result's per-observation arrays are then copies of the
+    quality's. Kept with the plan (memoised per network, :func:`._network.memoised`)."""
     rows, tg = plan.family_rows, plan.family_targets
     return kept(
         plan,
@@ -404,8 +409,8 @@ def _in_order(plan: Plan) -> bool:
         lambda: (
             len(tg) == 1
             and tg[0].shape[1] == 1
-            and np.array_equal(tg[0][:, 0], np.arange(tg[0].shape[0]))
-            and np.array_equal(rows[0], np.arange(len(rows[0])))
+            and np.array_equal(tg[0][:, 0], np.arange(len(net.targets)))
+            and np.array_equal(rows[0], np.arange(net.observations.shape[0]))
         ),
     )
 
@@ -415,11 +420,7 @@ def _observation_arrays(net: Network, plan: Plan, q, state, s0sq):
     estimates with a posteriori sigmas (datum blocks of the cofactor matrix)."""
     n_obs = net.observations.shape[0]
     host = _on_host(plan.problem)
-    if (
-        _in_order(plan)
-        and len(plan.family_rows[0]) == n_obs
-        and len(net.targets) == len(plan.family_targets[0])
-    ):
+    if _in_order(net, plan):
         resid, redund = np.array(q.residuals[0]), np.array(q.redundancy[0])
         used = host["used"][0].copy()
         txyz = np.array(state.params.prims[0]).reshape(-1, 3)
